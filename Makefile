@@ -1,0 +1,74 @@
+# Two commands do all the set-up:  `make demo`  and  `make test`.
+# Each creates .venv if needed and installs everything first.  The install is
+# recorded in a stamp file keyed on the hash of pyproject.toml, so a second run
+# skips it and starts in seconds.
+#
+#   PRDP_PETSC_SKIP_PETSC=1   use an existing petsc4py (conda, system PETSc):
+#                             the venv sees system site-packages and PETSc is
+#                             not built.
+#   PYTHON=python3.12         interpreter used to create .venv.
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml Makefile | sha1sum | cut -c1-12)
+DEB_PKGS := libopenmpi-dev openmpi-bin libopenblas-dev
+PETSC_SPEC := petsc>=3.26,<3.27
+PETSC4PY_SPEC := petsc4py>=3.26,<3.27
+OUT ?= results
+
+.PHONY: test demo setup lint bench clean
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+demo: $(STAMP)
+	$(PY) -m prdp_petsc.cli compare demos/heat1d.py --preset paper --out $(OUT)/heat1d
+
+bench: $(STAMP)
+	$(PY) -m prdp_petsc.cli bench bridge --out $(OUT)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check prdp_petsc tests demos meshes
+	$(VENV)/bin/ruff format --check prdp_petsc tests demos meshes
+
+setup: $(STAMP)
+
+$(STAMP):
+	@set -euo pipefail; \
+	if [ "$${PRDP_PETSC_SKIP_PETSC:-0}" = 1 ]; then \
+	  echo ">> PRDP_PETSC_SKIP_PETSC=1: using the petsc4py already installed"; \
+	  [ -x $(PY) ] || $(PYTHON) -m venv --system-site-packages $(VENV); \
+	else \
+	  missing=""; \
+	  for p in $(DEB_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	  if [ -n "$$missing" ]; then \
+	    if [ "$$(id -u)" = 0 ]; then \
+	      echo ">> installing Debian packages:$$missing"; \
+	      apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	    else \
+	      echo "!! PETSc needs the Debian packages:$$missing"; \
+	      echo "!! run: sudo apt-get install$$missing   (or set PRDP_PETSC_SKIP_PETSC=1)"; \
+	      exit 1; \
+	    fi; \
+	  fi; \
+	  [ -x $(PY) ] || $(PYTHON) -m venv $(VENV); \
+	fi; \
+	$(PIP) install -q --upgrade pip wheel setuptools cython numpy; \
+	if [ "$${PRDP_PETSC_SKIP_PETSC:-0}" != 1 ]; then \
+	  if ! $(PY) -c "import petsc4py" 2>/dev/null; then \
+	    echo ">> building PETSc 3.26 from PyPI (about 8 minutes the first time on this machine; pip caches the wheel)"; \
+	    PETSC_CONFIGURE_OPTIONS="--with-fc=0 $${PETSC_CONFIGURE_OPTIONS:-}" $(PIP) install -q "$(PETSC_SPEC)"; \
+	    $(PIP) install -q --no-build-isolation "$(PETSC4PY_SPEC)"; \
+	  fi; \
+	fi; \
+	$(PIP) install -q torch==2.13.0; \
+	$(PIP) install -q --no-build-isolation -e ".[test,dev]"; \
+	$(PY) -c "import petsc4py, torch, skfem, prdp_petsc; from petsc4py import PETSc; \
+	print('>> PETSc', '.'.join(map(str, PETSc.Sys.getVersion())), '| torch', torch.__version__, '| scikit-fem ok')"; \
+	rm -f $(VENV)/.installed-*; touch $@
+
+clean:
+	rm -rf $(VENV) .pytest_cache results

@@ -1,0 +1,46 @@
+"""prdp_petsc: train neural networks through capped PETSc solves with PRDP.
+
+scikit-fem assembles sparse operators, petsc4py KSP solves them with a capped
+iteration count, transpose solves give implicit gradients through a torch
+autograd bridge, and the `PRDP` controller raises the cap only as far as the
+validation metric needs.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .bridge import matvec, solve
+from .dirichlet import Dirichlet
+from .fd import grid_points, laplacian
+from .meshes import available_meshes, load_mesh
+from .parametric import ParametricMatrix, diffusion_operator, from_form, mass_matrix
+from .prdp import PRDP, PRDPStep, rtol_from_level, savings
+from .solver import AdjointSettings, KSPSolver, SolveInfo, SolverError, SolverStats
+
+try:
+    __version__ = version("prdp-petsc")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0.0.0"
+
+__all__ = [
+    "PRDP",
+    "AdjointSettings",
+    "Dirichlet",
+    "KSPSolver",
+    "PRDPStep",
+    "ParametricMatrix",
+    "SolveInfo",
+    "SolverError",
+    "SolverStats",
+    "__version__",
+    "available_meshes",
+    "diffusion_operator",
+    "from_form",
+    "grid_points",
+    "laplacian",
+    "load_mesh",
+    "mass_matrix",
+    "matvec",
+    "rtol_from_level",
+    "savings",
+    "solve",
+]

@@ -1,0 +1,306 @@
+"""Sparse operators whose values are affine in a parameter vector: A(θ) = a₀ + G θ.
+
+Assembly of a bilinear form that is linear in a coefficient field is linear in
+that field's degrees of freedom θ.  A `ParametricMatrix` stores the CSR pattern
+once, the constant values a₀ (nnz,) and the sparse assembly map G (nnz × p), so
+
+* assembling for a new θ is one sparse product, ``a₀ + G θ``;
+* the gradient of a loss through ``x = A(θ)⁻¹ b`` is ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``
+  with λ the adjoint solution: one more sparse product, no re-assembly.
+
+G is built from scikit-fem forms by `from_form` without a Python loop over
+elements: the form is assembled once per *local* basis function of the
+coefficient (3 for P1 triangles), and the element-wise COO data are scattered
+into the pattern.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["ParametricMatrix", "diffusion_operator", "from_form", "mass_matrix"]
+
+
+@dataclass(frozen=True, eq=False)
+class ParametricMatrix:
+    """A CSR matrix with fixed pattern and values ``a0 + G @ theta``.
+
+    Parameters
+    ----------
+    indptr, indices : ndarray
+        CSR pattern (sorted column indices per row).
+    shape : tuple of int
+    a0 : ndarray, shape (nnz,)
+        Values that do not depend on θ.
+    G : scipy.sparse.csr_matrix, shape (nnz, p)
+        Assembly map from parameters to values.
+    positive : bool
+        True when θ is a coefficient that must be > 0 (diffusivity); `check_theta`
+        rejects other values before PETSc sees them.
+    """
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    shape: tuple
+    a0: np.ndarray
+    G: sp.csr_matrix
+    positive: bool = False
+
+    def __post_init__(self):
+        rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
+        object.__setattr__(self, "rows", rows)
+        if self.G.shape[0] != self.nnz or self.a0.shape != (self.nnz,):
+            raise ValueError(
+                f"G {self.G.shape} and a0 {self.a0.shape} must have nnz={self.nnz} rows"
+            )
+
+    @property
+    def nnz(self) -> int:
+        return len(self.indices)
+
+    @property
+    def n_params(self) -> int:
+        """Number of parameters p (columns of G)."""
+        return self.G.shape[1]
+
+    def check_theta(self, theta: np.ndarray) -> np.ndarray:
+        """Validate a parameter vector (shape, finiteness, positivity) and return it."""
+        theta = np.asarray(theta, dtype=np.float64)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have shape ({self.n_params},), got {theta.shape}")
+        if not np.all(np.isfinite(theta)):
+            raise ValueError("theta contains NaN or Inf")
+        if self.positive and not np.all(theta > 0):
+            raise ValueError(
+                f"theta is a diffusion coefficient and must be > 0 (min {theta.min():.3g})"
+            )
+        return theta
+
+    def values(self, theta: np.ndarray) -> np.ndarray:
+        """CSR values for parameters θ: ``a0 + G @ theta``."""
+        return self.a0 + self.G @ self.check_theta(theta)
+
+    def matrix(self, theta: np.ndarray) -> sp.csr_matrix:
+        """The assembled scipy CSR matrix A(θ)."""
+        return sp.csr_matrix((self.values(theta), self.indices, self.indptr), shape=self.shape)
+
+    def theta_gradient(self, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``∂L/∂θ = −Gᵀ Σ_batch (λ[rows] ⊙ x[cols])`` for ``x = A(θ)⁻¹ b``, ``Aᵀλ = ∂L/∂x``."""
+        lam = np.atleast_2d(lam)
+        x = np.atleast_2d(x)
+        dA = np.einsum("bk,bk->k", lam[:, self.rows], x[:, self.indices])
+        return -(self.G.T @ dA)
+
+    def vjp_matvec(self, w: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``∂/∂θ ⟨w, A(θ) v⟩ = Gᵀ Σ_batch (w[rows] ⊙ v[cols])``."""
+        return -self.theta_gradient(w, v)
+
+    def submatrix(self, rows: np.ndarray, cols: np.ndarray) -> ParametricMatrix:
+        """The block ``A[rows][:, cols]`` as a ParametricMatrix with the same θ.
+
+        Used for Dirichlet elimination: ``A_II`` and ``A_IB``.
+        """
+        rows = np.asarray(rows)
+        cols = np.asarray(cols)
+        col_map = np.full(self.shape[1], -1)
+        col_map[cols] = np.arange(len(cols))
+        row_map = np.full(self.shape[0], -1)
+        row_map[rows] = np.arange(len(rows))
+        new_rows = row_map[self.rows]
+        new_cols = col_map[self.indices]
+        keep = np.flatnonzero((new_rows >= 0) & (new_cols >= 0))
+        # entries of the kept rows, reordered by new row index (CSR order)
+        order = keep[np.lexsort((new_cols[keep], new_rows[keep]))]
+        counts = np.bincount(new_rows[order], minlength=len(rows))
+        indptr = np.concatenate([[0], np.cumsum(counts)])
+        return ParametricMatrix(
+            indptr,
+            new_cols[order],
+            (len(rows), len(cols)),
+            self.a0[order],
+            self.G[order],
+            self.positive,
+        )
+
+    def __add__(self, other) -> ParametricMatrix:
+        """Add a constant scipy matrix or another ParametricMatrix (θ stacked: [θ₁, θ₂])."""
+        if isinstance(other, ParametricMatrix):
+            if other.shape != self.shape:
+                raise ValueError(f"shape mismatch {self.shape} vs {other.shape}")
+            return _union([self, other], [self.G, other.G], self.positive and other.positive)
+        other = sp.csr_matrix(other)
+        const = ParametricMatrix(
+            other.indptr,
+            other.indices,
+            other.shape,
+            other.data.astype(np.float64),
+            sp.csr_matrix((other.nnz, self.n_params)),
+        )
+        return _union([self, const], [self.G, None], self.positive)
+
+    __radd__ = __add__
+
+    def __mul__(self, alpha: float) -> ParametricMatrix:
+        alpha = float(alpha)
+        return ParametricMatrix(
+            self.indptr,
+            self.indices,
+            self.shape,
+            alpha * self.a0,
+            alpha * self.G,
+            self.positive,
+        )
+
+    __rmul__ = __mul__
+
+
+def _union(mats: list[ParametricMatrix], gs: list, positive: bool) -> ParametricMatrix:
+    """Sum of parametric matrices on the union of their patterns."""
+    ncols = mats[0].shape[1]
+    keys = [m.rows.astype(np.int64) * ncols + m.indices for m in mats]
+    union, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    nnz = len(union)
+    offsets = np.cumsum([0] + [len(k) for k in keys])
+    a0 = np.zeros(nnz)
+    blocks = []
+    n_params = sum(g.shape[1] for g in gs if g is not None) or mats[0].n_params
+    col0 = 0
+    for m, g, lo, hi in zip(mats, gs, offsets[:-1], offsets[1:], strict=True):
+        pos = inverse[lo:hi]
+        np.add.at(a0, pos, m.a0)
+        if g is not None:
+            scatter = sp.csr_matrix(
+                (np.ones(len(pos)), (pos, np.arange(len(pos)))), shape=(nnz, len(pos))
+            )
+            g_full = sp.hstack(
+                [
+                    sp.csr_matrix((len(pos), col0)),
+                    g,
+                    sp.csr_matrix((len(pos), n_params - col0 - g.shape[1])),
+                ]
+            )
+            blocks.append(scatter @ g_full)
+            col0 += g.shape[1]
+    G = sum(blocks[1:], blocks[0]).tocsr() if blocks else sp.csr_matrix((nnz, n_params))
+    rows, cols = np.divmod(union, ncols)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=mats[0].shape[0]))])
+    return ParametricMatrix(indptr, cols, mats[0].shape, a0, G, positive)
+
+
+def from_form(
+    form, basis, coefficient_basis, *, name: str = "kappa", positive: bool = False, **kwargs
+) -> ParametricMatrix:
+    """Build A(θ) from a scikit-fem `BilinearForm` linear in the coefficient ``w[name]``.
+
+    Parameters
+    ----------
+    form : skfem.BilinearForm
+        A form using ``w[name]`` (e.g. ``w.kappa * dot(grad(u), grad(v))``) linearly.
+    basis : skfem.CellBasis
+        Trial/test basis of the unknown.
+    coefficient_basis : skfem.CellBasis
+        Basis of the coefficient field on the same mesh and quadrature, e.g.
+        ``basis.with_element(ElementTriP0())`` (θ per element) or
+        ``basis.with_element(ElementTriP1())`` (θ per node).  θ has
+        ``coefficient_basis.N`` entries.
+    name : str
+        Keyword under which the form reads the coefficient.
+    positive : bool
+        Mark θ as a coefficient that must be positive.
+    **kwargs
+        Further fixed fields passed to the form.
+
+    Notes
+    -----
+    The form is assembled once per local basis function of the coefficient, with
+    that basis function's quadrature values as the field; the loop is over local
+    degrees of freedom, never over elements.
+    """
+    if coefficient_basis.X.shape != basis.X.shape:
+        raise ValueError("coefficient_basis must use the same quadrature as basis")
+    nt = basis.nelems
+    entries, cols_theta, vals = None, [], []
+    for m in range(coefficient_basis.Nbfun):
+        field = coefficient_basis.basis[m][0]
+        indices, data, shape, _ = form._assemble(basis, **{name: field}, **kwargs)
+        if entries is None:
+            entries = indices
+        element = np.arange(len(data)) % nt
+        cols_theta.append(coefficient_basis.element_dofs[m][element])
+        vals.append(data)
+    rows, cols = entries
+    keys = rows.astype(np.int64) * shape[1] + cols
+    union, position = np.unique(keys, return_inverse=True)
+    nnz = len(union)
+    G = sp.csr_matrix(
+        (np.concatenate(vals), (np.tile(position, len(vals)), np.concatenate(cols_theta))),
+        shape=(nnz, coefficient_basis.N),
+    )
+    G.eliminate_zeros()
+    prow, pcol = np.divmod(union, shape[1])
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(prow, minlength=shape[0]))])
+    return ParametricMatrix(indptr, pcol, shape, np.zeros(nnz), G, positive)
+
+
+def mass_matrix(basis) -> sp.csr_matrix:
+    """The scikit-fem mass matrix ``∫ u v`` of `basis`."""
+    from skfem.models.poisson import mass
+
+    return mass.assemble(basis).tocsr()
+
+
+def diffusion_operator(
+    basis, coefficient: str = "P0", *, reaction: float = 0.0
+) -> ParametricMatrix:
+    """``−∇·(κ∇u) + r u`` with κ per element (``"P0"``) or per node (``"P1"``).
+
+    Parameters
+    ----------
+    basis : skfem.CellBasis
+        Basis of the unknown (any Lagrange element on triangles or tetrahedra).
+    coefficient : {"P0", "P1"}
+        Where κ lives: θ has one entry per element or per mesh vertex.
+    reaction : float
+        Constant reaction coefficient r ≥ 0 (adds ``r`` times the mass matrix).
+
+    Returns
+    -------
+    ParametricMatrix
+        Marked ``positive``: κ must be > 0.
+    """
+    from skfem import BilinearForm
+    from skfem.helpers import dot, grad
+
+    if reaction < 0 or not np.isfinite(reaction):
+        raise ValueError(f"reaction must be finite and >= 0, got {reaction}")
+    coefficient_basis = basis.with_element(_coefficient_element(basis.mesh, coefficient))
+
+    @BilinearForm
+    def stiffness(u, v, w):
+        return w.kappa * dot(grad(u), grad(v))
+
+    A = from_form(stiffness, basis, coefficient_basis, positive=True)
+    return A + reaction * mass_matrix(basis) if reaction > 0 else A
+
+
+def _coefficient_element(mesh, coefficient: str):
+    import skfem
+
+    kinds = {
+        ("P0", "tri"): skfem.ElementTriP0,
+        ("P1", "tri"): skfem.ElementTriP1,
+        ("P0", "tet"): skfem.ElementTetP0,
+        ("P1", "tet"): skfem.ElementTetP1,
+        ("P0", "quad"): skfem.ElementQuad0,
+        ("P1", "quad"): skfem.ElementQuad1,
+    }
+    shape = {skfem.MeshTri1: "tri", skfem.MeshTet1: "tet", skfem.MeshQuad1: "quad"}.get(type(mesh))
+    if (coefficient, shape) not in kinds:
+        raise ValueError(
+            f"coefficient must be 'P0' or 'P1' on tri/tet/quad meshes, "
+            f"got {coefficient!r} on {type(mesh).__name__}"
+        )
+    return kinds[(coefficient, shape)]()

@@ -1,0 +1,480 @@
+"""PETSc KSP solves with a capped iteration count, forward and transpose.
+
+`KSPSolver` owns two PETSc KSP objects on the same matrix: one for the forward
+solve ``A x = b`` and one for the adjoint (transpose) solve ``Aᵀ λ = g``.  Both
+are configured from PETSc options under their own prefix, so everything a PETSc
+user knows (``-fwd_ksp_type gmres -fwd_pc_type gamg -fwd_ksp_monitor``) works.
+The solver knows nothing of torch; `prdp_petsc.bridge` connects it to autograd.
+"""
+
+from __future__ import annotations
+
+import logging
+import shlex
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+__all__ = ["AdjointSettings", "KSPSolver", "SolveInfo", "SolverError", "SolverStats"]
+
+logger = logging.getLogger(__name__)
+
+_REASONS = {
+    getattr(PETSc.KSP.ConvergedReason, name): name
+    for name in dir(PETSc.KSP.ConvergedReason)
+    if name.isupper() and isinstance(getattr(PETSc.KSP.ConvergedReason, name), int)
+}
+_MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
+_TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it")
+
+
+def reason_name(reason: int) -> str:
+    """Name of a PETSc ``KSPConvergedReason`` value, e.g. ``"DIVERGED_MAX_IT"``."""
+    return _REASONS.get(int(reason), f"UNKNOWN({int(reason)})")
+
+
+class SolverError(RuntimeError):
+    """A KSP solve really diverged (NaN, breakdown, indefinite PC, DTOL, no transpose).
+
+    Hitting ``max_it`` is *not* an error; it is the normal outcome of a capped solve.
+
+    Attributes
+    ----------
+    reason : str
+        PETSc reason name (``"DIVERGED_DTOL"``, ``"DIVERGED_NANORINF"``, ...).
+    """
+
+    def __init__(self, message: str, reason: str = "UNKNOWN"):
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class SolveInfo:
+    """Outcome of one KSP solve: iteration count, reason name and residual norm."""
+
+    iterations: int
+    reason: str
+    residual_norm: float
+
+    @property
+    def converged(self) -> bool:
+        """True when PETSc reports convergence (not when the cap was hit)."""
+        return self.reason.startswith("CONVERGED")
+
+
+@dataclass
+class SolverStats:
+    """Counters of forward and adjoint work since the last `KSPSolver.reset_stats`."""
+
+    forward_solves: int = 0
+    forward_iterations: int = 0
+    forward_time: float = 0.0
+    adjoint_solves: int = 0
+    adjoint_iterations: int = 0
+    adjoint_time: float = 0.0
+    operator_updates: int = 0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class AdjointSettings:
+    """Settings of the transpose solve; every ``None`` falls back to the forward one.
+
+    Parameters
+    ----------
+    options : dict or str, optional
+        PETSc options merged over the forward options (e.g. ``{"ksp_type": "gmres"}``).
+        Without ``pc_*`` keys the adjoint shares the forward preconditioner, so the
+        PC is set up once per operator for both solves.
+    max_it, rtol, atol : optional
+        Tolerances of the adjoint solve; ``None`` follows the forward solver, also
+        when its ``max_it`` changes later.
+    prefix : str, optional
+        Options prefix; defaults to the forward prefix + ``"adj_"``.
+    """
+
+    options: dict | str | None = None
+    max_it: int | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    prefix: str | None = None
+
+
+def parse_options(options: dict | str | None) -> dict:
+    """Turn ``{"ksp_type": "cg"}`` or ``"-ksp_type cg -ksp_monitor"`` into a dict."""
+    if options is None:
+        return {}
+    if isinstance(options, dict):
+        return {str(k).lstrip("-"): v for k, v in options.items()}
+    if not isinstance(options, str):
+        raise TypeError(f"options must be a dict or a PETSc option string, got {type(options)}")
+    out: dict = {}
+    tokens = shlex.split(options)
+    i = 0
+    while i < len(tokens):
+        tok = tokens[i]
+        if not tok.startswith("-") or _is_number(tok):
+            raise ValueError(f"options: expected '-name', got {tok!r} in {options!r}")
+        value = None
+        if i + 1 < len(tokens) and (not tokens[i + 1].startswith("-") or _is_number(tokens[i + 1])):
+            value = tokens[i + 1]
+            i += 1
+        out[tok.lstrip("-")] = value
+        i += 1
+    return out
+
+
+def _is_number(tok: str) -> bool:
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
+
+
+def _option_value(value) -> str | None:
+    if value is None or value is True:
+        return None
+    if value is False:
+        return "false"
+    return str(value)
+
+
+def _check_tolerances(max_it, rtol, atol, what: str) -> None:
+    if isinstance(max_it, bool) or not isinstance(max_it, int | np.integer) or max_it < 1:
+        raise ValueError(f"{what}max_it must be an integer >= 1, got {max_it!r}")
+    for name, val in (("rtol", rtol), ("atol", atol)):
+        if not np.isfinite(val) or val < 0:
+            raise ValueError(f"{what}{name} must be finite and >= 0, got {val!r}")
+
+
+class KSPSolver:
+    """A PETSc KSP with a capped iteration count and a matching transpose solve.
+
+    Parameters
+    ----------
+    options : dict or str, optional
+        PETSc options without prefix, e.g. ``{"ksp_type": "cg", "pc_type": "gamg"}``
+        or ``"-ksp_type cg -pc_type gamg"``.  They are written under `prefix`, then
+        ``KSPSetFromOptions`` runs, so options given on the command line with that
+        prefix take precedence, as in any PETSc program.
+    prefix : str
+        Options prefix of the forward KSP (e.g. ``"fwd_"``).
+    max_it : int
+        Iteration cap K.  With ``rtol = atol = 0`` exactly K iterations run.
+        Can be changed between solves without rebuilding the preconditioner.
+    rtol, atol : float
+        Stopping tolerances; 0 disables them ("fixed" mode).
+    adjoint : AdjointSettings or dict, optional
+        Settings of the transpose solve; by default the forward ones.
+    divtol : float, optional
+        PETSc divergence tolerance (default PETSc's 1e5).
+
+    Notes
+    -----
+    Options that apply: any ``-{prefix}ksp_*`` / ``-{prefix}pc_*`` option, and the
+    same under the adjoint prefix (``-{prefix}adj_ksp_type``).  Tolerances are set
+    from the keyword arguments, not from options, because the PRDP controller owns
+    ``max_it``.  The KSP is created on the communicator of the first operator;
+    scipy matrices are serial objects and become ``MATSEQAIJ`` on ``COMM_SELF``.
+    Hitting the cap (``DIVERGED_MAX_IT``) is a normal outcome; every other negative
+    reason raises `SolverError`.
+    """
+
+    def __init__(
+        self,
+        options: dict | str | None = None,
+        *,
+        prefix: str = "",
+        max_it: int,
+        rtol: float = 0.0,
+        atol: float = 0.0,
+        adjoint: AdjointSettings | dict | None = None,
+        divtol: float | None = None,
+    ):
+        _check_tolerances(max_it, rtol, atol, "")
+        self.options = parse_options(options)
+        bad = [k for k in self.options if k in _TOLERANCE_KEYS]
+        if bad:
+            raise ValueError(
+                f"pass {bad} as keyword arguments (max_it=, rtol=, atol=), not options"
+            )
+        if adjoint is None:
+            adjoint = AdjointSettings()
+        elif isinstance(adjoint, dict):
+            adjoint = AdjointSettings(**adjoint)
+        self.adjoint = adjoint
+        if adjoint.max_it is not None or adjoint.rtol is not None or adjoint.atol is not None:
+            _check_tolerances(
+                adjoint.max_it or max_it, adjoint.rtol or 0.0, adjoint.atol or 0.0, "adjoint "
+            )
+        self.adjoint_options = {**self.options, **parse_options(adjoint.options)}
+        self.prefix = prefix
+        self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"
+        self._max_it = int(max_it)
+        self.rtol = float(rtol)
+        self.atol = float(atol)
+        self.divtol = divtol
+        self.stats = SolverStats()
+        self.last: SolveInfo | None = None
+        self._ksp: PETSc.KSP | None = None
+        self._adj: PETSc.KSP | None = None
+        self._mat: PETSc.Mat | None = None
+        self._pattern: tuple[np.ndarray, np.ndarray, tuple] | None = None
+        self._values: np.ndarray | None = None
+
+    # -- tolerances -------------------------------------------------------------
+    @property
+    def max_it(self) -> int:
+        """Forward iteration cap K (the adjoint follows unless set on its own)."""
+        return self._max_it
+
+    @max_it.setter
+    def max_it(self, value: int) -> None:
+        _check_tolerances(value, self.rtol, self.atol, "")
+        self._max_it = int(value)
+        self._apply_tolerances()
+
+    @property
+    def adjoint_max_it(self) -> int:
+        """Adjoint iteration cap: `AdjointSettings.max_it` or the forward `max_it`."""
+        return self.adjoint.max_it if self.adjoint.max_it is not None else self._max_it
+
+    @adjoint_max_it.setter
+    def adjoint_max_it(self, value: int | None) -> None:
+        if value is not None:
+            _check_tolerances(value, 0.0, 0.0, "adjoint ")
+        self.adjoint.max_it = None if value is None else int(value)
+        self._apply_tolerances()
+
+    def set_tolerances(self, *, rtol: float | None = None, atol: float | None = None) -> None:
+        """Change the forward stopping tolerances (e.g. for an rtol schedule)."""
+        rtol = self.rtol if rtol is None else float(rtol)
+        atol = self.atol if atol is None else float(atol)
+        _check_tolerances(self._max_it, rtol, atol, "")
+        self.rtol, self.atol = rtol, atol
+        self._apply_tolerances()
+
+    def _apply_tolerances(self) -> None:
+        if self._ksp is None:
+            return
+        dt = self.divtol if self.divtol is not None else PETSc.DEFAULT
+        self._ksp.setTolerances(rtol=self.rtol, atol=self.atol, divtol=dt, max_it=self._max_it)
+        adj = self.adjoint
+        self._adj.setTolerances(
+            rtol=self.rtol if adj.rtol is None else adj.rtol,
+            atol=self.atol if adj.atol is None else adj.atol,
+            divtol=dt,
+            max_it=self.adjoint_max_it,
+        )
+
+    # -- PETSc objects ------------------------------------------------------------
+    @property
+    def ksp(self) -> PETSc.KSP:
+        """The forward PETSc KSP (exists once an operator has been set)."""
+        if self._ksp is None:
+            raise RuntimeError("no operator yet: call set_operator(A) or solve() first")
+        return self._ksp
+
+    @property
+    def adjoint_ksp(self) -> PETSc.KSP:
+        """The transpose-solve PETSc KSP (exists once an operator has been set)."""
+        self.ksp  # noqa: B018  (raises the same error)
+        return self._adj
+
+    def _shares_pc(self) -> bool:
+        own = parse_options(self.adjoint.options)
+        if any(k.startswith("pc_") for k in own):
+            return False
+        cmdline = PETSc.Options().getAll()
+        return not any(k.startswith(self.adjoint_prefix + "pc_") for k in cmdline)
+
+    def setup(self, comm=None) -> None:
+        """Create and configure the KSPs now (otherwise done by the first operator).
+
+        `comm` defaults to ``PETSc.COMM_SELF``; nothing happens if they exist.
+        """
+        if self._ksp is None:
+            self._create(comm if comm is not None else PETSc.COMM_SELF)
+
+    def _create(self, comm) -> None:
+        self._ksp = PETSc.KSP().create(comm=comm)
+        self._ksp.setOptionsPrefix(self.prefix)
+        self._adj = PETSc.KSP().create(comm=comm)
+        self._adj.setOptionsPrefix(self.adjoint_prefix)
+        if self._shares_pc():
+            self._adj.setPC(self._ksp.getPC())
+        opts = PETSc.Options()
+        pushed = []
+        try:
+            for prefix, options in (
+                (self.prefix, self.options),
+                (self.adjoint_prefix, self.adjoint_options),
+            ):
+                for key, value in options.items():
+                    name = prefix + key
+                    if opts.hasName(name):  # given on the command line: it wins
+                        continue
+                    opts.setValue(name, _option_value(value))
+                    pushed.append(name)
+            self._ksp.setFromOptions()
+            self._adj.setFromOptions()
+        finally:
+            for name in pushed:
+                opts.delValue(name)
+        self._apply_tolerances()
+        logger.debug(
+            "KSP %r: %s/%s, adjoint %r: %s/%s",
+            self.prefix,
+            self._ksp.getType(),
+            self._ksp.getPC().getType(),
+            self.adjoint_prefix,
+            self._adj.getType(),
+            self._adj.getPC().getType(),
+        )
+
+    def set_operator(self, A) -> None:
+        """Set the matrix; the PC is set up again only if its values changed.
+
+        Parameters
+        ----------
+        A : scipy.sparse matrix, PETSc.Mat or tuple ``(indptr, indices, data, shape)``
+            A PETSc Mat is used as given (any communicator, e.g. distributed).
+        """
+        if isinstance(A, PETSc.Mat):
+            if A is not self._mat:
+                self._pattern = self._values = None
+                self._set_mat(A)
+            return
+        if isinstance(A, tuple):
+            indptr, indices, data, shape = A
+        else:
+            if not sp.issparse(A):
+                raise TypeError(f"A must be a scipy sparse matrix or PETSc.Mat, got {type(A)}")
+            A = A.tocsr()
+            if not A.has_sorted_indices:
+                A = A.sorted_indices()
+            indptr, indices, data, shape = A.indptr, A.indices, A.data, A.shape
+        if shape[0] != shape[1]:
+            raise ValueError(f"A must be square, got shape {shape}")
+        data = np.asarray(data, dtype=np.float64)
+        if not np.all(np.isfinite(data)):
+            raise ValueError("A has NaN or Inf entries")
+        same_pattern = self._pattern is not None and (
+            (self._pattern[0] is indptr and self._pattern[1] is indices)
+            or (
+                self._pattern[2] == tuple(shape)
+                and np.array_equal(self._pattern[0], indptr)
+                and np.array_equal(self._pattern[1], indices)
+            )
+        )
+        if same_pattern:
+            if data is self._values or np.array_equal(data, self._values):
+                return
+            self._mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
+            self._mat.assemble()
+            self._values = data
+            self.stats.operator_updates += 1
+            return
+        ip = np.asarray(indptr, dtype=PETSc.IntType)
+        ix = np.asarray(indices, dtype=PETSc.IntType)
+        mat = PETSc.Mat().createAIJ(size=tuple(shape), csr=(ip, ix, data), comm=PETSc.COMM_SELF)
+        mat.assemble()
+        self._pattern = (ip, ix, tuple(shape))
+        self._values = data
+        self._set_mat(mat)
+
+    def _set_mat(self, mat: PETSc.Mat) -> None:
+        if self._ksp is None:
+            self._create(mat.getComm())
+        self._mat = mat
+        self._ksp.setOperators(mat)
+        self._adj.setOperators(mat)
+        self.stats.operator_updates += 1
+
+    @property
+    def mat(self) -> PETSc.Mat:
+        """The current PETSc operator."""
+        if self._mat is None:
+            raise RuntimeError("no operator yet: call set_operator(A) first")
+        return self._mat
+
+    # -- solves ---------------------------------------------------------------------
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve ``A x = b`` from a zero initial guess; `b` is ``(n,)`` or ``(B, n)``."""
+        return self._run(self.ksp, b, transpose=False)
+
+    def solve_transpose(self, g: np.ndarray) -> np.ndarray:
+        """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``."""
+        return self._run(self.adjoint_ksp, g, transpose=True)
+
+    def _run(self, ksp: PETSc.KSP, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
+        rhs = np.asarray(rhs, dtype=np.float64)
+        batch = rhs.reshape(-1, rhs.shape[-1])
+        x_vec, b_vec = self._mat.createVecs()
+        if batch.shape[1] != b_vec.getLocalSize():
+            raise ValueError(
+                f"right-hand side has {batch.shape[1]} entries, operator has "
+                f"{b_vec.getLocalSize()} local rows"
+            )
+        out = np.empty_like(batch)
+        kind = "adjoint" if transpose else "forward"
+        t0 = time.perf_counter()
+        iterations = 0
+        for i, row in enumerate(batch):
+            b_vec.array[:] = row
+            x_vec.set(0.0)
+            try:
+                (ksp.solveTranspose if transpose else ksp.solve)(b_vec, x_vec)
+            except PETSc.Error as err:
+                raise SolverError(
+                    f"{kind} KSPSolve failed inside PETSc ({ksp.getType()}/"
+                    f"{ksp.getPC().getType()}): {err}. A PC without a transpose "
+                    "cannot serve the adjoint: choose another adjoint pc_type.",
+                    reason="PETSC_ERROR",
+                ) from err
+            info = SolveInfo(
+                ksp.getIterationNumber(),
+                reason_name(ksp.getConvergedReason()),
+                float(ksp.getResidualNorm()),
+            )
+            self.last = info
+            iterations += info.iterations
+            reason = ksp.getConvergedReason()
+            if reason < 0 and reason != _MAX_IT:
+                raise SolverError(
+                    f"{kind} solve diverged: {info.reason} after {info.iterations} iterations "
+                    f"({ksp.getType()}/{ksp.getPC().getType()}, residual "
+                    f"{info.residual_norm:.3e}); check the operator and the PC, or lower the "
+                    "Richardson scale",
+                    reason=info.reason,
+                )
+            out[i] = x_vec.array_r
+        if not np.all(np.isfinite(out)):
+            raise SolverError(f"{kind} solve returned NaN/Inf", reason="DIVERGED_NANORINF")
+        elapsed = time.perf_counter() - t0
+        if transpose:
+            self.stats.adjoint_solves += len(batch)
+            self.stats.adjoint_iterations += iterations
+            self.stats.adjoint_time += elapsed
+        else:
+            self.stats.forward_solves += len(batch)
+            self.stats.forward_iterations += iterations
+            self.stats.forward_time += elapsed
+        return out.reshape(rhs.shape)
+
+    def reset_stats(self) -> None:
+        """Zero the counters in `stats`."""
+        self.stats = SolverStats()
+
+    def __repr__(self) -> str:
+        return (
+            f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self._max_it}, "
+            f"rtol={self.rtol}, atol={self.atol}, adjoint_max_it={self.adjoint_max_it})"
+        )
