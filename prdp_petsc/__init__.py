@@ -12,6 +12,7 @@ from .bridge import matvec, solve
 from .dirichlet import Dirichlet
 from .fd import grid_points, laplacian
 from .meshes import available_meshes, load_mesh
+from .scene import Scene
 from .parametric import ParametricMatrix, diffusion_operator, from_form, mass_matrix
 from .prdp import PRDP, PRDPStep, rtol_from_level, savings
 from .solver import AdjointSettings, KSPSolver, SolveInfo, SolverError, SolverStats
@@ -30,6 +31,7 @@ __all__ = [
     "ParametricMatrix",
     "SolveInfo",
     "SolverError",
+    "Scene",
     "SolverStats",
     "__version__",
     "available_meshes",

@@ -1,0 +1,316 @@
+"""Training harness: K schedules, cost accounting, K_full, run and compare.
+
+``run`` trains a scene once under a schedule (``"prdp"`` or ``"fixed:K"``) and
+writes ``results.json`` after every epoch, so a run that stops early (a diverged
+solve, Ctrl-C) keeps everything measured so far.  ``compare`` runs PRDP, the
+constant full-fidelity baseline K_full and a few constant coarse Ks and writes
+``summary.json`` plus the error-against-cost plots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import random
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .prdp import PRDP, savings
+from .scene import load_scene
+from .solver import KSPSolver, SolverError
+
+__all__ = ["compare", "find_k_full", "parse_schedule", "run"]
+
+logger = logging.getLogger(__name__)
+
+
+def parse_schedule(schedule: str) -> int | None:
+    """``"prdp"`` → None, ``"fixed:K"`` → K."""
+    if schedule == "prdp":
+        return None
+    if schedule.startswith("fixed:"):
+        try:
+            k = int(schedule.split(":", 1)[1])
+        except ValueError:
+            k = 0
+        if k >= 1:
+            return k
+    raise ValueError(f"schedule must be 'prdp' or 'fixed:K' with K >= 1, got {schedule!r}")
+
+
+def _seed_everything(seed: int) -> torch.Generator:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    return torch.Generator().manual_seed(seed)
+
+
+def build_scene(module, preset: str, seed: int):
+    if preset not in module.PRESETS:
+        raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {preset!r}")
+    _seed_everything(seed)
+    return module.build(dict(module.PRESETS[preset]), seed)
+
+
+def find_k_full(scene, max_it: int = 100_000) -> int:
+    """Iterations the scene's solver needs to reach ``scene.rtol_full`` on its probe.
+
+    Uses the first solver's KSP/PC options and prefix, so command-line options
+    apply here too.
+    """
+    ref: KSPSolver = scene.solvers[0]
+    A, b = scene.probe()
+    b = np.atleast_2d(b)
+    probe = KSPSolver(ref.options, prefix=ref.prefix, max_it=max_it, rtol=scene.rtol_full)
+    probe.set_operator(A)
+    iterations = []
+    for row in b:
+        probe.solve(row)
+        if not probe.last.converged:
+            raise SolverError(
+                f"the scene's solver did not reach rtol={scene.rtol_full} in {max_it} "
+                f"iterations ({probe.last.reason}); K_full is undefined",
+                reason=probe.last.reason,
+            )
+        iterations.append(probe.last.iterations)
+    return max(iterations)
+
+
+def _write(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=1, default=float))
+    tmp.replace(path)
+
+
+def run(
+    scene_file,
+    schedule: str = "prdp",
+    *,
+    preset: str = "quick",
+    epochs: int | None = None,
+    seed: int = 0,
+    out=None,
+    progress: bool = True,
+    module=None,
+) -> dict:
+    """Train a scene once; return (and write to ``out/results.json``) the per-epoch log.
+
+    Parameters
+    ----------
+    scene_file : str or Path
+        Scene file (see `prdp_petsc.scene`).
+    schedule : str
+        ``"prdp"`` or ``"fixed:K"``.
+    preset, epochs, seed
+        Preset name; number of epochs (default: the scene's); random seed.
+    out : str or Path, optional
+        Output folder for ``results.json``.
+    progress : bool
+        Show a progress bar (epoch, K, validation metric).
+
+    Returns
+    -------
+    dict
+        ``epochs`` (per epoch: ``k``, ``train_loss``, ``val_metric``, ``wall_time``,
+        ``fwd_iterations``, ``adj_iterations``), ``totals`` and ``stopped`` (None, or
+        the epoch and PETSc reason of a diverged solve).
+    """
+    module = module or load_scene(scene_file)
+    fixed_k = parse_schedule(schedule)
+    scene = build_scene(module, preset, seed)
+    epochs = epochs or scene.epochs
+    generator = torch.Generator().manual_seed(seed)
+    controller = PRDP(**scene.prdp) if fixed_k is None else None
+    k = fixed_k if fixed_k is not None else controller.k
+    out = Path(out) if out is not None else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    result = {
+        "scene": Path(scene_file).stem,
+        "schedule": schedule,
+        "preset": preset,
+        "seed": seed,
+        "info": scene.info,
+        "solver": repr(scene.solvers[0]),
+        "epochs": [],
+        "stopped": None,
+    }
+    from tqdm.auto import tqdm
+
+    bar = tqdm(
+        range(epochs), desc=f"{result['scene']} {schedule}", disable=not progress, leave=False
+    )
+    for epoch in bar:
+        for s in scene.solvers:
+            s.max_it = k
+            s.reset_stats()
+        t0 = time.perf_counter()
+        try:
+            losses = []
+            for batch in scene.batches(epoch, generator):
+                scene.optimizer.zero_grad()
+                loss = scene.loss(batch)
+                loss.backward()
+                scene.optimizer.step()
+                losses.append(float(loss.detach()))
+            if scene.scheduler is not None:
+                scene.scheduler.step()
+            metric = float(scene.validate())
+        except SolverError as err:
+            logger.error("epoch %d: %s", epoch, err)
+            result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
+            break
+        wall = time.perf_counter() - t0
+        stats = [s.stats for s in scene.solvers]
+        result["epochs"].append(
+            {
+                "epoch": epoch,
+                "k": k,
+                "train_loss": float(np.mean(losses)) if losses else math.nan,
+                "val_metric": metric,
+                "wall_time": wall,
+                "fwd_iterations": sum(s.forward_iterations for s in stats),
+                "adj_iterations": sum(s.adjoint_iterations for s in stats),
+                "solver_time": sum(s.forward_time + s.adjoint_time for s in stats),
+            }
+        )
+        bar.set_postfix(K=k, val=f"{metric:.3e}")
+        if controller is not None:
+            k = controller.update(metric)
+        result["totals"] = _totals(result["epochs"])
+        if out is not None:
+            _write(out / "results.json", result)
+    bar.close()
+    result["totals"] = _totals(result["epochs"])
+    if out is not None:
+        _write(out / "results.json", result)
+    return result
+
+
+def _totals(log: list[dict]) -> dict:
+    if not log:
+        return {"epochs": 0}
+    return {
+        "epochs": len(log),
+        "wall_time": sum(e["wall_time"] for e in log),
+        "solver_time": sum(e["solver_time"] for e in log),
+        "fwd_iterations": sum(e["fwd_iterations"] for e in log),
+        "adj_iterations": sum(e["adj_iterations"] for e in log),
+        "final_val_error": log[-1]["val_metric"],
+        "best_val_error": min(e["val_metric"] for e in log),
+        "k_final": log[-1]["k"],
+    }
+
+
+def compare(
+    scene_file,
+    *,
+    preset: str = "quick",
+    epochs: int | None = None,
+    seed: int = 0,
+    out="results",
+    progress: bool = True,
+    plots: bool = True,
+) -> dict:
+    """PRDP against constant K_full and constant coarse Ks; write ``summary.json``.
+
+    Returns
+    -------
+    dict
+        ``scene``, ``k_full``, ``runs`` (per schedule: ``final_val_error``,
+        ``wall_time``, ``fwd_iterations``, ``adj_iterations``, ``k_final``),
+        ``savings`` of PRDP against K_full (``iterations``, ``wall_time``, ``pr``,
+        ``ic``, in inner iterations forward + adjoint) and ``val_error_ratio``.
+    """
+    module = load_scene(scene_file)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = build_scene(module, preset, seed)
+    k_full = find_k_full(scene)
+    coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
+    schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
+    logs = {}
+    for schedule in schedules:
+        logs[schedule] = run(
+            scene_file,
+            schedule,
+            preset=preset,
+            epochs=epochs,
+            seed=seed,
+            out=out / schedule.replace(":", "_"),
+            progress=progress,
+            module=module,
+        )
+    summary = summarize(Path(scene_file).stem, k_full, logs)
+    _write(out / "summary.json", summary)
+    if plots:
+        from .report import plot_compare
+
+        summary["plots"] = plot_compare(logs, k_full, out)
+        _write(out / "summary.json", summary)
+    return summary
+
+
+def summarize(scene: str, k_full: int, logs: dict) -> dict:
+    """Summary of a comparison: runs, PRDP savings against K_full, error ratio."""
+    runs = {}
+    for schedule, log in logs.items():
+        t = log["totals"]
+        runs[schedule] = {
+            "final_val_error": t.get("final_val_error"),
+            "best_val_error": t.get("best_val_error"),
+            "wall_time": t.get("wall_time"),
+            "solver_time": t.get("solver_time"),
+            "fwd_iterations": t.get("fwd_iterations"),
+            "adj_iterations": t.get("adj_iterations"),
+            "k_final": t.get("k_final"),
+            "epochs": t["epochs"],
+            "stopped": log["stopped"],
+        }
+    summary = {"scene": scene, "k_full": k_full, "runs": runs}
+    prdp, full = logs.get("prdp"), logs.get(f"fixed:{k_full}")
+    if prdp and full and prdp["epochs"] and len(prdp["epochs"]) == len(full["epochs"]):
+        inner = [e["fwd_iterations"] + e["adj_iterations"] for e in prdp["epochs"]]
+        inner_full = [e["fwd_iterations"] + e["adj_iterations"] for e in full["epochs"]]
+        by_iter = savings(costs=inner, cost_full=inner_full)
+        by_time = savings(
+            costs=[e["wall_time"] for e in prdp["epochs"]],
+            cost_full=[e["wall_time"] for e in full["epochs"]],
+        )
+        summary["savings"] = {
+            "iterations": by_iter["total"],
+            "wall_time": by_time["total"],
+            "pr": by_iter["pr"],
+            "ic": by_iter["ic"],
+        }
+        summary["val_error_ratio"] = (
+            runs["prdp"]["final_val_error"] / runs[f"fixed:{k_full}"]["final_val_error"]
+        )
+    return summary
+
+
+def format_table(summary: dict) -> str:
+    """Plain-text table of a comparison summary."""
+    lines = [
+        f"scene {summary['scene']}   K_full = {summary['k_full']}",
+        f"{'schedule':<12}{'val error':>12}{'K final':>9}{'inner its':>12}{'wall s':>9}",
+    ]
+    for name, r in summary["runs"].items():
+        its = (r["fwd_iterations"] or 0) + (r["adj_iterations"] or 0)
+        lines.append(
+            f"{name:<12}{r['final_val_error']:>12.4e}{r['k_final']:>9}{its:>12}"
+            f"{r['wall_time']:>9.2f}"
+        )
+    if "savings" in summary:
+        s = summary["savings"]
+        lines.append(
+            f"PRDP vs K_full: {100 * s['iterations']:.1f} % fewer inner iterations "
+            f"(PR {100 * s['pr']:.1f} %, IC {100 * s['ic']:.1f} %), "
+            f"{100 * s['wall_time']:.1f} % less wall time, "
+            f"val error ratio {summary['val_error_ratio']:.3f}"
+        )
+    return "\n".join(lines)

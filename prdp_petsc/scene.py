@@ -1,0 +1,104 @@
+"""Scenes: one learning problem each, described in a Python file.
+
+A scene file (the shipped ones live in ``demos/``) defines
+
+``PRESETS``
+    ``{"quick": {...}, "paper": {...}}``: plain dicts of settings (sizes, epochs,
+    learning rate, ...).  ``quick`` is for tests and CI, ``paper`` for the
+    reference settings.
+``build(config: dict, seed: int) -> Scene``
+    builds the physics, data, network, loss and validation metric for one preset,
+    and nothing the scene does not need.
+
+The harness (`prdp_petsc.harness`) does the rest: training loop, K schedule
+(PRDP or fixed), finding K_full, cost accounting, results, plots, command line.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+from .solver import KSPSolver
+
+__all__ = ["Scene", "load_scene"]
+
+
+@dataclass
+class Scene:
+    """What the harness needs from a learning problem.
+
+    Parameters
+    ----------
+    solvers : list of KSPSolver
+        The capped solvers whose ``max_it`` the schedule controls (forward and
+        adjoint together).
+    optimizer : torch.optim.Optimizer
+        Optimises whatever the scene trains (network weights, or θ itself).
+    batches : callable ``(epoch, generator) -> iterable``
+        Training batches of one epoch; `generator` is a seeded ``torch.Generator``.
+    loss : callable ``batch -> torch.Tensor``
+        Scalar training loss of one batch (through the solvers).
+    validate : callable ``() -> float``
+        Validation metric, lower is better; this is what PRDP watches.
+    probe : callable ``() -> (A, b)``
+        A representative operator and right-hand side (numpy); the harness solves
+        it to tolerance `rtol_full` to find K_full.
+    rtol_full : float
+        Relative tolerance that defines a "converged" solve for this scene.
+    epochs : int
+        Default number of epochs.
+    prdp : dict
+        Keyword arguments of `prdp_petsc.PRDP` for this scene.
+    scheduler : torch.optim.lr_scheduler.LRScheduler, optional
+        Stepped once per epoch.
+    compare_ks : list of int, optional
+        Constant coarse Ks for ``compare`` (default: 1, K_full/4, K_full/2).
+    info : dict
+        Free-form description written into results (sizes, settings).
+    """
+
+    solvers: list[KSPSolver]
+    optimizer: torch.optim.Optimizer
+    batches: Callable[[int, torch.Generator], Iterable]
+    loss: Callable[[object], torch.Tensor]
+    validate: Callable[[], float]
+    probe: Callable[[], tuple]
+    rtol_full: float = 1e-6
+    epochs: int = 50
+    prdp: dict = field(default_factory=dict)
+    scheduler: object | None = None
+    compare_ks: list[int] | None = None
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not self.solvers or not all(isinstance(s, KSPSolver) for s in self.solvers):
+            raise TypeError("Scene.solvers must be a non-empty list of KSPSolver")
+        if not 0 < self.rtol_full < 1:
+            raise ValueError(f"rtol_full must lie in (0, 1), got {self.rtol_full}")
+        if self.epochs < 1:
+            raise ValueError(f"epochs must be >= 1, got {self.epochs}")
+
+
+def load_scene(path: str | Path) -> ModuleType:
+    """Import a scene file and check that it defines ``PRESETS`` and ``build``."""
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise FileNotFoundError(f"scene file {path} not found")
+    name = f"prdp_scene_{path.stem}"
+    if name in sys.modules and getattr(sys.modules[name], "__file__", None) == str(path):
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    for attr in ("PRESETS", "build"):
+        if not hasattr(module, attr):
+            raise AttributeError(f"scene {path.name} must define {attr} (see prdp_petsc.scene)")
+    return module
