@@ -12,9 +12,9 @@ from .bridge import matvec, solve
 from .dirichlet import Dirichlet
 from .fd import grid_points, laplacian
 from .meshes import available_meshes, load_mesh
-from .scene import Scene
 from .parametric import ParametricMatrix, diffusion_operator, from_form, mass_matrix
 from .prdp import PRDP, PRDPStep, rtol_from_level, savings
+from .scene import Scene
 from .solver import AdjointSettings, KSPSolver, SolveInfo, SolverError, SolverStats
 
 try:

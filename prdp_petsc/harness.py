@@ -42,11 +42,10 @@ def parse_schedule(schedule: str) -> int | None:
     raise ValueError(f"schedule must be 'prdp' or 'fixed:K' with K >= 1, got {schedule!r}")
 
 
-def _seed_everything(seed: int) -> torch.Generator:
+def _seed_everything(seed: int) -> None:
+    """Seed Python's and torch's global generators (scenes get their own numpy Generator)."""
     random.seed(seed)
-    np.random.seed(seed)
     torch.manual_seed(seed)
-    return torch.Generator().manual_seed(seed)
 
 
 def build_scene(module, preset: str, seed: int):
