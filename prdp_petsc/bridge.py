@@ -58,9 +58,11 @@ class _ImplicitSolve(torch.autograd.Function):
     @staticmethod
     def forward(ctx, b, theta, P, csr, solver):
         solver.set_operator(csr)
-        x = solver.solve(b.detach().cpu().numpy())
-        ctx.P, ctx.csr, ctx.solver, ctx.x = P, csr, solver, x
-        return torch.from_numpy(x).to(b.device)
+        x = torch.from_numpy(solver.solve(b.detach().cpu().numpy())).to(b.device)
+        ctx.P, ctx.csr, ctx.solver = P, csr, solver
+        if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
+            ctx.save_for_backward(x)
+        return x
 
     @staticmethod
     def backward(ctx, grad_x):
@@ -72,7 +74,9 @@ class _ImplicitSolve(torch.autograd.Function):
         grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
         grad_theta = None
         if need_theta:
-            grad_theta = torch.from_numpy(ctx.P.theta_gradient(lam, ctx.x)).to(grad_x.device)
+            (x,) = ctx.saved_tensors
+            x = x.detach().cpu().numpy()
+            grad_theta = torch.from_numpy(ctx.P.theta_gradient(lam, x)).to(grad_x.device)
         return grad_b, grad_theta, None, None, None
 
 

@@ -43,15 +43,38 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
     return parser
 
 
-def _insert_petsc_options(extra: list[str]) -> None:
-    if not extra:
+def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``)."""
+    ours, petsc = [], []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok.startswith("-") and not tok.startswith("--") and tok != "-h" and len(tok) > 2:
+            petsc.append(tok)
+            nxt = argv[i + 1] if i + 1 < len(argv) else None
+            if nxt is not None and (not nxt.startswith("-") or _is_number(nxt)):
+                petsc.append(nxt)
+                i += 1
+        else:
+            ours.append(tok)
+        i += 1
+    return ours, petsc
+
+
+def _is_number(tok: str) -> bool:
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
+
+
+def _insert_petsc_options(petsc: list[str]) -> None:
+    if not petsc:
         return
-    bad = [a for a in extra if a.startswith("--")]
-    if bad:
-        raise SystemExit(f"unknown arguments {bad}; PETSc options take a single dash")
     from petsc4py import PETSc
 
-    PETSc.Options().insertString(" ".join(extra))
+    PETSc.Options().insertString(" ".join(petsc))
 
 
 def _run_scene_command(args, scene_file: str) -> int:
@@ -94,8 +117,9 @@ def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
     if not argv or argv[0] not in ("run", "compare", "-h", "--help"):
         argv.insert(0, "compare")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    args, extra = _scene_parser(scene_arg=False).parse_known_args(argv)
-    _insert_petsc_options(extra)
+    argv, petsc = split_petsc_options(argv)
+    args = _scene_parser(scene_arg=False).parse_args(argv)
+    _insert_petsc_options(petsc)
     return _run_scene_command(args, scene_file)
 
 
@@ -117,8 +141,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         print("\nother commands: " + ", ".join(tools))
         return 0
-    args, extra = parser.parse_known_args(argv)
-    _insert_petsc_options(extra)
+    argv, petsc = split_petsc_options(argv)
+    args = parser.parse_args(argv)
+    _insert_petsc_options(petsc)
     return _run_scene_command(args, args.scene)
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .bridge import matvec, solve
+from .bridge import _as_numpy, _check_vector, matvec, solve
 from .parametric import ParametricMatrix
 from .solver import KSPSolver
 
@@ -52,6 +52,8 @@ class Dirichlet:
 
     def rhs(self, f: torch.Tensor, g: torch.Tensor, theta=None) -> torch.Tensor:
         """Interior right-hand side ``f_I − A_IB(θ) g`` (differentiable)."""
+        _check_vector(_as_numpy(f, "f"), self.n, "f")
+        _check_vector(_as_numpy(g, "g"), len(self.boundary), "g")
         f_i = f[..., torch.from_numpy(self.interior).to(f.device)]
         if isinstance(self.A_IB, ParametricMatrix):
             return f_i - matvec(self.A_IB, g, theta=theta)
@@ -91,4 +93,5 @@ class _ConstMatVec(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        return torch.from_numpy(np.asarray((ctx.M.T @ grad.cpu().numpy().T).T)), None
+        g = np.asarray((ctx.M.T @ grad.detach().cpu().numpy().T).T)
+        return torch.from_numpy(g).to(grad.device), None

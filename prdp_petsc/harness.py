@@ -184,6 +184,8 @@ def run(
         if out is not None:
             _write(out / "results.json", result)
     bar.close()
+    ksp = scene.solvers[0].ksp
+    result["ksp"] = {"ksp_type": ksp.getType(), "pc_type": ksp.getPC().getType()}
     result["totals"] = _totals(result["epochs"])
     if out is not None:
         _write(out / "results.json", result)
@@ -230,6 +232,8 @@ def compare(
     out.mkdir(parents=True, exist_ok=True)
     scene = build_scene(module, preset, seed)
     k_full = find_k_full(scene)
+    # warm-up (imports, PETSc and torch first-call costs) so the first timed run is fair
+    run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False, module=module)
     coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
     schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
     logs = {}

@@ -132,6 +132,8 @@ class ParametricMatrix:
                 raise ValueError(f"shape mismatch {self.shape} vs {other.shape}")
             return _union([self, other], [self.G, other.G], self.positive and other.positive)
         other = sp.csr_matrix(other)
+        if other.shape != self.shape:
+            raise ValueError(f"shape mismatch {self.shape} vs {other.shape}")
         const = ParametricMatrix(
             other.indptr,
             other.indices,

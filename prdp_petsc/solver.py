@@ -18,6 +18,9 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
+from . import safeguards
+from .nullspace import check_nullspace, normalize_nullspace, petsc_nullspace
+
 __all__ = ["AdjointSettings", "KSPSolver", "SolveInfo", "SolverError", "SolverStats"]
 
 logger = logging.getLogger(__name__)
@@ -174,7 +177,18 @@ class KSPSolver:
     adjoint : AdjointSettings or dict, optional
         Settings of the transpose solve; by default the forward ones.
     divtol : float, optional
-        PETSc divergence tolerance (default PETSc's 1e5).
+        PETSc divergence tolerance (default: PETSc's own, ``PETSC_DEFAULT``).
+    nullspace : "constant" or array_like (k, n), optional
+        Null space of a singular operator (pure Neumann, periodic), attached to the
+        matrix with ``MatSetNullSpace``.  Krylov iterates stay orthogonal to it and
+        the right-hand side is projected onto the range of A, so the solve returns
+        the minimum-norm least-squares solution ``A⁺ b``, also when b is not
+        compatible (documented projection, no error).  It must not depend on θ.
+    transpose_nullspace : "constant" or array_like (k, n), optional
+        Null space of Aᵀ (``MatSetTransposeNullSpace``); defaults to `nullspace`,
+        right for symmetric operators.  Both are checked against every new operator
+        (``‖A v‖ ≤ 1e-8 ‖A‖ ‖v‖``), since a wrong one would silently solve another
+        problem.
 
     Notes
     -----
@@ -184,7 +198,16 @@ class KSPSolver:
     ``max_it``.  The KSP is created on the communicator of the first operator;
     scipy matrices are serial objects and become ``MATSEQAIJ`` on ``COMM_SELF``.
     Hitting the cap (``DIVERGED_MAX_IT``) is a normal outcome; every other negative
-    reason raises `SolverError`.
+    reason raises `SolverError`, except a breakdown (or BiCGStab's late divergence)
+    after the residual reached rounding level when run far beyond convergence: the
+    iterate at rounding level is returned and PETSc's reason is kept in `last`
+    (see `prdp_petsc.safeguards`).  A right-hand side with entries beyond
+    ``2^±100`` is scaled by a power of two before the solve (exact; ``atol`` is
+    scaled along) so that 1e±150 neither under- nor overflows inside the KSP.
+    The adjoint refuses KSP types whose transpose solve is wrong (``cgls``) and
+    reports a PC without ``PCApplyTranspose`` (e.g. ``sor``) as a `SolverError`;
+    ``AdjointSettings(options={"ksp_use_explicittranspose": True})`` solves such
+    an adjoint with an explicit Aᵀ and its own PC instead.
     """
 
     def __init__(
@@ -197,6 +220,8 @@ class KSPSolver:
         atol: float = 0.0,
         adjoint: AdjointSettings | dict | None = None,
         divtol: float | None = None,
+        nullspace=None,
+        transpose_nullspace=None,
     ):
         _check_tolerances(max_it, rtol, atol, "")
         self.options = parse_options(options)
@@ -212,15 +237,30 @@ class KSPSolver:
         self.adjoint = adjoint
         if adjoint.max_it is not None or adjoint.rtol is not None or adjoint.atol is not None:
             _check_tolerances(
-                adjoint.max_it or max_it, adjoint.rtol or 0.0, adjoint.atol or 0.0, "adjoint "
+                max_it if adjoint.max_it is None else adjoint.max_it,
+                0.0 if adjoint.rtol is None else adjoint.rtol,
+                0.0 if adjoint.atol is None else adjoint.atol,
+                "adjoint ",
             )
-        self.adjoint_options = {**self.options, **parse_options(adjoint.options)}
+        own = parse_options(adjoint.options)
+        bad = [k for k in own if k in _TOLERANCE_KEYS]
+        if bad:
+            raise ValueError(
+                f"pass {bad} as AdjointSettings(max_it=, rtol=, atol=), not adjoint options"
+            )
+        self.adjoint_options = {**self.options, **own}
         self.prefix = prefix
         self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"
         self._max_it = int(max_it)
         self.rtol = float(rtol)
         self.atol = float(atol)
         self.divtol = divtol
+        self.nullspace = normalize_nullspace(nullspace)
+        self.transpose_nullspace = (
+            self.nullspace
+            if transpose_nullspace is None
+            else normalize_nullspace(transpose_nullspace, "transpose_nullspace")
+        )
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
         self._ksp: PETSc.KSP | None = None
@@ -293,6 +333,14 @@ class KSPSolver:
         if any(k.startswith("pc_") for k in own):
             return False
         cmdline = PETSc.Options().getAll()
+        # an explicit transpose re-points the adjoint's operators (and a shared PC) to Aᵀ
+        off = ("0", "false", "no")
+        explicit = "ksp_use_explicittranspose"
+        if explicit in self.adjoint_options:
+            if _option_value(self.adjoint_options[explicit]) not in off:
+                return False
+        if cmdline.get(self.adjoint_prefix + explicit, "false") not in off:
+            return False
         return not any(k.startswith(self.adjoint_prefix + "pc_") for k in cmdline)
 
     def setup(self, comm=None) -> None:
@@ -325,6 +373,8 @@ class KSPSolver:
                     pushed.append(name)
             self._ksp.setFromOptions()
             self._adj.setFromOptions()
+            for ksp in (self._ksp, self._adj):  # read by safeguards.rescue
+                ksp.setConvergenceHistory(reset=True)
         finally:
             for name in pushed:
                 opts.delValue(name)
@@ -375,28 +425,44 @@ class KSPSolver:
             )
         )
         if same_pattern:
-            if data is self._values or np.array_equal(data, self._values):
+            # compare with a private copy: the caller may have changed `data` in place
+            if np.array_equal(data, self._values):
                 return
             self._mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
             self._mat.assemble()
-            self._values = data
+            self._values = data.copy()
             self.stats.operator_updates += 1
+            self._check_nullspaces()
             return
         ip = np.asarray(indptr, dtype=PETSc.IntType)
         ix = np.asarray(indices, dtype=PETSc.IntType)
         mat = PETSc.Mat().createAIJ(size=tuple(shape), csr=(ip, ix, data), comm=PETSc.COMM_SELF)
         mat.assemble()
         self._pattern = (ip, ix, tuple(shape))
-        self._values = data
+        self._values = data.copy()
         self._set_mat(mat)
 
     def _set_mat(self, mat: PETSc.Mat) -> None:
         if self._ksp is None:
             self._create(mat.getComm())
         self._mat = mat
+        if self.nullspace is not None:
+            mat.setNullSpace(petsc_nullspace(self.nullspace, mat))
+            mat.setTransposeNullSpace(petsc_nullspace(self.transpose_nullspace, mat))
+            self._check_nullspaces()
         self._ksp.setOperators(mat)
         self._adj.setOperators(mat)
         self.stats.operator_updates += 1
+
+    def _check_nullspaces(self) -> None:
+        if self.nullspace is not None:
+            check_nullspace(self._mat, self._mat.getNullSpace(), transpose=False, name="nullspace")
+            check_nullspace(
+                self._mat,
+                self._mat.getTransposeNullSpace(),
+                transpose=True,
+                name="transpose_nullspace",
+            )
 
     @property
     def mat(self) -> PETSc.Mat:
@@ -412,6 +478,13 @@ class KSPSolver:
 
     def solve_transpose(self, g: np.ndarray) -> np.ndarray:
         """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``."""
+        if self.adjoint_ksp.getType() in safeguards.NO_TRANSPOSE_KSP:
+            raise SolverError(
+                f"adjoint ksp_type {self._adj.getType()!r} has no correct transpose solve in "
+                "PETSc (it would return a wrong gradient); choose another adjoint ksp_type, "
+                "e.g. AdjointSettings(options={'ksp_type': 'gmres'})",
+                reason="NO_TRANSPOSE",
+            )
         return self._run(self.adjoint_ksp, g, transpose=True)
 
     def _run(self, ksp: PETSc.KSP, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
@@ -428,34 +501,65 @@ class KSPSolver:
         t0 = time.perf_counter()
         iterations = 0
         for i, row in enumerate(batch):
-            b_vec.array[:] = row
+            exponent = safeguards.rhs_exponent(row)  # 0 unless |b| is extreme
+            b_vec.array[:] = np.ldexp(row, -exponent)
             x_vec.set(0.0)
+            tolerances = ksp.getTolerances()
+            if exponent and tolerances[1] > 0:  # atol is absolute: scale it along
+                ksp.setTolerances(atol=float(np.ldexp(tolerances[1], -exponent)))
             try:
                 (ksp.solveTranspose if transpose else ksp.solve)(b_vec, x_vec)
             except PETSc.Error as err:
+                if transpose and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
+                    raise SolverError(
+                        f"adjoint {ksp.getType()}/{ksp.getPC().getType()}: the PC has no "
+                        "transpose (PCApplyTranspose) in PETSc. Choose another adjoint "
+                        "pc_type, or solve with an explicit transpose: AdjointSettings("
+                        "options={'ksp_use_explicittranspose': True}).",
+                        reason="NO_TRANSPOSE",
+                    ) from err
+                hint = (
+                    " A PC without a transpose cannot serve the adjoint: choose another "
+                    "adjoint pc_type."
+                    if transpose
+                    else ""
+                )
                 raise SolverError(
                     f"{kind} KSPSolve failed inside PETSc ({ksp.getType()}/"
-                    f"{ksp.getPC().getType()}): {err}. A PC without a transpose "
-                    "cannot serve the adjoint: choose another adjoint pc_type.",
+                    f"{ksp.getPC().getType()}): {err}.{hint}",
                     reason="PETSC_ERROR",
                 ) from err
+            finally:
+                if exponent and tolerances[1] > 0:
+                    ksp.setTolerances(atol=tolerances[1])
+            reason = ksp.getConvergedReason()
+            reported = SolveInfo(  # PETSc's own outcome, before any rescue re-run
+                ksp.getIterationNumber(),
+                reason_name(reason),
+                float(np.ldexp(ksp.getResidualNorm(), exponent)),
+            )
+            rescued = None
+            if reason_name(reason) in safeguards.LATE_BREAKDOWNS:
+                rescued = safeguards.rescue(ksp, self._mat, b_vec, x_vec, transpose=transpose)
+                if rescued is not None:
+                    iterations += rescued
             info = SolveInfo(
                 ksp.getIterationNumber(),
                 reason_name(ksp.getConvergedReason()),
-                float(ksp.getResidualNorm()),
+                float(np.ldexp(ksp.getResidualNorm(), exponent)),
             )
             self.last = info
             iterations += info.iterations
-            reason = ksp.getConvergedReason()
-            if reason < 0 and reason != _MAX_IT:
+            if reason < 0 and reason != _MAX_IT and rescued is None:
+                self.last = reported
                 raise SolverError(
-                    f"{kind} solve diverged: {info.reason} after {info.iterations} iterations "
-                    f"({ksp.getType()}/{ksp.getPC().getType()}, residual "
-                    f"{info.residual_norm:.3e}); check the operator and the PC, or lower the "
-                    "Richardson scale",
-                    reason=info.reason,
+                    f"{kind} solve diverged: {reported.reason} after {reported.iterations} "
+                    f"iterations ({ksp.getType()}/{ksp.getPC().getType()}, residual "
+                    f"{reported.residual_norm:.3e}); check the operator and the PC, or lower "
+                    "the Richardson scale",
+                    reason=reported.reason,
                 )
-            out[i] = x_vec.array_r
+            out[i] = np.ldexp(x_vec.array_r, exponent)
         if not np.all(np.isfinite(out)):
             raise SolverError(f"{kind} solve returned NaN/Inf", reason="DIVERGED_NANORINF")
         elapsed = time.perf_counter() - t0

@@ -9,8 +9,11 @@ PETSc runs:
   ``-ksp_richardson_scale`` (default 1);
 * ``cg`` with ``jacobi`` or ``none``: preconditioned conjugate gradients.
 
-Both start from x = 0 and run exactly ``solver.max_it`` iterations.  Memory
-grows linearly with K (every iterate is kept for backward).
+Both start from x = 0 and run at most ``solver.max_it`` iterations, stopping
+where PETSc's default convergence test would (the solver's rtol and atol, the
+KSP's norm type), so in fixed mode (``rtol = atol = 0``) exactly K run and the
+iterates equal PETSc's.  Memory grows linearly with K (every iterate is kept
+for backward).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import torch
 from petsc4py import PETSc
 
 from .parametric import ParametricMatrix
-from .solver import KSPSolver
+from .solver import KSPSolver, SolveInfo
 
 __all__ = ["torch_csr", "unrolled_solve"]
 
@@ -62,7 +65,8 @@ def _diagonal(A_t: torch.Tensor) -> torch.Tensor:
     rows = torch.repeat_interleave(torch.arange(len(crow) - 1), crow.diff())
     on_diag = rows == col
     diag = torch.zeros(A_t.shape[0], dtype=A_t.dtype)
-    return diag.index_add(0, rows[on_diag], A_t.values()[on_diag])
+    diag = diag.index_add(0, rows[on_diag], A_t.values()[on_diag])
+    return torch.where(diag == 0, 1.0, diag)  # PCJacobi replaces a zero diagonal by 1
 
 
 def method_of(solver: KSPSolver) -> tuple[str, str, float]:
@@ -88,47 +92,126 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
     A_t = torch_csr(A, theta)
     inv_m = 1.0 / _diagonal(A_t) if pc_type == "jacobi" else None
     B = b.cpu().reshape(-1, b.shape[-1]).T  # (n, batch): columns are right-hand sides
-    k = solver.max_it
+    stop = _Stopping(solver)
     if ksp_type == "richardson":
-        x = _richardson(A_t, B, inv_m, scale, k)
+        x = _richardson(A_t, B, inv_m, scale, solver.max_it, stop)
     else:
-        x = _cg(A_t, B, inv_m, k)
+        x = _cg(A_t, B, inv_m, solver.max_it, stop)
+    its = int(stop.iterations.sum())
+    solver.last = stop.info()
     stats = solver.stats
     stats.forward_solves += B.shape[1]
-    stats.forward_iterations += k * B.shape[1]
+    stats.forward_iterations += its
     stats.forward_time += time.perf_counter() - t0
     if torch.is_grad_enabled() and (b.requires_grad or (theta is not None and theta.requires_grad)):
         stats.adjoint_solves += B.shape[1]
-        stats.adjoint_iterations += k * B.shape[1]
+        stats.adjoint_iterations += its
     return x.T.reshape(b.shape).to(b.device)
+
+
+class _Stopping:
+    """PETSc's default convergence test (``KSPConvergedDefault``), one flag per column.
+
+    A column stops when its residual norm (of the KSP's norm type) falls to
+    ``max(rtol * ‖r₀‖, atol)``; with ``rtol = atol = 0`` only an exactly zero
+    residual stops it, as in PETSc.  Norms are compared, never differentiated.
+    """
+
+    def __init__(self, solver: KSPSolver):
+        norm_type = solver.ksp.getNormType()
+        self.norm_type = "none" if norm_type == PETSc.KSP.NormType.NONE else norm_type
+        self.rtol, self.atol = solver.rtol, solver.atol
+        self.ttol = None
+        self.active = None
+        self.iterations = None
+        self.norm = None
+        self.by_atol = None
+
+    def norm_of(self, r, z, rz) -> torch.Tensor:
+        with torch.no_grad():
+            if self.norm_type == PETSc.KSP.NormType.UNPRECONDITIONED:
+                return torch.linalg.vector_norm(r, dim=0)
+            if self.norm_type == PETSc.KSP.NormType.NATURAL:
+                return rz.abs().sqrt()
+            return torch.linalg.vector_norm(z, dim=0)  # preconditioned (PETSc's default)
+
+    def check(self, r, z, rz) -> torch.Tensor:
+        """Update and return the mask of columns still iterating."""
+        if self.active is None:
+            self.active = torch.ones(r.shape[1], dtype=torch.bool)
+            self.iterations = torch.zeros(r.shape[1], dtype=torch.int64)
+            self.by_atol = torch.zeros(r.shape[1], dtype=torch.bool)
+        if self.norm_type == "none":
+            return self.active
+        norm = self.norm_of(r, z, rz)
+        if self.ttol is None:
+            self.ttol = torch.clamp(self.rtol * norm, min=self.atol)
+        self.norm = norm
+        done = self.active & (norm <= self.ttol)
+        self.by_atol |= done & (norm < self.atol)
+        self.active = self.active & ~done
+        return self.active
+
+    def info(self) -> SolveInfo:
+        """`SolveInfo` of the last column, as PETSc reports it."""
+        last = -1
+        converged = not bool(self.active[last])
+        norm = float("nan") if self.norm is None else float(self.norm[last])
+        reason = "DIVERGED_MAX_IT"
+        if converged:
+            reason = "CONVERGED_ATOL" if bool(self.by_atol[last]) else "CONVERGED_RTOL"
+        return SolveInfo(int(self.iterations[last]), reason, norm)
 
 
 def _precondition(inv_m, r):
     return r if inv_m is None else inv_m[:, None] * r
 
 
-def _richardson(A_t, B, inv_m, scale, k):
-    x = scale * _precondition(inv_m, B)
-    for _ in range(k - 1):
-        x = x + scale * _precondition(inv_m, B - A_t @ x)
+def _richardson(A_t, B, inv_m, scale, k, stop):
+    """``x ← x + ω M⁻¹(b − A x)`` from x = 0, as ``KSPSolve_Richardson``."""
+    x = torch.zeros_like(B)
+    r = B
+    for _ in range(k):
+        z = _precondition(inv_m, r)
+        active = stop.check(r, z, None)
+        if not active.any():
+            break
+        x = x + scale * torch.where(active, z, 0.0)
+        stop.iterations += active
+        r = B - A_t @ x
+    else:  # PETSc tests the residual after the last step too
+        stop.check(r, _precondition(inv_m, r), None)
     return x
 
 
-def _cg(A_t, B, inv_m, k):
+def _cg(A_t, B, inv_m, k, stop):
+    """Preconditioned CG from x = 0, step for step as ``KSPSolve_CG``.
+
+    A column stops on PETSc's convergence test or when ``zᵀr`` or ``pᵀAp`` is
+    exactly zero (PETSc: converged, or breakdown); stopped columns are frozen
+    with safe divisions, so their gradients stay finite.
+    """
     x = torch.zeros_like(B)
     r = B
     z = _precondition(inv_m, r)
-    p = z
     rho = (r * z).sum(0)
+    active = stop.check(r, z, rho)
+    p = z
     for _ in range(k):
+        active = active & (rho != 0)
+        if not active.any():
+            break
         q = A_t @ p
         pq = (p * q).sum(0)
-        alpha = torch.where(pq != 0, rho / torch.where(pq != 0, pq, 1.0), 0.0)
+        active = active & (pq != 0)
+        alpha = torch.where(active, rho / torch.where(active, pq, 1.0), 0.0)
         x = x + alpha * p
         r = r - alpha * q
         z = _precondition(inv_m, r)
+        stop.iterations += active
         rho_new = (r * z).sum(0)
-        beta = torch.where(rho != 0, rho_new / torch.where(rho != 0, rho, 1.0), 0.0)
+        active = active & stop.check(r, z, rho_new)
+        beta = torch.where(active, rho_new / torch.where(active, rho, 1.0), 0.0)
         p = z + beta * p
         rho = rho_new
     return x

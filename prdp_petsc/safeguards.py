@@ -1,0 +1,129 @@
+"""Numerical safeguards around one PETSc KSP solve, used by `KSPSolver`.
+
+* **Extreme right-hand sides.**  Krylov methods square residual norms (CG's
+  ``rᵀz``, BiCGStab's ``ρ``): a right-hand side of size 1e-150 underflows to a false
+  breakdown, 1e-300 even to a silent ``x = 0``; 1e150 overflows.  Every capped
+  K-step Krylov or stationary map is homogeneous, ``x_K(s b) = s x_K(b)``, so a
+  right-hand side whose largest entry lies outside `SAFE_RANGE` is multiplied by a
+  power of two (exact in floating point) and the solution scaled back.
+* **Breakdowns at rounding level.**  Run far beyond convergence with
+  ``rtol = atol = 0``, CG reports ``DIVERGED_INDEFINITE_PC``, GMRES
+  ``DIVERGED_BREAKDOWN``, BiCGStab breaks down or even diverges (DTOL) once the
+  residual has reached rounding level.  `rescue` recognises that case: the
+  iterate is accepted when its backward error is at rounding level; otherwise the
+  (deterministic) iteration is run again up to the iteration of the smallest
+  recorded residual and that iterate is accepted if it is at rounding level.
+  A breakdown above rounding level stays an error.
+* **KSP types without a correct transpose.**  `NO_TRANSPOSE_KSP` lists the types
+  whose ``KSPSolveTranspose`` runs without error but does not apply the transposed
+  iteration (found by comparing with a forward solve on an explicit Aᵀ); the
+  adjoint refuses them rather than return a wrong gradient.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = [
+    "LATE_BREAKDOWNS",
+    "NO_TRANSPOSE_KSP",
+    "ROUNDING_LEVEL",
+    "SAFE_RANGE",
+    "backward_error",
+    "rescue",
+    "rhs_exponent",
+]
+
+logger = logging.getLogger(__name__)
+
+#: backward error ``‖b − A x‖ / (‖A‖ ‖x‖ + ‖b‖)`` that counts as converged to rounding
+ROUNDING_LEVEL = 1e4 * np.finfo(np.float64).eps
+#: right-hand sides whose largest entry lies outside this range are rescaled
+SAFE_RANGE = (2.0**-100, 2.0**100)
+#: PETSc reasons that are spurious when the residual had already reached rounding level
+LATE_BREAKDOWNS = frozenset(
+    {
+        "DIVERGED_BREAKDOWN",
+        "DIVERGED_BREAKDOWN_BICG",
+        "DIVERGED_INDEFINITE_PC",
+        "DIVERGED_INDEFINITE_MAT",
+        "DIVERGED_DTOL",
+        "DIVERGED_NANORINF",
+    }
+)
+#: KSP types whose transpose solve silently runs another iteration (PETSc 3.26)
+NO_TRANSPOSE_KSP = frozenset({"cgls"})
+
+
+def rhs_exponent(row: np.ndarray) -> int:
+    """Power of two e such that ``row · 2⁻ᵉ`` has its largest entry in [0.5, 1).
+
+    Returns 0 (no scaling) for a zero row or one whose largest entry lies in
+    `SAFE_RANGE`.
+    """
+    biggest = float(np.max(np.abs(row))) if row.size else 0.0
+    if biggest == 0.0 or SAFE_RANGE[0] <= biggest <= SAFE_RANGE[1]:
+        return 0
+    return int(np.frexp(biggest)[1])
+
+
+def backward_error(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: bool) -> float:
+    """``‖b − A x‖ / (‖A‖ ‖x‖ + ‖b‖)`` (Aᵀ with `transpose`), null-space part removed.
+
+    ‖A‖ is ``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂.  NaN when x is not finite.
+    """
+    r = b.duplicate()
+    (mat.multTranspose if transpose else mat.mult)(x, r)
+    r.aypx(-1.0, b)  # r = b − A x
+    ns = mat.getNullSpace() if transpose else mat.getTransposeNullSpace()
+    if ns is not None and bool(ns):
+        ns.remove(r)  # the incompatible part of b is projected away by KSPSolve
+    norm_a = max(mat.norm(PETSc.NormType.INFINITY), mat.norm(PETSc.NormType.NORM_1))
+    denom = norm_a * x.norm() + b.norm()
+    return float(r.norm() / denom) if denom > 0 else 0.0
+
+
+def rescue(
+    ksp: PETSc.KSP, mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: bool
+) -> int | None:
+    """Decide whether a breakdown reported by `ksp` happened at rounding level.
+
+    Called after a solve that ended with one of `LATE_BREAKDOWNS`.  Returns None
+    when it is a real failure (the caller raises), otherwise the number of
+    iterations of the discarded run (0 when the returned iterate was accepted as
+    it is); `x` then holds an iterate with backward error ≤ `ROUNDING_LEVEL` and
+    ``ksp`` the state of the run that produced it.
+    """
+    iterations = ksp.getIterationNumber()
+    if backward_error(mat, b, x, transpose=transpose) <= ROUNDING_LEVEL:
+        logger.info(
+            "%s after %d iterations at rounding level: iterate accepted",
+            ksp.getConvergedReason(),
+            iterations,
+        )
+        return 0
+    history = np.asarray(ksp.getConvergenceHistory(), dtype=np.float64)[: iterations + 1]
+    if history.size < 2 or not np.isfinite(history).any():
+        return None
+    best = int(np.nanargmin(np.where(np.isfinite(history), history, np.nan)))
+    if not 1 <= best < iterations:
+        return None
+    rtol, atol, divtol, max_it = ksp.getTolerances()
+    try:
+        ksp.setTolerances(max_it=best)
+        x.set(0.0)
+        (ksp.solveTranspose if transpose else ksp.solve)(b, x)
+    finally:
+        ksp.setTolerances(rtol=rtol, atol=atol, divtol=divtol, max_it=max_it)
+    if backward_error(mat, b, x, transpose=transpose) <= ROUNDING_LEVEL:
+        logger.info(
+            "breakdown after %d iterations; the iterate of iteration %d (smallest residual) "
+            "is at rounding level and is returned",
+            iterations,
+            best,
+        )
+        return iterations
+    return None

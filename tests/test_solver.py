@@ -1,0 +1,362 @@
+"""KSPSolver: capped iterations, PC reuse, options, adjoint settings, stats, transposes.
+
+The forward and transpose solves are checked against scipy's direct solver and
+against each other (dot-product test); the torch-unrolled iteration against PETSc's
+own, iterate for iterate.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+import torch
+from _core import (
+    CONVERGED,
+    fd_poisson,
+    interior_operator,
+    randn,
+    random_theta,
+    unit_square,
+)
+from petsc4py import PETSc
+
+import prdp_petsc as pp
+
+
+def nonsymmetric():
+    """Advection–diffusion ``A_II`` on the unit square as a scipy CSR matrix."""
+    A = interior_operator(unit_square(3), advect=True).A_II
+    return A.matrix(random_theta(A.n_params, seed=1).numpy())
+
+
+def rng_vec(n, seed):
+    return np.random.default_rng(seed).standard_normal(n)
+
+
+@pytest.fixture(scope="module")
+def pc_setups():
+    """Number of ``PCSetUp`` calls so far (PETSc logging is switched on once)."""
+    PETSc.Log.begin()
+    event = PETSc.Log.Event("PCSetUp")
+    return lambda: event.getPerfInfo()["count"]
+
+
+@pytest.fixture
+def petsc_option():
+    """Set options in the PETSc database (as from the command line); removed afterwards."""
+    opts = PETSc.Options()
+    names = []
+
+    def put(name, value):
+        opts.setValue(name, value)
+        names.append(name)
+
+    yield put
+    for name in names:
+        opts.delValue(name)
+
+
+# -- capped iterations ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"ksp_type": "richardson", "pc_type": "jacobi"},
+        {"ksp_type": "cg", "pc_type": "jacobi"},
+        {"ksp_type": "gmres", "pc_type": "none"},  # K = 40 crosses the restart at 30
+    ],
+    ids=lambda o: o["ksp_type"],
+)
+@pytest.mark.parametrize("K", [1, 3, 7, 40])
+def test_fixed_mode_runs_exactly_K_iterations(options, K):
+    solver = pp.KSPSolver(options, max_it=K)
+    solver.set_operator(fd_poisson(10))
+    solver.solve(rng_vec(100, 0))
+    assert solver.last.iterations == K
+    assert solver.last.reason == "DIVERGED_MAX_IT" and not solver.last.converged
+    solver.solve_transpose(rng_vec(100, 1))
+    assert solver.last.iterations == K
+    assert solver.stats.forward_iterations == K and solver.stats.adjoint_iterations == K
+
+
+def test_max_it_is_a_runtime_knob_and_pc_is_reused(pc_setups):
+    D = interior_operator(unit_square(3))
+    A = D.A_II
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, max_it=3)
+    theta = random_theta(A.n_params)
+    b = randn(A.shape[0], seed=2, requires_grad=True)
+    c0 = pc_setups()
+    pp.solve(A, b, solver, theta=theta)
+    assert pc_setups() == c0 + 1
+    pp.solve(A, b, solver, theta=theta)  # same θ: nothing to set up
+    assert pc_setups() == c0 + 1
+    for K in (5, 2, 9):
+        solver.max_it = K
+        x = pp.solve(A, b, solver, theta=theta)
+        assert solver.last.iterations == K
+    assert pc_setups() == c0 + 1  # a new cap is not a new operator
+    x.sum().backward()  # the adjoint shares the forward PC
+    assert solver.last.iterations == 9 and pc_setups() == c0 + 1
+    pp.solve(A, b, solver, theta=2.0 * theta)  # new values: one new setup
+    assert pc_setups() == c0 + 2
+    pp.solve(A, randn(5, A.shape[0], seed=3), solver, theta=3.0 * theta)  # batch: one setup
+    assert pc_setups() == c0 + 3
+    assert solver.stats.operator_updates == 3
+
+
+def test_adjoint_with_own_pc_sets_up_its_own(pc_setups):
+    D = interior_operator(unit_square(3))
+    A = D.A_II
+    adjoint = pp.AdjointSettings(options={"pc_type": "jacobi"})
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, max_it=4, adjoint=adjoint)
+    theta = random_theta(A.n_params)
+    c0 = pc_setups()
+    for _ in range(2):
+        b = randn(A.shape[0], seed=4, requires_grad=True)
+        pp.solve(A, b, solver, theta=theta).sum().backward()
+    assert pc_setups() == c0 + 2  # one forward, one adjoint, then both reused
+    assert solver.ksp.getPC().getType() == "icc"
+    assert solver.adjoint_ksp.getPC().getType() == "jacobi"
+    assert solver.adjoint_ksp.getPC().handle != solver.ksp.getPC().handle
+
+
+# -- options ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{"ksp_type": "bcgs", "pc_type": "sor"}, "-ksp_type bcgs -pc_type sor"],
+    ids=["dict", "string"],
+)
+def test_options_set_ksp_and_pc_type_under_prefix(options):
+    solver = pp.KSPSolver(options, prefix="opt_", max_it=5)
+    solver.set_operator(fd_poisson(4))
+    assert solver.ksp.getOptionsPrefix() == "opt_"
+    assert solver.adjoint_ksp.getOptionsPrefix() == "opt_adj_"
+    assert solver.ksp.getType() == "bcgs" and solver.ksp.getPC().getType() == "sor"
+    assert solver.adjoint_ksp.getType() == "bcgs"  # the adjoint defaults to the forward
+    assert solver.adjoint_ksp.getPC().handle == solver.ksp.getPC().handle  # shared PC
+    assert not PETSc.Options().hasName("opt_ksp_type")  # nothing left in the database
+    rtol, atol, _, max_it = solver.ksp.getTolerances()
+    assert (rtol, atol, max_it) == (0.0, 0.0, 5)
+
+
+def test_command_line_options_override_the_dict(petsc_option):
+    petsc_option("tst_ksp_type", "gmres")
+    petsc_option("tst_adj_pc_type", "jacobi")
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, prefix="tst_", max_it=5)
+    solver.set_operator(fd_poisson(4))
+    assert solver.ksp.getType() == "gmres"  # -tst_ksp_type gmres wins over the dict
+    assert solver.ksp.getPC().getType() == "icc"
+    assert solver.adjoint_ksp.getType() == "cg"  # its own prefix: tst_adj_
+    assert solver.adjoint_ksp.getPC().getType() == "jacobi"
+    assert PETSc.Options().getString("tst_ksp_type") == "gmres"  # left as the user set it
+
+
+def test_adjoint_settings_apply_to_the_adjoint_only():
+    adjoint = pp.AdjointSettings(options={"ksp_type": "gmres"}, max_it=3, rtol=1e-8)
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=10, adjoint=adjoint)
+    solver.set_operator(fd_poisson(6))
+    assert solver.ksp.getType() == "cg" and solver.adjoint_ksp.getType() == "gmres"
+    assert solver.adjoint_ksp.getPC().handle == solver.ksp.getPC().handle  # no pc_*: shared
+    assert solver.ksp.getTolerances()[::3] == (0.0, 10)
+    assert solver.adjoint_ksp.getTolerances()[::3] == (1e-8, 3)
+    solver.max_it = 20  # the adjoint keeps its own cap
+    assert solver.adjoint_ksp.getTolerances()[3] == 3
+    solver.adjoint_max_it = None  # ... until it follows the forward one again
+    assert solver.adjoint_ksp.getTolerances()[3] == 20 == solver.adjoint_max_it
+    solver.solve(rng_vec(36, 5))
+    solver.solve_transpose(rng_vec(36, 6))
+    assert solver.stats.forward_iterations == 20
+
+
+def test_adjoint_follows_forward_max_it_by_default():
+    solver = pp.KSPSolver({"ksp_type": "cg"}, max_it=4)
+    solver.set_operator(fd_poisson(6))
+    solver.max_it = 6
+    solver.solve_transpose(rng_vec(36, 7))
+    assert solver.last.iterations == 6 == solver.adjoint_max_it
+
+
+def test_tolerance_options_must_be_keywords():
+    with pytest.raises(ValueError, match="keyword"):
+        pp.KSPSolver({"ksp_max_it": 5}, max_it=5)
+
+
+# -- stats ------------------------------------------------------------------------------------
+
+
+def test_stats_last_and_reset():
+    D = interior_operator(unit_square(3))
+    A = D.A_II
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=4)
+    theta = random_theta(A.n_params, requires_grad=True)
+    b = randn(3, A.shape[0], seed=8)
+    pp.solve(A, b, solver, theta=theta).sum().backward()
+    s = solver.stats
+    assert (s.forward_solves, s.forward_iterations) == (3, 12)
+    assert (s.adjoint_solves, s.adjoint_iterations) == (3, 12)
+    assert s.operator_updates == 1 and s.forward_time > 0 and s.adjoint_time > 0
+    last = solver.last
+    assert isinstance(last, pp.SolveInfo)
+    assert last.iterations == 4 and last.reason == "DIVERGED_MAX_IT" and last.residual_norm > 0
+    assert set(s.as_dict()) >= {"forward_solves", "adjoint_iterations", "operator_updates"}
+    solver.reset_stats()
+    assert solver.stats == pp.SolverStats()
+    solver.max_it = 500
+    solver.set_tolerances(rtol=1e-10)
+    pp.solve(A, b[0], solver, theta=theta.detach())
+    assert solver.last.converged and solver.last.reason == "CONVERGED_RTOL"
+    assert solver.stats.forward_iterations == solver.last.iterations < 500
+    assert solver.stats.adjoint_solves == 0
+
+
+# -- correctness against scipy, dot-product tests ---------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("matrix", "options"),
+    [
+        ("symmetric", {"ksp_type": "cg", "pc_type": "icc"}),
+        ("symmetric", {"ksp_type": "cg", "pc_type": "gamg"}),
+        ("nonsymmetric", {"ksp_type": "gmres", "pc_type": "ilu"}),
+        ("nonsymmetric", {"ksp_type": "bcgs", "pc_type": "jacobi"}),
+    ],
+)
+def test_converged_solves_match_spsolve(matrix, options):
+    M = fd_poisson(12) if matrix == "symmetric" else nonsymmetric()
+    n = M.shape[0]
+    solver = pp.KSPSolver(options, **CONVERGED)
+    solver.set_operator(M)
+    B = np.stack([rng_vec(n, 9), rng_vec(n, 10)])
+    x = solver.solve(B)
+    assert solver.last.converged
+    y = solver.solve_transpose(B)
+    assert solver.last.converged
+    for k in range(2):
+        exact = spla.spsolve(M.tocsc(), B[k])
+        exact_t = spla.spsolve(M.T.tocsc(), B[k])
+        np.testing.assert_allclose(x[k], exact, rtol=0, atol=1e-9 * np.abs(exact).max())
+        np.testing.assert_allclose(y[k], exact_t, rtol=0, atol=1e-9 * np.abs(exact_t).max())
+
+
+@pytest.mark.parametrize("K", [1, 4, 15])
+def test_dot_product_stationary_transpose_is_exact_adjoint(K):
+    """Richardson+Jacobi with K steps is a linear map; K transposed steps are its adjoint."""
+    M = nonsymmetric()
+    n = M.shape[0]
+    options = {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale": 0.7}
+    solver = pp.KSPSolver(options, max_it=K)
+    solver.set_operator(M)
+    u, v = rng_vec(n, 11), rng_vec(n, 12)
+    lhs = solver.solve(u) @ v
+    rhs = u @ solver.solve_transpose(v)
+    assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
+
+
+@pytest.mark.parametrize(
+    ("matrix", "options"),
+    [
+        ("symmetric", {"ksp_type": "cg", "pc_type": "icc"}),
+        ("nonsymmetric", {"ksp_type": "gmres", "pc_type": "ilu"}),
+    ],
+)
+def test_dot_product_converged(matrix, options):
+    M = fd_poisson(12) if matrix == "symmetric" else nonsymmetric()
+    n = M.shape[0]
+    solver = pp.KSPSolver(options, **CONVERGED)
+    solver.set_operator(M)
+    u, v = rng_vec(n, 13), rng_vec(n, 14)
+    x, y = solver.solve(u), solver.solve_transpose(v)
+    assert abs(x @ v - u @ y) <= 1e-10 * abs(x @ v)
+    assert abs((M @ x) @ y - x @ (M.T @ y)) <= 1e-12 * np.linalg.norm(M @ x) * np.linalg.norm(y)
+    np.testing.assert_allclose(M @ x, u, atol=1e-10 * np.abs(u).max())
+
+
+def test_dot_product_fails_for_truncated_krylov():
+    """Control: a truncated CG is not linear in b, so its 'transpose' is no adjoint."""
+    M = fd_poisson(12)
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=3)
+    solver.set_operator(M)
+    u, v = rng_vec(144, 15), rng_vec(144, 16)
+    lhs, rhs = solver.solve(u) @ v, u @ solver.solve_transpose(v)
+    assert abs(lhs - rhs) > 1e-3 * abs(lhs)
+
+
+def test_operator_values_changed_in_place_are_used():
+    """Regression: set_operator compared values by identity, so in-place edits were ignored."""
+    M = fd_poisson(6)
+    solver = pp.KSPSolver({"ksp_type": "preonly", "pc_type": "lu"}, max_it=1)
+    b = rng_vec(36, 17)
+    solver.set_operator(M)
+    x1 = solver.solve(b)
+    M.data *= 2.0
+    solver.set_operator(M)
+    np.testing.assert_allclose(solver.solve(b), x1 / 2.0, rtol=1e-12)
+
+
+def test_petsc_mat_operator():
+    M = nonsymmetric()
+    mat = PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr, M.indices, M.data))
+    mat.assemble()
+    solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "ilu"}, **CONVERGED)
+    solver.set_operator(mat)
+    b = rng_vec(M.shape[0], 18)
+    np.testing.assert_allclose(solver.solve(b), spla.spsolve(M.tocsc(), b), rtol=1e-9)
+    assert solver.mat.handle == mat.handle
+
+
+# -- the unrolled iteration is PETSc's --------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"ksp_type": "cg", "pc_type": "jacobi"},
+        {"ksp_type": "cg", "pc_type": "none"},
+        {"ksp_type": "cg", "pc_type": "jacobi", "ksp_norm_type": "unpreconditioned"},
+        {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale": 0.8},
+        {"ksp_type": "richardson", "pc_type": "none", "ksp_richardson_scale": 0.004},
+    ],
+    ids=["cg-jacobi", "cg-none", "cg-unprec-norm", "richardson-jacobi", "richardson-none"],
+)
+@pytest.mark.parametrize(("K", "rtol"), [(1, 0.0), (5, 0.0), (30, 0.0), (1000, 1e-5)])
+def test_unrolled_forward_equals_petsc(options, K, rtol):
+    """Same iterates, same iteration count, same stopping reason (also when rtol stops it)."""
+    M = fd_poisson(6)
+    b = randn(3, 36, seed=19)
+    solver = pp.KSPSolver(options, max_it=K, rtol=rtol)
+    x_petsc = pp.solve(M, b, solver).numpy()
+    petsc_last, petsc_its = solver.last, solver.stats.forward_iterations
+    x_torch = pp.solve(M, b, solver, mode="unrolled").numpy()
+    assert solver.last.iterations == petsc_last.iterations
+    assert solver.last.reason == petsc_last.reason
+    assert solver.stats.forward_iterations == 2 * petsc_its
+    assert solver.last.residual_norm == pytest.approx(petsc_last.residual_norm, rel=1e-6)
+    np.testing.assert_allclose(x_torch, x_petsc, rtol=0, atol=1e-10 * np.abs(x_petsc).max())
+    if rtol:
+        assert petsc_last.reason == "CONVERGED_RTOL" and petsc_last.iterations < K
+
+
+def test_unrolled_stops_when_converged_and_keeps_gradients_finite():
+    """Regression: the unrolled CG ran all K steps past convergence and gave NaN gradients."""
+    D = interior_operator(unit_square(2))
+    A = D.A_II
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=200, rtol=1e-13)
+    theta = random_theta(A.n_params, requires_grad=True)
+    b = randn(A.shape[0], seed=20, requires_grad=True)
+    x = pp.solve(A, b, solver, theta=theta, mode="unrolled")
+    assert solver.last.converged and solver.last.iterations < 20
+    x.pow(2).sum().backward()
+    assert torch.isfinite(theta.grad).all() and torch.isfinite(b.grad).all()
+
+
+def test_unrolled_advection_matrix_iterates():
+    """Richardson on a non-symmetric matrix: the torch loop matches PETSc as well."""
+    M = nonsymmetric()
+    options = {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale": 0.7}
+    solver = pp.KSPSolver(options, max_it=12)
+    b = randn(M.shape[0], seed=21)
+    x1 = pp.solve(M, b, solver)
+    x2 = pp.solve(M, b, solver, mode="unrolled")
+    torch.testing.assert_close(x1, x2, rtol=1e-12, atol=1e-14)
