@@ -27,8 +27,13 @@ def test_compare_summary_is_complete(summary):
     full = f"fixed:{s['k_full']}"
     assert "prdp" in s["runs"] and full in s["runs"] and "fixed:1" in s["runs"]
     for r in s["runs"].values():
-        assert set(r) >= {"final_val_error", "wall_time", "fwd_iterations", "adj_iterations",
-                          "k_final"}
+        assert set(r) >= {
+            "final_val_error",
+            "wall_time",
+            "fwd_iterations",
+            "adj_iterations",
+            "k_final",
+        }
         assert np.isfinite(r["final_val_error"]) and r["wall_time"] > 0
     assert s["runs"][full]["k_final"] == s["k_full"]
     for name in on_disk["plots"]:
@@ -78,8 +83,21 @@ def test_parse_schedule():
 def test_cli_run_passes_petsc_options(tmp_path):
     opts = PETSc.Options()
     try:
-        rc = main(["run", str(HEAT1D), "--schedule", "fixed:4", "--epochs", "2", "--out",
-                   str(tmp_path), "--no-progress", "-heat_ksp_type", "cg"])
+        rc = main(
+            [
+                "run",
+                str(HEAT1D),
+                "--schedule",
+                "fixed:4",
+                "--epochs",
+                "2",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+                "-heat_ksp_type",
+                "cg",
+            ]
+        )
     finally:
         opts.delValue("heat_ksp_type")
     assert rc == 0
@@ -88,7 +106,7 @@ def test_cli_run_passes_petsc_options(tmp_path):
     assert [e["k"] for e in result["epochs"]] == [4, 4]
 
 
-DIVERGING_SCENE = '''
+DIVERGING_SCENE = """
 import numpy as np, scipy.sparse as sp, torch
 import prdp_petsc as pp
 
@@ -107,7 +125,7 @@ def build(config, seed):
         validate=lambda: float(next(metric)), probe=lambda: (A, np.ones(10)), epochs=20,
         prdp={"window": 1, "ema_window": 1, "k_step": 4},
     )
-'''
+"""
 
 
 def test_diverged_solve_stops_cleanly(tmp_path):
