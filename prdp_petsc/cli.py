@@ -45,6 +45,8 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``)."""
+    from .solver import _is_number
+
     ours, petsc = [], []
     i = 0
     while i < len(argv):
@@ -59,14 +61,6 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
             ours.append(tok)
         i += 1
     return ours, petsc
-
-
-def _is_number(tok: str) -> bool:
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
 
 
 def _insert_petsc_options(petsc: list[str]) -> None:
