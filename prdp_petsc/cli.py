@@ -72,7 +72,8 @@ def _insert_petsc_options(petsc: list[str]) -> None:
 
 
 def _run_scene_command(args, scene_file: str) -> int:
-    from .harness import compare, format_table, run
+    from .compare import compare, format_table
+    from .harness import run
 
     if args.command == "run":
         result = run(
