@@ -29,44 +29,87 @@ from petsc4py import PETSc
 from .parametric import ParametricMatrix
 from .solver import KSPSolver, SolveInfo
 
-__all__ = ["torch_csr", "unrolled_solve"]
+__all__ = ["UnrolledOperator", "unrolled_solve"]
 
 _SUPPORTED = {("richardson", "jacobi"), ("richardson", "none"), ("cg", "jacobi"), ("cg", "none")}
 
 
-def torch_csr(A, theta: torch.Tensor | None = None) -> torch.Tensor:
-    """A (or A(θ), differentiable in θ) as a torch sparse CSR float64 tensor."""
-    if isinstance(A, ParametricMatrix):
-        G = A.G.tocoo()
-        G_t = torch.sparse_coo_tensor(
-            np.vstack([G.row, G.col]), G.data, G.shape, check_invariants=False
-        )
-        values = torch.from_numpy(A.a0) + torch.sparse.mm(G_t, theta.cpu()[:, None])[:, 0]
-        indptr, indices, shape = A.indptr, A.indices, A.shape
-    else:
-        A = sp.csr_matrix(A)
-        A.sort_indices()
-        values = torch.from_numpy(A.data.astype(np.float64))
-        indptr, indices, shape = A.indptr, A.indices, A.shape
+def _csr_tensor(indptr, indices, values, shape) -> torch.Tensor:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(
-            torch.from_numpy(indptr.astype(np.int64)),
-            torch.from_numpy(indices.astype(np.int64)),
+            torch.from_numpy(np.asarray(indptr, dtype=np.int64)),
+            torch.from_numpy(np.asarray(indices, dtype=np.int64)),
             values,
             size=shape,
             check_invariants=False,
         )
 
 
-def _diagonal(A_t: torch.Tensor) -> torch.Tensor:
-    crow = A_t.crow_indices()
-    col = A_t.col_indices()
-    rows = torch.repeat_interleave(torch.arange(len(crow) - 1), crow.diff())
-    on_diag = rows == col
-    diag = torch.zeros(A_t.shape[0], dtype=A_t.dtype)
-    diag = diag.index_add(0, rows[on_diag], A_t.values()[on_diag])
-    return torch.where(diag == 0, 1.0, diag)  # PCJacobi replaces a zero diagonal by 1
+class UnrolledOperator:
+    """A(θ) inside the unrolled loop: ``A @ X`` with a cheap, exact backward.
+
+    The forward product uses a CSR tensor; backward uses the transpose, built once
+    per solve, for ``∂/∂X`` and ``(gY[rows] · X[cols])`` for ``∂/∂values``, so
+    no iteration differentiates through torch's sparse kernels.  ``values`` is
+    ``a0 + G θ`` (differentiable in θ) or the constant CSR data.
+    """
+
+    def __init__(self, A, theta: torch.Tensor | None = None):
+        if isinstance(A, ParametricMatrix):
+            G = A.G.tocoo()
+            G_t = torch.sparse_coo_tensor(
+                np.vstack([G.row, G.col]), G.data, G.shape, check_invariants=False
+            )
+            self.values = torch.from_numpy(A.a0) + torch.sparse.mm(G_t, theta.cpu()[:, None])[:, 0]
+            indptr, indices, shape = A.indptr, A.indices, A.shape
+        else:
+            A = sp.csr_matrix(A)
+            A.sort_indices()
+            self.values = torch.from_numpy(A.data.astype(np.float64))
+            indptr, indices, shape = A.indptr, A.indices, A.shape
+        nnz = len(indices)
+        T = sp.csr_matrix((np.arange(nnz), indices, indptr), shape=shape).T.tocsr()
+        self.shape = shape
+        self.rows = torch.from_numpy(np.repeat(np.arange(shape[0]), np.diff(indptr)))
+        self.cols = torch.from_numpy(np.asarray(indices, dtype=np.int64))
+        v = self.values.detach()
+        self.csr = _csr_tensor(indptr, indices, v, shape)
+        self.csr_t = _csr_tensor(T.indptr, T.indices, v[torch.from_numpy(T.data)], shape[::-1])
+
+    def __matmul__(self, X: torch.Tensor) -> torch.Tensor:
+        return _SpMM.apply(self.values, X, self)
+
+    def diagonal(self) -> torch.Tensor:
+        """Diagonal of A (differentiable in the values)."""
+        on_diag = self.rows == self.cols
+        diag = torch.zeros(self.shape[0], dtype=self.values.dtype)
+        return diag.index_add(0, self.rows[on_diag], self.values[on_diag])
+
+
+class _SpMM(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, values, X, op):
+        ctx.op = op
+        if ctx.needs_input_grad[0]:
+            ctx.save_for_backward(X)
+        return op.csr @ X
+
+    @staticmethod
+    def backward(ctx, gY):
+        op = ctx.op
+        g_values = g_X = None
+        if ctx.needs_input_grad[0]:
+            (X,) = ctx.saved_tensors
+            g_values = (gY[op.rows] * X[op.cols]).sum(-1)
+        if ctx.needs_input_grad[1]:
+            g_X = op.csr_t @ gY
+        return g_values, g_X, None
+
+
+def _jacobi(op: UnrolledOperator) -> torch.Tensor:
+    diag = op.diagonal()
+    return 1.0 / torch.where(diag == 0, 1.0, diag)  # PCJacobi replaces a zero diagonal by 1
 
 
 def method_of(solver: KSPSolver) -> tuple[str, str, float]:
@@ -89,8 +132,8 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
             f"{ksp_type}/{pc_type}; use mode='implicit' for other KSP/PC pairs"
         )
     t0 = time.perf_counter()
-    A_t = torch_csr(A, theta)
-    inv_m = 1.0 / _diagonal(A_t) if pc_type == "jacobi" else None
+    A_t = UnrolledOperator(A, theta)
+    inv_m = _jacobi(A_t) if pc_type == "jacobi" else None
     B = b.cpu().reshape(-1, b.shape[-1]).T  # (n, batch): columns are right-hand sides
     stop = _Stopping(solver)
     if ksp_type == "richardson":
