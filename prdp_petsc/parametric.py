@@ -17,6 +17,7 @@ into the pattern.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -81,7 +82,9 @@ class ParametricMatrix:
 
     def values(self, theta: np.ndarray) -> np.ndarray:
         """CSR values for parameters θ: ``a0 + G @ theta``."""
-        return self.a0 + self.G @ self.check_theta(theta)
+        values = self.G @ self.check_theta(theta)
+        values += self.a0
+        return values
 
     def matrix(self, theta: np.ndarray) -> sp.csr_matrix:
         """The assembled scipy CSR matrix A(θ)."""
@@ -89,10 +92,18 @@ class ParametricMatrix:
 
     def theta_gradient(self, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``∂L/∂θ = −Gᵀ Σ_batch (λ[rows] ⊙ x[cols])`` for ``x = A(θ)⁻¹ b``, ``Aᵀλ = ∂L/∂x``."""
-        lam = np.atleast_2d(lam)
-        x = np.atleast_2d(x)
-        dA = np.einsum("bk,bk->k", lam[:, self.rows], x[:, self.indices])
-        return -(self.G.T @ dA)
+        if lam.ndim == 1 and x.ndim == 1:
+            dA = np.take(lam, self.rows)
+            dA *= np.take(x, self.indices)
+        else:
+            lam, x = np.atleast_2d(lam), np.atleast_2d(x)
+            dA = np.einsum("bk,bk->k", lam[:, self.rows], x[:, self.indices])
+        return -(self.GT @ dA)
+
+    @cached_property
+    def GT(self) -> sp.csr_matrix:
+        """Gᵀ in CSR form, built once (used by every θ-gradient)."""
+        return self.G.T.tocsr()
 
     def vjp_matvec(self, w: np.ndarray, v: np.ndarray) -> np.ndarray:
         """``∂/∂θ ⟨w, A(θ) v⟩ = Gᵀ Σ_batch (w[rows] ⊙ v[cols])``."""
