@@ -32,6 +32,20 @@ _REASONS = {
 }
 _MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it")
+# PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
+_SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
+
+
+def _transpose_permutation(indptr, indices, shape) -> np.ndarray | None:
+    """Position of entry (j, i) for each CSR entry (i, j); None if the pattern is not symmetric."""
+    if shape[0] != shape[1]:
+        return None
+    nnz = len(indices)
+    T = sp.csr_matrix((np.arange(nnz) + 1, indices, indptr), shape=shape).T.tocsr()
+    T.sort_indices()
+    if not (np.array_equal(T.indptr, indptr) and np.array_equal(T.indices, indices)):
+        return None
+    return T.data - 1
 
 
 def reason_name(reason: int) -> str:
@@ -100,6 +114,15 @@ class AdjointSettings:
         when its ``max_it`` changes later.
     prefix : str, optional
         Options prefix; defaults to the forward prefix + ``"adj_"``.
+    symmetric_pc : bool, optional
+        Whether the adjoint preconditioner is a symmetric operator when A is
+        symmetric.  For a symmetric A (checked on its values) the transpose solve
+        then *is* a forward solve, and `KSPSolver` runs ``KSPSolve`` instead of
+        ``KSPSolveTranspose`` (same iterates, no slower transposed products).
+        ``None`` (default) trusts only PCs that are symmetric by construction
+        (none, jacobi, pbjacobi, icc, cholesky); ``True`` asserts it (e.g. GAMG
+        with its default Chebyshev/Jacobi smoothers); ``False`` always uses
+        ``KSPSolveTranspose``.
     """
 
     options: dict | str | None = None
@@ -107,6 +130,7 @@ class AdjointSettings:
     rtol: float | None = None
     atol: float | None = None
     prefix: str | None = None
+    symmetric_pc: bool | None = None
 
 
 def parse_options(options: dict | str | None) -> dict:
@@ -267,7 +291,10 @@ class KSPSolver:
         self._adj: PETSc.KSP | None = None
         self._mat: PETSc.Mat | None = None
         self._pattern: tuple[np.ndarray, np.ndarray, tuple] | None = None
+        self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
+        self._tperm: np.ndarray | None = None  # CSR position of each entry's transpose
         self._values: np.ndarray | None = None
+        self.symmetric = False
 
     # -- tolerances -------------------------------------------------------------
     @property
@@ -399,7 +426,9 @@ class KSPSolver:
         """
         if isinstance(A, PETSc.Mat):
             if A is not self._mat:
-                self._pattern = self._values = None
+                self._pattern = self._source = self._values = None
+                known, flag = A.isSymmetricKnown()
+                self.symmetric = bool(known and flag)
                 self._set_mat(A)
             return
         if isinstance(A, tuple):
@@ -417,7 +446,7 @@ class KSPSolver:
         if not np.all(np.isfinite(data)):
             raise ValueError("A has NaN or Inf entries")
         same_pattern = self._pattern is not None and (
-            (self._pattern[0] is indptr and self._pattern[1] is indices)
+            (self._source[0] is indptr and self._source[1] is indices)
             or (
                 self._pattern[2] == tuple(shape)
                 and np.array_equal(self._pattern[0], indptr)
@@ -431,6 +460,8 @@ class KSPSolver:
             self._mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
             self._mat.assemble()
             self._values = data.copy()
+            self._source = (indptr, indices)
+            self._mark_symmetry()
             self.stats.operator_updates += 1
             self._check_nullspaces()
             return
@@ -439,8 +470,23 @@ class KSPSolver:
         mat = PETSc.Mat().createAIJ(size=tuple(shape), csr=(ip, ix, data), comm=PETSc.COMM_SELF)
         mat.assemble()
         self._pattern = (ip, ix, tuple(shape))
+        self._source = (indptr, indices)
         self._values = data.copy()
+        self._tperm = _transpose_permutation(ip, ix, tuple(shape))
+        self._mark_symmetry(mat)
         self._set_mat(mat)
+
+    def _mark_symmetry(self, mat: PETSc.Mat | None = None) -> None:
+        """Check A = Aᵀ exactly on the values and tell PETSc (``MAT_SYMMETRIC``)."""
+        v = self._values
+        self.symmetric = self._tperm is not None and np.array_equal(v, v[self._tperm])
+        (mat or self._mat).setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
+
+    def _adjoint_is_forward(self) -> bool:
+        """True when ``Aᵀλ = g`` can run as a forward solve of the adjoint KSP."""
+        if not self.symmetric or self.adjoint.symmetric_pc is False:
+            return False
+        return self.adjoint.symmetric_pc or self._adj.getPC().getType() in _SYMMETRIC_PCS
 
     def _set_mat(self, mat: PETSc.Mat) -> None:
         if self._ksp is None:
@@ -508,7 +554,10 @@ class KSPSolver:
             if exponent and tolerances[1] > 0:  # atol is absolute: scale it along
                 ksp.setTolerances(atol=float(np.ldexp(tolerances[1], -exponent)))
             try:
-                (ksp.solveTranspose if transpose else ksp.solve)(b_vec, x_vec)
+                if transpose and not self._adjoint_is_forward():
+                    ksp.solveTranspose(b_vec, x_vec)
+                else:
+                    ksp.solve(b_vec, x_vec)
             except PETSc.Error as err:
                 if transpose and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
                     raise SolverError(

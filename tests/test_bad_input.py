@@ -257,10 +257,14 @@ def test_indefinite_preconditioner_is_a_solver_error():
 
 
 def test_adjoint_pc_without_transpose_is_a_solver_error():
-    """SOR has no transpose in PETSc: the adjoint fails with a hint, the forward works."""
+    """SOR has no transpose in PETSc for a non-symmetric A: the adjoint fails with a hint."""
+    import scipy.sparse as sp
+
+    skew = sp.diags([np.full(8, 0.5), np.full(8, -0.5)], [1, -1])
+    nonsym = (fd_poisson(3) + skew).tocsr()
     solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "sor"}, max_it=5)
     b = randn(9, seed=3, requires_grad=True)
-    x = pp.solve(fd_poisson(3), b, solver)
+    x = pp.solve(nonsym, b, solver)
     with pytest.raises(pp.SolverError, match="(?i)choose another adjoint pc_type") as err:
         x.sum().backward()
     assert err.value.reason in ("NO_TRANSPOSE", "PETSC_ERROR")
@@ -269,7 +273,7 @@ def test_adjoint_pc_without_transpose_is_a_solver_error():
         max_it=5,
         adjoint=pp.AdjointSettings(options={"pc_type": "jacobi"}),
     )
-    pp.solve(fd_poisson(3), b, ok).sum().backward()
+    pp.solve(nonsym, b, ok).sum().backward()
     assert torch.isfinite(b.grad).all() and ok.stats.adjoint_solves == 1
 
 

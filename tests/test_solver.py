@@ -360,3 +360,64 @@ def test_unrolled_advection_matrix_iterates():
     x1 = pp.solve(M, b, solver)
     x2 = pp.solve(M, b, solver, mode="unrolled")
     torch.testing.assert_close(x1, x2, rtol=1e-12, atol=1e-14)
+
+
+# -- symmetric operators: the adjoint as a forward solve -------------------------------
+
+
+def _grad_b(A, solver, seed=7):
+    b = randn(A.shape[0], seed=seed, requires_grad=True)
+    w = randn(A.shape[0], seed=seed + 1)
+    (pp.solve(A, b, solver) * w).sum().backward()
+    return b.grad
+
+
+@pytest.mark.parametrize(
+    "options, symmetric_pc",
+    [
+        ({"ksp_type": "cg", "pc_type": "jacobi"}, None),
+        ({"ksp_type": "cg", "pc_type": "icc"}, None),
+        ({"ksp_type": "gmres", "pc_type": "none"}, None),
+        ({"ksp_type": "cg", "pc_type": "gamg"}, True),
+    ],
+)
+def test_symmetric_adjoint_as_forward_solve_matches_transpose_solve(options, symmetric_pc):
+    """Capped (K = 4) gradients agree with KSPSolveTranspose; symmetry is detected."""
+    A = fd_poisson(8)
+    fast = pp.KSPSolver(options, max_it=4, adjoint=pp.AdjointSettings(symmetric_pc=symmetric_pc))
+    slow = pp.KSPSolver(options, max_it=4, adjoint=pp.AdjointSettings(symmetric_pc=False))
+    g_fast, g_slow = _grad_b(A, fast), _grad_b(A, slow)
+    assert fast.symmetric and fast._adjoint_is_forward() and not slow._adjoint_is_forward()
+    assert torch.allclose(g_fast, g_slow, rtol=1e-10, atol=1e-13)
+    assert fast.stats.adjoint_iterations == slow.stats.adjoint_iterations == 4
+
+
+def test_nonsymmetric_operator_keeps_the_transpose_solve():
+    solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "jacobi"}, max_it=50, rtol=1e-12)
+    A = nonsymmetric()
+    g = _grad_b(A, solver)
+    assert not solver.symmetric and not solver._adjoint_is_forward()
+    w = randn(A.shape[0], seed=8).numpy()
+    assert np.allclose(g.numpy(), spla.spsolve(A.T.tocsc(), w), rtol=1e-8, atol=1e-10)
+
+
+def test_symmetry_is_rechecked_when_values_change():
+    A = fd_poisson(4)
+    solver = pp.KSPSolver({"ksp_type": "gmres"}, max_it=3)
+    solver.set_operator(A)
+    assert solver.symmetric
+    B = A.copy()
+    B.data[1] += 0.25  # same pattern, values no longer symmetric
+    solver.set_operator(B)
+    assert not solver.symmetric
+    known, flag = solver.mat.isSymmetricKnown()
+    assert known and not flag
+
+
+def test_sor_adjoint_works_for_symmetric_operators():
+    """PETSc applies SOR's transpose once the matrix is marked symmetric."""
+    A = fd_poisson(5)
+    solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "sor"}, max_it=200, rtol=1e-12)
+    g = _grad_b(A, solver)
+    w = randn(A.shape[0], seed=8).numpy()
+    assert np.allclose(g.numpy(), spla.spsolve(A.tocsc(), w), rtol=1e-8, atol=1e-10)
