@@ -57,7 +57,8 @@ def _operator(A, theta: torch.Tensor | None):
 class _ImplicitSolve(torch.autograd.Function):
     @staticmethod
     def forward(ctx, b, theta, P, csr, solver):
-        solver.set_operator(csr)
+        ctx.symmetric = P.is_symmetric if P is not None else None  # None: solver checks values
+        solver.set_operator(csr, symmetric=ctx.symmetric)
         x = torch.from_numpy(solver.solve(b.detach().cpu().numpy())).to(b.device)
         ctx.P, ctx.csr, ctx.solver = P, csr, solver
         if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
@@ -69,7 +70,8 @@ class _ImplicitSolve(torch.autograd.Function):
         need_b, need_theta = ctx.needs_input_grad[:2]
         if not (need_b or need_theta):
             return None, None, None, None, None
-        ctx.solver.set_operator(ctx.csr)  # no-op unless another solve changed A since
+        # a no-op unless another solve changed A since the forward pass
+        ctx.solver.set_operator(ctx.csr, symmetric=ctx.symmetric)
         lam = ctx.solver.solve_transpose(grad_x.detach().cpu().numpy())
         grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
         grad_theta = None

@@ -101,6 +101,16 @@ class ParametricMatrix:
         return -(self.GT @ dA)
 
     @cached_property
+    def is_symmetric(self) -> bool:
+        """True when A(θ) = A(θ)ᵀ for every θ (a₀ and every column of G symmetric)."""
+        from .solver import _transpose_permutation
+
+        perm = _transpose_permutation(self.indptr, self.indices, self.shape)
+        if perm is None:
+            return False
+        return np.array_equal(self.a0, self.a0[perm]) and (self.G[perm] != self.G).nnz == 0
+
+    @cached_property
     def GT(self) -> sp.csr_matrix:
         """Gᵀ in CSR form, built once (used by every θ-gradient)."""
         return self.G.T.tocsr()

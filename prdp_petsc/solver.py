@@ -416,13 +416,16 @@ class KSPSolver:
             self._adj.getPC().getType(),
         )
 
-    def set_operator(self, A) -> None:
+    def set_operator(self, A, *, symmetric: bool | None = None) -> None:
         """Set the matrix; the PC is set up again only if its values changed.
 
         Parameters
         ----------
         A : scipy.sparse matrix, PETSc.Mat or tuple ``(indptr, indices, data, shape)``
             A PETSc Mat is used as given (any communicator, e.g. distributed).
+        symmetric : bool, optional
+            Whether A = Aᵀ, if the caller knows (e.g. `ParametricMatrix.is_symmetric`);
+            by default it is checked exactly on the values whenever they change.
         """
         if isinstance(A, PETSc.Mat):
             if A is not self._mat:
@@ -461,7 +464,7 @@ class KSPSolver:
             self._mat.assemble()
             self._values = data.copy()
             self._source = (indptr, indices)
-            self._mark_symmetry()
+            self._mark_symmetry(symmetric=symmetric)
             self.stats.operator_updates += 1
             self._check_nullspaces()
             return
@@ -473,13 +476,15 @@ class KSPSolver:
         self._source = (indptr, indices)
         self._values = data.copy()
         self._tperm = _transpose_permutation(ip, ix, tuple(shape))
-        self._mark_symmetry(mat)
+        self._mark_symmetry(mat, symmetric=symmetric)
         self._set_mat(mat)
 
-    def _mark_symmetry(self, mat: PETSc.Mat | None = None) -> None:
-        """Check A = Aᵀ exactly on the values and tell PETSc (``MAT_SYMMETRIC``)."""
-        v = self._values
-        self.symmetric = self._tperm is not None and np.array_equal(v, v[self._tperm])
+    def _mark_symmetry(self, mat: PETSc.Mat | None = None, symmetric: bool | None = None) -> None:
+        """Check A = Aᵀ exactly on the values (unless the caller knows) and tell PETSc."""
+        if symmetric is None:
+            v = self._values
+            symmetric = self._tperm is not None and np.array_equal(v, v[self._tperm])
+        self.symmetric = bool(symmetric)
         (mat or self._mat).setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
 
     def _adjoint_is_forward(self) -> bool:
@@ -588,10 +593,20 @@ class KSPSolver:
                 float(np.ldexp(ksp.getResidualNorm(), exponent)),
             )
             rescued = None
-            if reason_name(reason) in safeguards.LATE_BREAKDOWNS:
-                rescued = safeguards.rescue(ksp, self._mat, b_vec, x_vec, transpose=transpose)
+            late = reason_name(reason) in safeguards.LATE_BREAKDOWNS
+            if late or safeguards.went_far(ksp):  # ran past rounding level: verify
+                as_transpose = transpose and not self._adjoint_is_forward()
+                rescued = safeguards.rescue(ksp, self._mat, b_vec, x_vec, transpose=as_transpose)
                 if rescued is not None:
                     iterations += rescued
+                elif not late:
+                    self.last = reported
+                    raise SolverError(
+                        f"{kind} solve ({ksp.getType()}/{ksp.getPC().getType()}) ran far "
+                        f"beyond convergence and its iterate lost accuracy after "
+                        f"{reported.iterations} iterations; lower max_it or set rtol > 0",
+                        reason="LOST_ACCURACY",
+                    )
             info = SolveInfo(
                 ksp.getIterationNumber(),
                 reason_name(ksp.getConvergedReason()),

@@ -176,3 +176,16 @@ def test_dirichlet_split_of_scipy_and_parametric_agree():
     full = A.matrix(theta.numpy())
     residual = (full @ u1.numpy() - f.numpy())[Dp.interior]
     assert np.abs(residual).max() < 1e-9 * np.abs(f.numpy()).max()
+
+
+def test_is_symmetric_structural():
+    from skfem import Basis, ElementTriP1, MeshTri
+
+    basis = Basis(MeshTri().refined(2), ElementTriP1())
+    A = pp.diffusion_operator(basis, "P1", reaction=0.5)
+    assert A.is_symmetric
+    theta = np.random.default_rng(0).uniform(0.5, 2.0, A.n_params)
+    M = A.matrix(theta)
+    assert abs(M - M.T).max() < 1e-14
+    C = sp.random(A.shape[0], A.shape[0], density=0.05, random_state=1, format="csr")
+    assert not (A + C).is_symmetric
