@@ -103,12 +103,14 @@ class ParametricMatrix:
     @cached_property
     def is_symmetric(self) -> bool:
         """True when A(θ) = A(θ)ᵀ for every θ (a₀ and every column of G symmetric)."""
-        from .solver import _transpose_permutation
+        from .solver import _nearly_equal, _transpose_permutation
 
         perm = _transpose_permutation(self.indptr, self.indices, self.shape)
         if perm is None:
             return False
-        return np.array_equal(self.a0, self.a0[perm]) and (self.G[perm] != self.G).nnz == 0
+        diff = abs(self.G[perm] - self.G).max() if self.G.nnz else 0.0
+        scale = abs(self.G).max() if self.G.nnz else 0.0
+        return _nearly_equal(self.a0, self.a0[perm]) and diff <= 1e-14 * scale
 
     @cached_property
     def GT(self) -> sp.csr_matrix:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import shlex
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,12 @@ _MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it")
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
+
+
+def _nearly_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal up to rounding: ``max|a − b| ≤ 1e-14 max|a|`` (assembly sums in any order)."""
+    scale = np.abs(a).max(initial=0.0)
+    return bool(np.abs(a - b).max(initial=0.0) <= 1e-14 * scale)
 
 
 def _transpose_permutation(indptr, indices, shape) -> np.ndarray | None:
@@ -378,13 +385,15 @@ class KSPSolver:
         if self._ksp is None:
             self._create(comm if comm is not None else PETSc.COMM_SELF)
 
-    def _create(self, comm) -> None:
-        self._ksp = PETSc.KSP().create(comm=comm)
-        self._ksp.setOptionsPrefix(self.prefix)
-        self._adj = PETSc.KSP().create(comm=comm)
-        self._adj.setOptionsPrefix(self.adjoint_prefix)
-        if self._shares_pc():
-            self._adj.setPC(self._ksp.getPC())
+    @contextmanager
+    def _options_in_database(self):
+        """Write this solver's options into PETSc's database for the duration.
+
+        Needed at ``KSPSetFromOptions`` and again at every solve, because PCs read
+        some options only at set-up (GAMG level smoothers, bjacobi sub-solvers).
+        Names already in the database (the command line) are left alone: they win.
+        Removing ours afterwards keeps solvers with the same prefix independent.
+        """
         opts = PETSc.Options()
         pushed = []
         try:
@@ -394,17 +403,27 @@ class KSPSolver:
             ):
                 for key, value in options.items():
                     name = prefix + key
-                    if opts.hasName(name):  # given on the command line: it wins
+                    if name in pushed or opts.hasName(name):
                         continue
                     opts.setValue(name, _option_value(value))
                     pushed.append(name)
-            self._ksp.setFromOptions()
-            self._adj.setFromOptions()
-            for ksp in (self._ksp, self._adj):  # read by safeguards.rescue
-                ksp.setConvergenceHistory(reset=True)
+            yield
         finally:
             for name in pushed:
                 opts.delValue(name)
+
+    def _create(self, comm) -> None:
+        self._ksp = PETSc.KSP().create(comm=comm)
+        self._ksp.setOptionsPrefix(self.prefix)
+        self._adj = PETSc.KSP().create(comm=comm)
+        self._adj.setOptionsPrefix(self.adjoint_prefix)
+        if self._shares_pc():
+            self._adj.setPC(self._ksp.getPC())
+        with self._options_in_database():
+            self._ksp.setFromOptions()
+            self._adj.setFromOptions()
+        for ksp in (self._ksp, self._adj):  # read by safeguards.rescue
+            ksp.setConvergenceHistory(reset=True)
         self._apply_tolerances()
         logger.debug(
             "KSP %r: %s/%s, adjoint %r: %s/%s",
@@ -482,8 +501,9 @@ class KSPSolver:
     def _mark_symmetry(self, mat: PETSc.Mat | None = None, symmetric: bool | None = None) -> None:
         """Check A = Aᵀ exactly on the values (unless the caller knows) and tell PETSc."""
         if symmetric is None:
-            v = self._values
-            symmetric = self._tperm is not None and np.array_equal(v, v[self._tperm])
+            symmetric = self._tperm is not None and _nearly_equal(
+                self._values, self._values[self._tperm]
+            )
         self.symmetric = bool(symmetric)
         (mat or self._mat).setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
 
@@ -539,6 +559,10 @@ class KSPSolver:
         return self._run(self.adjoint_ksp, g, transpose=True)
 
     def _run(self, ksp: PETSc.KSP, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
+        with self._options_in_database():
+            return self._run_batch(ksp, rhs, transpose=transpose)
+
+    def _run_batch(self, ksp: PETSc.KSP, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
         rhs = np.asarray(rhs, dtype=np.float64)
         batch = rhs.reshape(-1, rhs.shape[-1])
         x_vec, b_vec = self._mat.createVecs()

@@ -421,3 +421,25 @@ def test_sor_adjoint_works_for_symmetric_operators():
     g = _grad_b(A, solver)
     w = randn(A.shape[0], seed=8).numpy()
     assert np.allclose(g.numpy(), spla.spsolve(A.tocsc(), w), rtol=1e-8, atol=1e-10)
+
+
+def test_options_read_at_pc_setup_reach_the_pc():
+    """GAMG reads its level-smoother options at PCSetUp, after KSPSetFromOptions."""
+    solver = pp.KSPSolver(
+        "-ksp_type cg -pc_type gamg -mg_levels_ksp_type richardson -mg_levels_pc_type sor",
+        prefix="lvl_",
+        max_it=5,
+    )
+    pp.solve(fd_poisson(20), randn(400, seed=1), solver)
+    smoother = solver.ksp.getPC().getMGSmoother(1)
+    assert (smoother.getType(), smoother.getPC().getType()) == ("richardson", "sor")
+    assert not PETSc.Options().hasName("lvl_mg_levels_pc_type")  # nothing leaks
+
+
+def test_rounding_level_asymmetry_counts_as_symmetric():
+    A = fd_poisson(4).tocsr()
+    B = A.copy()
+    B.data[1] *= 1 + 1e-16 * 4  # a last-bit difference, as assembly order produces
+    solver = pp.KSPSolver({"ksp_type": "cg"}, max_it=3)
+    solver.set_operator(B)
+    assert solver.symmetric
