@@ -65,16 +65,20 @@ LATE_BREAKDOWNS = frozenset(
 NO_TRANSPOSE_KSP = frozenset({"cgls"})
 
 
+def rhs_exponents(batch: np.ndarray) -> np.ndarray:
+    """`rhs_exponent` of every row of a ``(B, n)`` batch, vectorised."""
+    biggest = np.abs(batch).max(axis=1, initial=0.0)
+    safe = (biggest == 0.0) | ((SAFE_RANGE[0] <= biggest) & (biggest <= SAFE_RANGE[1]))
+    return np.where(safe, 0, np.frexp(biggest)[1])
+
+
 def rhs_exponent(row: np.ndarray) -> int:
     """Power of two e such that ``row · 2⁻ᵉ`` has its largest entry in [0.5, 1).
 
     Returns 0 (no scaling) for a zero row or one whose largest entry lies in
     `SAFE_RANGE`.
     """
-    biggest = float(np.max(np.abs(row))) if row.size else 0.0
-    if biggest == 0.0 or SAFE_RANGE[0] <= biggest <= SAFE_RANGE[1]:
-        return 0
-    return int(np.frexp(biggest)[1])
+    return int(rhs_exponents(np.asarray(row, dtype=np.float64).reshape(1, -1))[0])
 
 
 def backward_error(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: bool) -> float:

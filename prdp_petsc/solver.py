@@ -575,18 +575,18 @@ class KSPSolver:
         kind = "adjoint" if transpose else "forward"
         t0 = time.perf_counter()
         iterations = 0
+        as_transpose = transpose and not self._adjoint_is_forward()
+        run = ksp.solveTranspose if as_transpose else ksp.solve
+        exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
         for i, row in enumerate(batch):
-            exponent = safeguards.rhs_exponent(row)  # 0 unless |b| is extreme
-            b_vec.array[:] = np.ldexp(row, -exponent)
+            exponent = int(exponents[i])
+            b_vec.array[:] = np.ldexp(row, -exponent) if exponent else row
             x_vec.set(0.0)
-            tolerances = ksp.getTolerances()
+            tolerances = ksp.getTolerances() if exponent else None
             if exponent and tolerances[1] > 0:  # atol is absolute: scale it along
                 ksp.setTolerances(atol=float(np.ldexp(tolerances[1], -exponent)))
             try:
-                if transpose and not self._adjoint_is_forward():
-                    ksp.solveTranspose(b_vec, x_vec)
-                else:
-                    ksp.solve(b_vec, x_vec)
+                run(b_vec, x_vec)
             except PETSc.Error as err:
                 if transpose and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
                     raise SolverError(
@@ -617,9 +617,8 @@ class KSPSolver:
                 float(np.ldexp(ksp.getResidualNorm(), exponent)),
             )
             rescued = None
-            late = reason_name(reason) in safeguards.LATE_BREAKDOWNS
+            late = reported.reason in safeguards.LATE_BREAKDOWNS
             if late or safeguards.went_far(ksp):  # ran past rounding level: verify
-                as_transpose = transpose and not self._adjoint_is_forward()
                 rescued = safeguards.rescue(ksp, self._mat, b_vec, x_vec, transpose=as_transpose)
                 if rescued is not None:
                     iterations += rescued
@@ -631,7 +630,7 @@ class KSPSolver:
                         f"{reported.iterations} iterations; lower max_it or set rtol > 0",
                         reason="LOST_ACCURACY",
                     )
-            info = SolveInfo(
+            info = reported if rescued is None else SolveInfo(
                 ksp.getIterationNumber(),
                 reason_name(ksp.getConvergedReason()),
                 float(np.ldexp(ksp.getResidualNorm(), exponent)),
@@ -647,7 +646,7 @@ class KSPSolver:
                     "the Richardson scale",
                     reason=reported.reason,
                 )
-            out[i] = np.ldexp(x_vec.array_r, exponent)
+            out[i] = np.ldexp(x_vec.array_r, exponent) if exponent else x_vec.array_r
         if not np.all(np.isfinite(out)):
             raise SolverError(f"{kind} solve returned NaN/Inf", reason="DIVERGED_NANORINF")
         elapsed = time.perf_counter() - t0

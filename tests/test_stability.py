@@ -240,6 +240,11 @@ def test_power_of_two_scaling_is_exact():
             assert solver.last.iterations == 40
 
 
+def test_rhs_exponents_batch_matches_rows():
+    batch = np.array([[1e-3, 2.0], [0.0, 0.0], [3e-150, -1e-160], [-7e200, 1.0]])
+    assert list(safeguards.rhs_exponents(batch)) == [safeguards.rhs_exponent(r) for r in batch]
+
+
 def test_rhs_exponent():
     assert safeguards.rhs_exponent(np.array([1e-3, 2.0])) == 0
     assert safeguards.rhs_exponent(np.zeros(3)) == 0
