@@ -32,12 +32,20 @@ def plot_compare(logs: dict, k_full: int, out: Path) -> list[str]:
             "k": np.array([e["k"] for e in ep]),
         }
 
+    others = iter(["C0", "C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9"] * 3)
+    colors = {name: "C3" if name == "prdp" else next(others) for name in curves}
+
     def style(name):
         if name == "prdp":
             return {"color": "C3", "lw": 2.2, "label": "PRDP", "zorder": 3}
         k = int(name.split(":")[1])
         label = f"K = {k}" + (" (K_full)" if k == k_full else "")
-        return {"lw": 1.4, "label": label, "ls": "-" if k == k_full else "--"}
+        return {
+            "color": colors[name],
+            "lw": 1.4,
+            "label": label,
+            "ls": "-" if k == k_full else "--",
+        }
 
     files = []
     for key, xlabel, fname in (
