@@ -160,11 +160,14 @@ class PRDP:
     the checkpoint becomes the last finite E, and the metric stays out of the EMA and
     out of the window count (it is kept in :attr:`history`).
 
-    The harness owns how K reaches the solver: forward and adjoint ``max_it`` together
-    (``-<prefix>ksp_max_it``, ``KSP.setTolerances(max_it=K)``), the adjoint separately
-    (e.g. ``ceil(adjoint_ratio * K)``), or one K = one GMRES restart cycle (reference
-    Navier-Stokes: max_it = 8 K). For Krylov methods whose count varies, read K as a
-    level and set ``-<prefix>ksp_rtol`` from :meth:`to_rtol` / :func:`rtol_from_level`.
+    The harness owns how K reaches the solver. `prdp_petsc.harness.run` sets
+    ``solver.max_it = K`` on every scene solver, and the adjoint follows (forward and
+    adjoint together). To drive them separately, set ``solver.adjoint_max_it`` (e.g.
+    ``ceil(adjoint_ratio * K)``) or give the solver ``AdjointSettings(max_it=...)``; to
+    make one K one GMRES restart cycle (reference Navier-Stokes), set
+    ``max_it = 8 * K``. For Krylov methods whose count varies, read K as a level and
+    control the tolerance instead: ``solver.set_tolerances(rtol=controller.to_rtol())``
+    with a generous ``max_it`` (see :func:`rtol_from_level`).
     """
 
     def __init__(
