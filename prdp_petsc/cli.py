@@ -51,7 +51,13 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     i = 0
     while i < len(argv):
         tok = argv[i]
-        if tok.startswith("-") and not tok.startswith("--") and tok != "-h" and len(tok) > 2:
+        if (
+            tok.startswith("-")
+            and not tok.startswith("--")
+            and tok != "-h"
+            and len(tok) > 2
+            and not _is_number(tok)  # "--seed -10": a value of ours
+        ):
             petsc.append(tok)
             nxt = argv[i + 1] if i + 1 < len(argv) else None
             if nxt is not None and (not nxt.startswith("-") or _is_number(nxt)):

@@ -103,6 +103,11 @@ def summarize(scene: str, k_full: int, logs: dict) -> dict:
         summary["val_error_ratio"] = (
             runs["prdp"]["final_val_error"] / runs[f"fixed:{k_full}"]["final_val_error"]
         )
+    else:
+        summary["savings_unavailable"] = (
+            "PRDP or the K_full baseline stopped early (see runs[...]['stopped']): "
+            "savings need both runs over the same epochs"
+        )
     return summary
 
 

@@ -57,13 +57,13 @@ def build_scene(module, preset: str, seed: int):
 def find_k_full(scene, max_it: int = 100_000) -> int:
     """Iterations the scene's solver needs to reach ``scene.rtol_full`` on its probe.
 
-    Uses the first solver's KSP/PC options and prefix, so command-line options
-    apply here too.
+    Uses a clone of the first solver (options, prefix, null spaces), so
+    command-line options apply here too.
     """
     ref: KSPSolver = scene.solvers[0]
     A, b = scene.probe()
     b = np.atleast_2d(b)
-    probe = KSPSolver(ref.options, prefix=ref.prefix, max_it=max_it, rtol=scene.rtol_full)
+    probe = ref.clone(max_it=max_it, rtol=scene.rtol_full)
     probe.set_operator(A)
     iterations = []
     for row in b:
@@ -162,6 +162,10 @@ def run(
             logger.error("epoch %d: %s", epoch, err)
             result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
             break
+        except ValueError as err:  # the bridge's input checks: e.g. the network produced NaN
+            logger.error("epoch %d: %s", epoch, err)
+            result["stopped"] = {"epoch": epoch, "reason": "INVALID_INPUT", "message": str(err)}
+            break
         wall = time.perf_counter() - t0
         stats = [s.stats for s in scene.solvers]
         result["epochs"].append(
@@ -183,8 +187,15 @@ def run(
         if out is not None:
             write_json(out / "results.json", result)
     bar.close()
-    ksp = scene.solvers[0].ksp
-    result["ksp"] = {"ksp_type": ksp.getType(), "pc_type": ksp.getPC().getType()}
+    solver = scene.solvers[0]
+    if solver._ksp is not None:  # configured by at least one solve
+        fwd, adj = solver.ksp, solver.adjoint_ksp
+        result["ksp"] = {
+            "ksp_type": fwd.getType(),
+            "pc_type": fwd.getPC().getType(),
+            "adjoint_ksp_type": adj.getType(),
+            "adjoint_pc_type": adj.getPC().getType(),
+        }
     result["totals"] = _totals(result["epochs"])
     if out is not None:
         write_json(out / "results.json", result)

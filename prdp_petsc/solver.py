@@ -9,6 +9,7 @@ The solver knows nothing of torch; `prdp_petsc.bridge` connects it to autograd.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shlex
 import time
@@ -265,6 +266,8 @@ class KSPSolver:
             adjoint = AdjointSettings()
         elif isinstance(adjoint, dict):
             adjoint = AdjointSettings(**adjoint)
+        else:
+            adjoint = dataclasses.replace(adjoint)  # ours to change (adjoint_max_it)
         self.adjoint = adjoint
         if adjoint.max_it is not None or adjoint.rtol is not None or adjoint.atol is not None:
             _check_tolerances(
@@ -392,15 +395,20 @@ class KSPSolver:
         Needed at ``KSPSetFromOptions`` and again at every solve, because PCs read
         some options only at set-up (GAMG level smoothers, bjacobi sub-solvers).
         Names already in the database (the command line) are left alone: they win.
-        Removing ours afterwards keeps solvers with the same prefix independent.
+        The adjoint inherits the forward options *as the forward KSP sees them*, so
+        ``-fwd_ksp_type cg`` on the command line changes both solves unless
+        ``-fwd_adj_ksp_type`` says otherwise.  Removing ours afterwards keeps
+        solvers with the same prefix independent.
         """
         opts = PETSc.Options()
+        forward = dict(self.options)
+        for name, value in opts.getAll().items():
+            if name.startswith(self.prefix) and not name.startswith(self.adjoint_prefix):
+                forward[name[len(self.prefix) :]] = value
+        adjoint = {**forward, **parse_options(self.adjoint.options)}
         pushed = []
         try:
-            for prefix, options in (
-                (self.prefix, self.options),
-                (self.adjoint_prefix, self.adjoint_options),
-            ):
+            for prefix, options in ((self.prefix, self.options), (self.adjoint_prefix, adjoint)):
                 for key, value in options.items():
                     name = prefix + key
                     if name in pushed or opts.hasName(name):
@@ -509,6 +517,9 @@ class KSPSolver:
 
     def _adjoint_is_forward(self) -> bool:
         """True when ``Aᵀλ = g`` can run as a forward solve of the adjoint KSP."""
+        if self._pattern is None and self._mat is not None:  # a user's Mat: ask it now
+            known, flag = self._mat.isSymmetricKnown()
+            self.symmetric = bool(known and flag)
         if not self.symmetric or self.adjoint.symmetric_pc is False:
             return False
         return self.adjoint.symmetric_pc or self._adj.getPC().getType() in _SYMMETRIC_PCS
@@ -630,10 +641,14 @@ class KSPSolver:
                         f"{reported.iterations} iterations; lower max_it or set rtol > 0",
                         reason="LOST_ACCURACY",
                     )
-            info = reported if rescued is None else SolveInfo(
-                ksp.getIterationNumber(),
-                reason_name(ksp.getConvergedReason()),
-                float(np.ldexp(ksp.getResidualNorm(), exponent)),
+            info = (
+                reported
+                if rescued is None
+                else SolveInfo(
+                    ksp.getIterationNumber(),
+                    reason_name(ksp.getConvergedReason()),
+                    float(np.ldexp(ksp.getResidualNorm(), exponent)),
+                )
             )
             self.last = info
             iterations += info.iterations
@@ -659,6 +674,26 @@ class KSPSolver:
             self.stats.forward_iterations += iterations
             self.stats.forward_time += elapsed
         return out.reshape(rhs.shape)
+
+    def clone(self, **changes) -> KSPSolver:
+        """A new, unconfigured solver with the same settings, some of them changed.
+
+        Options, prefix, tolerances, adjoint settings, ``divtol`` and null spaces are
+        copied; keyword arguments (any of `KSPSolver`'s) replace them.
+        """
+        kwargs = {
+            "options": dict(self.options),
+            "prefix": self.prefix,
+            "max_it": self._max_it,
+            "rtol": self.rtol,
+            "atol": self.atol,
+            "adjoint": self.adjoint,
+            "divtol": self.divtol,
+            "nullspace": self.nullspace,
+            "transpose_nullspace": self.transpose_nullspace,
+        }
+        kwargs.update(changes)
+        return KSPSolver(**kwargs)
 
     def reset_stats(self) -> None:
         """Zero the counters in `stats`."""

@@ -103,7 +103,13 @@ def test_cli_run_passes_petsc_options(tmp_path):
         opts.delValue("heat_ksp_type")
     assert rc == 0
     result = json.loads((tmp_path / "results.json").read_text())
-    assert result["ksp"] == {"ksp_type": "cg", "pc_type": "jacobi"}
+    # the adjoint inherits the command-line forward options
+    assert result["ksp"] == {
+        "ksp_type": "cg",
+        "pc_type": "jacobi",
+        "adjoint_ksp_type": "cg",
+        "adjoint_pc_type": "jacobi",
+    }
     assert [e["k"] for e in result["epochs"]] == [4, 4]
 
 

@@ -148,7 +148,7 @@ def test_command_line_options_override_the_dict(petsc_option):
     solver.set_operator(fd_poisson(4))
     assert solver.ksp.getType() == "gmres"  # -tst_ksp_type gmres wins over the dict
     assert solver.ksp.getPC().getType() == "icc"
-    assert solver.adjoint_ksp.getType() == "cg"  # its own prefix: tst_adj_
+    assert solver.adjoint_ksp.getType() == "gmres"  # inherits the forward, as configured
     assert solver.adjoint_ksp.getPC().getType() == "jacobi"
     assert PETSc.Options().getString("tst_ksp_type") == "gmres"  # left as the user set it
 
@@ -461,3 +461,62 @@ def test_prdp_can_drive_rtol_instead_of_max_it():
         controller.update(metric)
     assert controller.k > 1
     assert its == sorted(its) and its[-1] > its[0]
+
+
+def test_command_line_forward_options_reach_the_inheriting_adjoint():
+    opts = PETSc.Options()
+    opts.setValue("inh_ksp_type", "cg")
+    opts.setValue("inh_adj_pc_type", "none")
+    try:
+        solver = pp.KSPSolver(
+            {"ksp_type": "richardson", "pc_type": "jacobi"}, prefix="inh_", max_it=3
+        )
+        solver.setup()
+        assert solver.ksp.getType() == solver.adjoint_ksp.getType() == "cg"
+        assert solver.ksp.getPC().getType() == "jacobi"
+        assert solver.adjoint_ksp.getPC().getType() == "none"  # its own option wins
+    finally:
+        opts.delValue("inh_ksp_type")
+        opts.delValue("inh_adj_pc_type")
+
+
+def test_user_mat_edited_in_place_is_not_taken_as_symmetric():
+    M = PETSc.Mat().createAIJ(size=(3, 3), nnz=3, comm=PETSc.COMM_SELF)
+    for i in range(3):
+        for j in range(3):
+            M.setValue(i, j, 4.0 if i == j else 1.0)
+    M.assemble()
+    M.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "none"}, max_it=10, rtol=1e-14)
+    solver.set_operator(M)
+    M.setValue(0, 1, 2.0)  # no longer symmetric; PETSc drops the flag
+    M.assemble()
+    M.setOption(PETSc.Mat.Option.SYMMETRIC, False)
+    solver.set_operator(M)
+    g = np.array([1.0, 2.0, 3.0])
+    dense = np.full((3, 3), 1.0) + 3.0 * np.eye(3)
+    dense[0, 1] = 2.0
+    assert np.allclose(solver.solve_transpose(g), np.linalg.solve(dense.T, g), atol=1e-12)
+
+
+def test_clone_copies_every_setting():
+    solver = pp.KSPSolver(
+        "-ksp_type cg",
+        prefix="cl_",
+        max_it=7,
+        rtol=1e-3,
+        divtol=1e3,
+        nullspace="constant",
+        adjoint=pp.AdjointSettings(max_it=2),
+    )
+    copy = solver.clone(max_it=50)
+    assert (copy.prefix, copy.max_it, copy.rtol, copy.divtol, copy.nullspace) == (
+        "cl_",
+        50,
+        1e-3,
+        1e3,
+        "constant",
+    )
+    assert copy.options == solver.options and copy.adjoint_max_it == 2
+    copy.adjoint_max_it = 9
+    assert solver.adjoint_max_it == 2  # settings objects are not shared
