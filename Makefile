@@ -1,7 +1,7 @@
 # Two commands do all the set-up:  `make demo`  and  `make test`.
 # Each creates .venv if needed and installs everything first.  The install is
-# recorded in a stamp file keyed on the hash of pyproject.toml, so a second run
-# skips it and starts in seconds.
+# recorded in a stamp file keyed on the hash of pyproject.toml and this Makefile,
+# so a second run skips it and starts in seconds.
 #
 #   PRDP_PETSC_SKIP_PETSC=1   use an existing petsc4py (conda, system PETSc):
 #                             the venv sees system site-packages and PETSc is

@@ -11,9 +11,8 @@ Part of ``prdp-petsc bench bridge`` (see `prdp_petsc.bench`).  Three ways to get
     The same CG loop written by hand in torch, with a matrix product whose
     backward uses a transpose stored once (a fair baseline for ``unrolled``).
 
-Only b carries a gradient: ``mode="unrolled"`` differentiates the values of a
-torch sparse CSR matrix through a dense n × n intermediate, which rules out a
-parametric operator at this size.  Peak memory is the growth of the resident set
+Only b carries a gradient (the DESIGN §6 comparison); ``mode="unrolled"`` also
+differentiates θ, through `prdp_petsc.unrolled.UnrolledOperator`.  Peak memory is the growth of the resident set
 over one forward + backward in a fresh subprocess, so nothing the parent process
 allocated before can hide it.
 """
@@ -127,7 +126,7 @@ def bench_unrolled(
         out["handwritten_note"] = (
             "the same preconditioned CG loop written by hand in torch, with an autograd "
             "SpMV whose backward multiplies by a precomputed transpose CSR (mode='unrolled' "
-            "lets torch transpose the CSR matrix in every backward step)"
+            "does the same through UnrolledOperator, plus PETSc's convergence test)"
         )
     return out
 

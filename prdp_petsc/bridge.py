@@ -2,7 +2,7 @@
 
 ``x = solve(A, b, solver, theta=θ)`` runs ``KSPSolve`` forward.  Its backward runs
 ``KSPSolveTranspose`` with the solver's adjoint settings on the upstream gradient
-g: ``Aᵀ λ = g``, then ``∂L/∂b = λ`` and ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``.  The
+g (a forward ``KSPSolve`` when A and the PC are symmetric): ``Aᵀ λ = g``, then ``∂L/∂b = λ`` and ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``.  The
 forward solution is kept, never recomputed, and nothing is computed for an
 input that does not need a gradient.
 """
