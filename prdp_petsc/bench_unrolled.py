@@ -12,9 +12,9 @@ Part of ``prdp-petsc bench bridge`` (see `prdp_petsc.bench`).  Three ways to get
     backward uses a transpose stored once (a fair baseline for ``unrolled``).
 
 Only b carries a gradient (the DESIGN §6 comparison); ``mode="unrolled"`` also
-differentiates θ, through `prdp_petsc.unrolled.UnrolledOperator`.  Peak memory is the growth of the resident set
-over one forward + backward in a fresh subprocess, so nothing the parent process
-allocated before can hide it.
+differentiates θ, through `prdp_petsc.unrolled.UnrolledOperator`.  Peak memory is
+the growth of the resident set over one forward + backward in a fresh subprocess,
+so nothing the parent process allocated before can hide it.
 """
 
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 ``x = solve(A, b, solver, theta=θ)`` runs ``KSPSolve`` forward.  Its backward runs
 ``KSPSolveTranspose`` with the solver's adjoint settings on the upstream gradient
-g (a forward ``KSPSolve`` when A and the PC are symmetric): ``Aᵀ λ = g``, then ``∂L/∂b = λ`` and ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``.  The
-forward solution is kept, never recomputed, and nothing is computed for an
-input that does not need a gradient.
+g (a forward ``KSPSolve`` when A and the PC are symmetric): ``Aᵀ λ = g``, then
+``∂L/∂b = λ`` and ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``.  The forward solution is
+kept, never recomputed, and nothing is computed for an input that does not need
+a gradient.
 """
 
 from __future__ import annotations
