@@ -45,7 +45,7 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``)."""
-    from .solver import _is_number
+    from .options import is_number
 
     ours, petsc = [], []
     i = 0
@@ -56,11 +56,11 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
             and not tok.startswith("--")
             and tok != "-h"
             and len(tok) > 2
-            and not _is_number(tok)  # "--seed -10": a value of ours
+            and not is_number(tok)  # "--seed -10": a value of ours
         ):
             petsc.append(tok)
             nxt = argv[i + 1] if i + 1 < len(argv) else None
-            if nxt is not None and (not nxt.startswith("-") or _is_number(nxt)):
+            if nxt is not None and (not nxt.startswith("-") or is_number(nxt)):
                 petsc.append(nxt)
                 i += 1
         else:

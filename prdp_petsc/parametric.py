@@ -22,6 +22,8 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from .sparsity import nearly_equal, transpose_permutation
+
 __all__ = ["ParametricMatrix", "diffusion_operator", "from_form", "mass_matrix"]
 
 
@@ -103,14 +105,12 @@ class ParametricMatrix:
     @cached_property
     def is_symmetric(self) -> bool:
         """True when A(θ) = A(θ)ᵀ for every θ (a₀ and every column of G symmetric)."""
-        from .solver import _nearly_equal, _transpose_permutation
-
-        perm = _transpose_permutation(self.indptr, self.indices, self.shape)
+        perm = transpose_permutation(self.indptr, self.indices, self.shape)
         if perm is None:
             return False
         diff = abs(self.G[perm] - self.G).max() if self.G.nnz else 0.0
         scale = abs(self.G).max() if self.G.nnz else 0.0
-        return _nearly_equal(self.a0, self.a0[perm]) and diff <= 1e-14 * scale
+        return nearly_equal(self.a0, self.a0[perm]) and diff <= 1e-14 * scale
 
     @cached_property
     def GT(self) -> sp.csr_matrix:

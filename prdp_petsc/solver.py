@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shlex
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -22,6 +21,8 @@ from petsc4py import PETSc
 
 from . import safeguards
 from .nullspace import check_nullspace, normalize_nullspace, petsc_nullspace
+from .options import option_value, parse_options
+from .sparsity import nearly_equal, transpose_permutation
 
 __all__ = ["AdjointSettings", "KSPSolver", "SolveInfo", "SolverError", "SolverStats"]
 
@@ -36,24 +37,6 @@ _MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it")
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
-
-
-def _nearly_equal(a: np.ndarray, b: np.ndarray) -> bool:
-    """Equal up to rounding: ``max|a − b| ≤ 1e-14 max|a|`` (assembly sums in any order)."""
-    scale = np.abs(a).max(initial=0.0)
-    return bool(np.abs(a - b).max(initial=0.0) <= 1e-14 * scale)
-
-
-def _transpose_permutation(indptr, indices, shape) -> np.ndarray | None:
-    """Position of entry (j, i) for each CSR entry (i, j); None if the pattern is not symmetric."""
-    if shape[0] != shape[1]:
-        return None
-    nnz = len(indices)
-    T = sp.csr_matrix((np.arange(nnz) + 1, indices, indptr), shape=shape).T.tocsr()
-    T.sort_indices()
-    if not (np.array_equal(T.indptr, indptr) and np.array_equal(T.indices, indices)):
-        return None
-    return T.data - 1
 
 
 def reason_name(reason: int) -> str:
@@ -139,46 +122,6 @@ class AdjointSettings:
     atol: float | None = None
     prefix: str | None = None
     symmetric_pc: bool | None = None
-
-
-def parse_options(options: dict | str | None) -> dict:
-    """Turn ``{"ksp_type": "cg"}`` or ``"-ksp_type cg -ksp_monitor"`` into a dict."""
-    if options is None:
-        return {}
-    if isinstance(options, dict):
-        return {str(k).lstrip("-"): v for k, v in options.items()}
-    if not isinstance(options, str):
-        raise TypeError(f"options must be a dict or a PETSc option string, got {type(options)}")
-    out: dict = {}
-    tokens = shlex.split(options)
-    i = 0
-    while i < len(tokens):
-        tok = tokens[i]
-        if not tok.startswith("-") or _is_number(tok):
-            raise ValueError(f"options: expected '-name', got {tok!r} in {options!r}")
-        value = None
-        if i + 1 < len(tokens) and (not tokens[i + 1].startswith("-") or _is_number(tokens[i + 1])):
-            value = tokens[i + 1]
-            i += 1
-        out[tok.lstrip("-")] = value
-        i += 1
-    return out
-
-
-def _is_number(tok: str) -> bool:
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
-
-
-def _option_value(value) -> str | None:
-    if value is None or value is True:
-        return None
-    if value is False:
-        return "false"
-    return str(value)
 
 
 def _check_tolerances(max_it, rtol, atol, what: str) -> None:
@@ -374,7 +317,7 @@ class KSPSolver:
         off = ("0", "false", "no")
         explicit = "ksp_use_explicittranspose"
         if explicit in self.adjoint_options:
-            if _option_value(self.adjoint_options[explicit]) not in off:
+            if option_value(self.adjoint_options[explicit]) not in off:
                 return False
         if cmdline.get(self.adjoint_prefix + explicit, "false") not in off:
             return False
@@ -413,7 +356,7 @@ class KSPSolver:
                     name = prefix + key
                     if name in pushed or opts.hasName(name):
                         continue
-                    opts.setValue(name, _option_value(value))
+                    opts.setValue(name, option_value(value))
                     pushed.append(name)
             yield
         finally:
@@ -502,14 +445,14 @@ class KSPSolver:
         self._pattern = (ip, ix, tuple(shape))
         self._source = (indptr, indices)
         self._values = data.copy()
-        self._tperm = _transpose_permutation(ip, ix, tuple(shape))
+        self._tperm = transpose_permutation(ip, ix, tuple(shape))
         self._mark_symmetry(mat, symmetric=symmetric)
         self._set_mat(mat)
 
     def _mark_symmetry(self, mat: PETSc.Mat | None = None, symmetric: bool | None = None) -> None:
         """Check A = Aᵀ exactly on the values (unless the caller knows) and tell PETSc."""
         if symmetric is None:
-            symmetric = self._tperm is not None and _nearly_equal(
+            symmetric = self._tperm is not None and nearly_equal(
                 self._values, self._values[self._tperm]
             )
         self.symmetric = bool(symmetric)
