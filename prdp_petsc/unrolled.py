@@ -124,6 +124,11 @@ def method_of(solver: KSPSolver) -> tuple[str, str, float]:
 
 def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torch.Tensor:
     """K steps of the solver's method in torch; differentiable in b and θ."""
+    if solver.nullspace is not None:
+        raise ValueError(
+            "mode='unrolled' does not project null spaces as PETSc does; use mode='implicit' "
+            "for a solver with a nullspace"
+        )
     solver.setup()  # the configured KSP/PC types are read back from PETSc
     ksp_type, pc_type, scale = method_of(solver)
     if (ksp_type, pc_type) not in _SUPPORTED:

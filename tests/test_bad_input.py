@@ -280,3 +280,9 @@ def test_adjoint_pc_without_transpose_is_a_solver_error():
 def test_tolerances_in_adjoint_options_are_refused():
     with pytest.raises(ValueError, match="AdjointSettings"):
         pp.KSPSolver(max_it=5, adjoint=pp.AdjointSettings(options="-ksp_max_it 3"))
+
+
+def test_unrolled_mode_refuses_a_null_space():
+    solver = pp.KSPSolver({"ksp_type": "cg"}, max_it=3, nullspace="constant")
+    with pytest.raises(ValueError, match="null space"):
+        pp.solve(fd_poisson(3), randn(9, seed=1), solver, mode="unrolled")
