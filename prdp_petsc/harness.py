@@ -140,7 +140,10 @@ def run(
     from tqdm.auto import tqdm
 
     bar = tqdm(
-        range(epochs), desc=f"{result['scene']} {schedule}", disable=not progress, leave=False
+        range(epochs),
+        desc=f"{result['scene']} {schedule}",
+        disable=None if progress else True,  # None: tqdm hides itself when not a terminal
+        leave=False,
     )
     for epoch in bar:
         for s in scene.solvers:
