@@ -39,6 +39,7 @@ __all__ = [
     "backward_error",
     "rescue",
     "rhs_exponent",
+    "rhs_exponents",
     "went_far",
 ]
 
