@@ -37,12 +37,12 @@ def _check_vector(arr: np.ndarray, n: int, name: str) -> None:
 
 
 def _operator(A, theta: torch.Tensor | None):
-    """Return (ParametricMatrix or None, CSR tuple, θ as numpy or None)."""
+    """Return (ParametricMatrix or None, CSR tuple ``(indptr, indices, data, shape)``)."""
     if isinstance(A, ParametricMatrix):
         if theta is None:
             raise ValueError("A is a ParametricMatrix: pass its parameters as theta=")
-        th = A.check_theta(_as_numpy(theta, "theta"))
-        return A, (A.indptr, A.indices, A.values(th), A.shape), th
+        values = A.values(_as_numpy(theta, "theta"))  # validates θ
+        return A, (A.indptr, A.indices, values, A.shape)
     if theta is not None:
         raise ValueError("theta= is only meaningful for a ParametricMatrix A")
     if not sp.issparse(A):
@@ -52,7 +52,7 @@ def _operator(A, theta: torch.Tensor | None):
         A = A.sorted_indices()
     if not np.all(np.isfinite(A.data)):
         raise ValueError("A has NaN or Inf entries")
-    return None, (A.indptr, A.indices, A.data.astype(np.float64, copy=False), A.shape), None
+    return None, (A.indptr, A.indices, A.data.astype(np.float64, copy=False), A.shape)
 
 
 class _ImplicitSolve(torch.autograd.Function):
@@ -122,7 +122,7 @@ def solve(
         raise ValueError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
     if not isinstance(solver, KSPSolver):
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
-    P, csr, _ = _operator(A, theta)
+    P, csr = _operator(A, theta)
     _check_vector(_as_numpy(b, "b"), csr[3][0], "b")
     if mode == "unrolled":
         from .unrolled import unrolled_solve
@@ -158,6 +158,6 @@ def matvec(A: ParametricMatrix, v: torch.Tensor, *, theta: torch.Tensor) -> torc
     """Differentiable ``A(θ) v`` for v of shape (m,) or (B, m) (used for Dirichlet lifting)."""
     if not isinstance(A, ParametricMatrix):
         raise TypeError("matvec expects a ParametricMatrix; for a constant matrix use torch")
-    th = A.check_theta(_as_numpy(theta, "theta"))
+    values = A.values(_as_numpy(theta, "theta"))  # validates θ
     _check_vector(_as_numpy(v, "v"), A.shape[1], "v")
-    return _MatVec.apply(v, theta, A, A.values(th))
+    return _MatVec.apply(v, theta, A, values)
