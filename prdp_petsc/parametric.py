@@ -182,13 +182,26 @@ class ParametricMatrix:
     __rmul__ = __mul__
 
 
+def _csr_pattern(rows: np.ndarray, cols: np.ndarray, shape) -> tuple:
+    """CSR pattern of (possibly repeated) entries: ``(indptr, indices, position)``.
+
+    ``position[k]`` is where entry k lands in the CSR value array (repeats share one).
+    """
+    keys = np.asarray(rows, dtype=np.int64) * shape[1] + cols
+    union, position = np.unique(keys, return_inverse=True)
+    prow, pcol = np.divmod(union, shape[1])
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(prow, minlength=shape[0]))])
+    return indptr, pcol, position
+
+
 def _union(mats: list[ParametricMatrix], gs: list, positive: bool) -> ParametricMatrix:
     """Sum of parametric matrices on the union of their patterns."""
-    ncols = mats[0].shape[1]
-    keys = [m.rows.astype(np.int64) * ncols + m.indices for m in mats]
-    union, inverse = np.unique(np.concatenate(keys), return_inverse=True)
-    nnz = len(union)
-    offsets = np.cumsum([0] + [len(k) for k in keys])
+    shape = mats[0].shape
+    indptr, indices, inverse = _csr_pattern(
+        np.concatenate([m.rows for m in mats]), np.concatenate([m.indices for m in mats]), shape
+    )
+    nnz = len(indices)
+    offsets = np.cumsum([0] + [m.nnz for m in mats])
     a0 = np.zeros(nnz)
     blocks = []
     n_params = sum(g.shape[1] for g in gs if g is not None) or mats[0].n_params
@@ -210,9 +223,7 @@ def _union(mats: list[ParametricMatrix], gs: list, positive: bool) -> Parametric
             blocks.append(scatter @ g_full)
             col0 += g.shape[1]
     G = sum(blocks[1:], blocks[0]).tocsr() if blocks else sp.csr_matrix((nnz, n_params))
-    rows, cols = np.divmod(union, ncols)
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=mats[0].shape[0]))])
-    return ParametricMatrix(indptr, cols, mats[0].shape, a0, G, positive)
+    return ParametricMatrix(indptr, indices, shape, a0, G, positive)
 
 
 def from_form(
@@ -256,18 +267,14 @@ def from_form(
         element = np.arange(len(data)) % nt
         cols_theta.append(coefficient_basis.element_dofs[m][element])
         vals.append(data)
-    rows, cols = entries
-    keys = rows.astype(np.int64) * shape[1] + cols
-    union, position = np.unique(keys, return_inverse=True)
-    nnz = len(union)
+    indptr, indices, position = _csr_pattern(entries[0], entries[1], shape)
+    nnz = len(indices)
     G = sp.csr_matrix(
         (np.concatenate(vals), (np.tile(position, len(vals)), np.concatenate(cols_theta))),
         shape=(nnz, coefficient_basis.N),
     )
     G.eliminate_zeros()
-    prow, pcol = np.divmod(union, shape[1])
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(prow, minlength=shape[0]))])
-    return ParametricMatrix(indptr, pcol, shape, np.zeros(nnz), G, positive)
+    return ParametricMatrix(indptr, indices, shape, np.zeros(nnz), G, positive)
 
 
 def mass_matrix(basis) -> sp.csr_matrix:
