@@ -8,14 +8,14 @@ validation metric needs.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .bridge import matvec, solve
-from .dirichlet import Dirichlet
-from .fd import grid_points, laplacian
-from .meshes import available_meshes, load_mesh
-from .parametric import ParametricMatrix, diffusion_operator, from_form, mass_matrix
+from .autograd.bridge import matvec, solve
+from .autograd.dirichlet import Dirichlet
+from .fem.fd import grid_points, laplacian
+from .fem.meshes import available_meshes, load_mesh
+from .fem.parametric import ParametricMatrix, diffusion_operator, from_form, mass_matrix
 from .prdp import PRDP, PRDPStep, rtol_from_level, savings
-from .scene import Scene
-from .solver import AdjointSettings, KSPSolver, SolveInfo, SolverError, SolverStats
+from .training.scene import Scene
+from .core.solver import AdjointSettings, KSPSolver, SolveInfo, SolverError, SolverStats
 
 try:
     __version__ = version("prdp-petsc")

@@ -45,7 +45,7 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``)."""
-    from .options import is_number
+    from .core.options import is_number
 
     ours, petsc = [], []
     i = 0
@@ -78,8 +78,8 @@ def _insert_petsc_options(petsc: list[str]) -> None:
 
 
 def _run_scene_command(args, scene_file: str) -> int:
-    from .compare import compare, format_table
-    from .harness import run
+    from .training.compare import compare, format_table
+    from .training.harness import run
 
     if args.command == "run":
         result = run(
@@ -129,9 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     tools = {
-        "bench": "prdp_petsc.bench",
-        "work-precision": "prdp_petsc.workprecision",
-        "stability": "prdp_petsc.stability",
+        "bench": "prdp_petsc.reports.bench",
+        "work-precision": "prdp_petsc.reports.workprecision",
+        "stability": "prdp_petsc.reports.stability",
     }
     if argv and argv[0] in tools:
         import importlib

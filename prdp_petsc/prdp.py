@@ -160,7 +160,7 @@ class PRDP:
     the checkpoint becomes the last finite E, and the metric stays out of the EMA and
     out of the window count (it is kept in :attr:`history`).
 
-    The harness owns how K reaches the solver. `prdp_petsc.harness.run` sets
+    The harness owns how K reaches the solver. `prdp_petsc.training.harness.run` sets
     ``solver.max_it = K`` on every scene solver, and the adjoint follows (forward and
     adjoint together). To drive them separately, set ``solver.adjoint_max_it`` (e.g.
     ``ceil(adjoint_ratio * K)``) or give the solver ``AdjointSettings(max_it=...)``; to

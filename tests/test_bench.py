@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from prdp_petsc.bench import main
+from prdp_petsc.reports.bench import main
 
 
 def test_bench_bridge_quick_writes_json(tmp_path):

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from prdp_petsc.harness import run
-from prdp_petsc.scene import load_scene
+from prdp_petsc.training.harness import run
+from prdp_petsc.training.scene import load_scene
 
 DEMOS = Path(__file__).resolve().parent.parent / "demos"
 

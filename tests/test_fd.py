@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from prdp_petsc.fd import grid_points, laplacian, second_difference
+from prdp_petsc.fem.fd import grid_points, laplacian, second_difference
 
 
 def observed_rate(hs, errors):

@@ -8,8 +8,8 @@ import pytest
 from petsc4py import PETSc
 
 from prdp_petsc.cli import main
-from prdp_petsc.compare import compare
-from prdp_petsc.harness import parse_schedule, run
+from prdp_petsc.training.compare import compare
+from prdp_petsc.training.harness import parse_schedule, run
 
 HEAT1D = Path(__file__).resolve().parent.parent / "demos" / "heat1d.py"
 

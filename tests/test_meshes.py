@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import skfem
 
-from prdp_petsc.meshes import (
+from prdp_petsc.fem.meshes import (
     MESH_DIR_ENV,
     available_meshes,
     load_mesh,

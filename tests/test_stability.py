@@ -1,6 +1,6 @@
 """Stability suite at small sizes: hard problems, extreme inputs and failure modes.
 
-The rows come from `prdp_petsc.stability` (the same code that writes the README
+The rows come from `prdp_petsc.reports.stability` (the same code that writes the README
 table); each test asserts residuals, iteration counts, Taylor rates, finiteness or
 the error type and PETSc reason.
 """
@@ -14,7 +14,8 @@ import scipy.sparse.linalg as spl
 import torch
 
 import prdp_petsc as pp
-from prdp_petsc import problems, safeguards, stability
+from prdp_petsc.core import safeguards
+from prdp_petsc.reports import problems, stability
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +175,7 @@ def test_bicgstab_divergence_after_convergence_returns_the_best_iterate():
 
     The library re-runs to the iteration of the smallest residual.
     """
-    from prdp_petsc.meshes import load_mesh
+    from prdp_petsc.fem.meshes import load_mesh
 
     mesh = load_mesh("lshape")
     A, b, _ = stability._poisson(mesh)

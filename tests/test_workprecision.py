@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from prdp_petsc import problems, workprecision
+from prdp_petsc.reports import problems, workprecision
 
 
 @pytest.mark.parametrize("name", sorted(problems.PROBLEMS))

@@ -1,6 +1,6 @@
 """Implicit PETSc gradients against torch-unrolled CG: time and peak memory at K.
 
-Part of ``prdp-petsc bench bridge`` (see `prdp_petsc.bench`).  Three ways to get
+Part of ``prdp-petsc bench bridge`` (see `prdp_petsc.reports.bench`).  Three ways to get
 ``∂L/∂b`` through K steps of Jacobi-preconditioned CG on the five-point ``−Δ``:
 
 ``implicit``
@@ -12,7 +12,7 @@ Part of ``prdp-petsc bench bridge`` (see `prdp_petsc.bench`).  Three ways to get
     backward uses a transpose stored once (a fair baseline for ``unrolled``).
 
 Only b carries a gradient (the DESIGN §6 comparison); ``mode="unrolled"`` also
-differentiates θ, through `prdp_petsc.unrolled.UnrolledOperator`.  Peak memory is
+differentiates θ, through `prdp_petsc.autograd.unrolled.UnrolledOperator`.  Peak memory is
 the growth of the resident set over one forward + backward in a fresh subprocess,
 so nothing the parent process allocated before can hide it.
 """
@@ -36,7 +36,7 @@ PREFIX = "bench_"
 
 def bench_solver(ksp_type: str, pc_type: str, k: int):
     """The benchmarks' `KSPSolver`: fixed mode (rtol = atol = 0), prefix ``bench_``."""
-    from .solver import KSPSolver
+    from ..core.solver import KSPSolver
 
     return KSPSolver({"ksp_type": ksp_type, "pc_type": pc_type}, prefix=PREFIX, max_it=k)
 
@@ -48,7 +48,7 @@ def ksp_types(solver) -> list[str]:
 
 def unrolled_problem(n: int, seed: int = 1):
     """(A, b, g, side): the SPD five-point ``−Δ`` on a side × side grid, side ≈ √n."""
-    from .fd import laplacian
+    from ..fem.fd import laplacian
 
     side = max(2, round(float(np.sqrt(n))))
     A = (-laplacian((side, side))).tocsr()
@@ -136,7 +136,7 @@ def _handwritten_ok(ksp_type: str, pc_type: str) -> bool:
 
 
 def _unrolled_mode_solve(mode: str, A, b, solver, pc_type: str):
-    from .bridge import solve
+    from ..autograd.bridge import solve
 
     if mode == "handwritten":
         return handwritten_unrolled_cg(A, b, solver.max_it, jacobi=pc_type == "jacobi")
@@ -215,7 +215,7 @@ def peak_rss_increase(specs: list[dict]) -> dict:
 
     The subprocesses run side by side (each measures only itself) after the timings.
     """
-    code = "import sys; from prdp_petsc.bench_unrolled import _peak_rss_child as f; f(sys.argv[1])"
+    code = "import sys; from prdp_petsc.reports.bench_unrolled import _peak_rss_child as f; f(sys.argv[1])"
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", code, json.dumps(spec)],

@@ -22,7 +22,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from .sparsity import nearly_equal, transpose_permutation
+from ..core.sparsity import nearly_equal, transpose_permutation
 
 __all__ = ["ParametricMatrix", "diffusion_operator", "from_form", "mass_matrix"]
 

@@ -10,7 +10,7 @@ A scene file (the shipped ones live in ``demos/``) defines
     builds the physics, data, network, loss and validation metric for one preset,
     and nothing the scene does not need.
 
-The harness (`prdp_petsc.harness`) does the rest: training loop, K schedule
+The harness (`prdp_petsc.training.harness`) does the rest: training loop, K schedule
 (PRDP or fixed), finding K_full, cost accounting, results, plots, command line.
 """
 
@@ -25,7 +25,7 @@ from types import ModuleType
 
 import torch
 
-from .solver import KSPSolver
+from ..core.solver import KSPSolver
 
 __all__ = ["Scene", "load_scene"]
 
@@ -100,5 +100,5 @@ def load_scene(path: str | Path) -> ModuleType:
     spec.loader.exec_module(module)
     for attr in ("PRESETS", "build"):
         if not hasattr(module, attr):
-            raise AttributeError(f"scene {path.name} must define {attr} (see prdp_petsc.scene)")
+            raise AttributeError(f"scene {path.name} must define {attr} (see prdp_petsc.training.scene)")
     return module

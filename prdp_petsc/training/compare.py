@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .harness import build_scene, find_k_full, run, write_json
-from .prdp import savings
+from ..prdp import savings
 from .scene import load_scene
 
 __all__ = ["compare", "format_table", "summarize"]
@@ -61,7 +61,7 @@ def compare(
     summary = summarize(Path(scene_file).stem, k_full, logs)
     write_json(out / "summary.json", summary)
     if plots:
-        from .report import plot_compare
+        from .plots import plot_compare
 
         summary["plots"] = plot_compare(logs, k_full, out)
         write_json(out / "summary.json", summary)

@@ -8,7 +8,7 @@ degrees of freedom B and unknowns I, the interior solve is
 `Dirichlet` splits a `ParametricMatrix` (or a scipy matrix) into ``A_II`` and
 ``A_IB`` once; `Dirichlet.solve` returns the full vector and is differentiable
 in f, g and θ: the gradient with respect to g is ``−A_IBᵀ λ`` from the same
-adjoint solve, computed by autograd through `prdp_petsc.bridge.matvec`.
+adjoint solve, computed by autograd through `prdp_petsc.autograd.bridge.matvec`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import scipy.sparse as sp
 import torch
 
 from .bridge import _as_numpy, _check_vector, matvec, solve
-from .parametric import ParametricMatrix
-from .solver import KSPSolver
+from ..fem.parametric import ParametricMatrix
+from ..core.solver import KSPSolver
 
 __all__ = ["Dirichlet"]
 

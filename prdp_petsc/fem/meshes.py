@@ -3,7 +3,7 @@
 The meshes in the repository's ``meshes/`` folder are made by
 ``meshes/generate.py`` (gmsh) and are addressed by bare name::
 
-    >>> from prdp_petsc.meshes import load_mesh
+    >>> from prdp_petsc.fem.meshes import load_mesh
     >>> mesh = load_mesh("lshape", refine=1)  # doctest: +SKIP
 
 Set the environment variable ``PRDP_PETSC_MESH_DIR`` to look for named meshes in
@@ -39,7 +39,7 @@ def mesh_dir() -> Path:
     override = os.environ.get(MESH_DIR_ENV)
     if override:
         return Path(override).expanduser().resolve()
-    return Path(__file__).resolve().parent.parent / "meshes"
+    return Path(__file__).resolve().parents[2] / "meshes"
 
 
 def available_meshes() -> list[str]:

@@ -14,8 +14,8 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .parametric import ParametricMatrix
-from .solver import KSPSolver
+from ..fem.parametric import ParametricMatrix
+from ..core.solver import KSPSolver
 
 __all__ = ["matvec", "solve"]
 
@@ -106,7 +106,7 @@ def solve(
     mode : {"implicit", "unrolled"}
         ``"implicit"``: PETSc forward solve, PETSc transpose solve in backward.
         ``"unrolled"``: the same K-step iteration in torch under autograd (exact
-        derivative of the truncated solver); see `prdp_petsc.unrolled`.
+        derivative of the truncated solver); see `prdp_petsc.autograd.unrolled`.
 
     Returns
     -------
@@ -116,7 +116,7 @@ def solve(
 
     Notes
     -----
-    Dirichlet values enter through the right-hand side; see `prdp_petsc.dirichlet`.
+    Dirichlet values enter through the right-hand side; see `prdp_petsc.autograd.dirichlet`.
     """
     if mode not in ("implicit", "unrolled"):
         raise ValueError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")

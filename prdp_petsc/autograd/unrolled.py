@@ -26,8 +26,8 @@ import scipy.sparse as sp
 import torch
 from petsc4py import PETSc
 
-from .parametric import ParametricMatrix
-from .solver import KSPSolver, SolveInfo
+from ..fem.parametric import ParametricMatrix
+from ..core.solver import KSPSolver, SolveInfo
 
 __all__ = ["UnrolledOperator", "unrolled_solve"]
 

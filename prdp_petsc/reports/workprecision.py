@@ -1,6 +1,6 @@
 """Work–precision report: error against wall time for KSP/PC pairs on a standard problem.
 
-For a problem of `prdp_petsc.problems` and every applicable KSP/PC pair, sweep the
+For a problem of `prdp_petsc.reports.problems` and every applicable KSP/PC pair, sweep the
 iteration cap K over a geometric range in fixed mode (``rtol = atol = 0``, exactly
 K iterations forward and K adjoint) and record
 
@@ -96,7 +96,7 @@ def _timed(fn, min_time: float = 0.3, max_repeat: int = 3):
 
 def _setup(opts: dict, adjoint, A):
     """A KSPSolver on A with its PC(s) set up."""
-    from .solver import KSPSolver
+    from ..core.solver import KSPSolver
 
     solver = KSPSolver(opts, max_it=1, adjoint=adjoint, prefix="wp_")
     solver.set_operator(A)
@@ -113,7 +113,7 @@ def _gradient_step(problem, solver, x):
 
 def _measure(problem, A, opts, adjoint, ks, refs, max_seconds) -> list[dict]:
     """First pass over K for one pair: errors and times."""
-    from .solver import SolverError
+    from ..core.solver import SolverError
 
     x_ref, g_ref = refs
     solver, t_setup = _timed(lambda: _setup(opts, adjoint, A), 0.0)

@@ -16,7 +16,7 @@ ratios of DESIGN.md §6, all from one run on one machine:
     ``mode="unrolled"`` over ``mode="implicit"``, forward + backward at K = 300 on
     the five-point ``−Δ`` (175 × 175), gradient in b, with the peak memory of
     each; ``handwritten_unrolled_speedup`` is the same against a hand-written
-    torch CG (see `prdp_petsc.bench_unrolled`).
+    torch CG (see `prdp_petsc.reports.bench_unrolled`).
 
 Every ratio is the median over repeats (after warm-up, ``time.perf_counter``) of
 the ratio within one repeat: the variants run interleaved, in alternating order,
@@ -63,8 +63,8 @@ def overhead_problem(n: int, seed: int = 0):
     """(A, θ, b, g, refine): plate_holes P1, κ per element plus unit reaction (SPD)."""
     import skfem
 
-    from .meshes import load_mesh
-    from .parametric import diffusion_operator
+    from ..fem.meshes import load_mesh
+    from ..fem.parametric import diffusion_operator
 
     refine = max(0, round(float(np.log(n / _PLATE_HOLES_N0) / np.log(4.0))))
     basis = skfem.Basis(load_mesh("plate_holes", refine=refine), skfem.ElementTriP1())
@@ -90,7 +90,7 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
     import torch
     from petsc4py import PETSc
 
-    from .bridge import solve
+    from ..autograd.bridge import solve
 
     A, theta_np, b_np, g_np, refine = overhead_problem(n)
     solver = bench_solver(ksp_type, pc_type, k)
@@ -223,7 +223,7 @@ def machine_info() -> dict:
             )
     except OSError:
         pass
-    from . import __version__
+    from .. import __version__
 
     return {
         "platform": platform.platform(),

@@ -4,7 +4,7 @@
 solve ``A x = b`` and one for the adjoint (transpose) solve ``Aᵀ λ = g``.  Both
 are configured from PETSc options under their own prefix, so everything a PETSc
 user knows (``-fwd_ksp_type gmres -fwd_pc_type gamg -fwd_ksp_monitor``) works.
-The solver knows nothing of torch; `prdp_petsc.bridge` connects it to autograd.
+The solver knows nothing of torch; `prdp_petsc.autograd.bridge` connects it to autograd.
 """
 
 from __future__ import annotations
@@ -176,7 +176,7 @@ class KSPSolver:
     reason raises `SolverError`, except a breakdown (or BiCGStab's late divergence)
     after the residual reached rounding level when run far beyond convergence: the
     iterate at rounding level is returned and PETSc's reason is kept in `last`
-    (see `prdp_petsc.safeguards`).  A right-hand side with entries beyond
+    (see `prdp_petsc.core.safeguards`).  A right-hand side with entries beyond
     ``2^±100`` is scaled by a power of two before the solve (exact; ``atol`` is
     scaled along) so that 1e±150 neither under- nor overflows inside the KSP.
     The adjoint refuses KSP types whose transpose solve is wrong (``cgls``) and

@@ -2,7 +2,7 @@
 
 ``run`` trains a scene once under a schedule (``"prdp"`` or ``"fixed:K"``) and
 writes ``results.json`` after every epoch, so a run that stops early (a diverged
-solve, Ctrl-C) keeps everything measured so far.  `prdp_petsc.compare` builds
+solve, Ctrl-C) keeps everything measured so far.  `prdp_petsc.training.compare` builds
 the PRDP-against-K_full comparison on top of it.
 """
 
@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .prdp import PRDP
+from ..prdp import PRDP
 from .scene import load_scene
-from .solver import KSPSolver, SolverError
+from ..core.solver import KSPSolver, SolverError
 
 __all__ = ["build_scene", "find_k_full", "parse_schedule", "run"]
 
@@ -100,7 +100,7 @@ def run(
     Parameters
     ----------
     scene_file : str or Path
-        Scene file (see `prdp_petsc.scene`).
+        Scene file (see `prdp_petsc.training.scene`).
     schedule : str
         ``"prdp"`` or ``"fixed:K"``.
     preset, epochs, seed

@@ -76,8 +76,8 @@ def _poisson(mesh, *, dirichlet: bool = True, form=None, coefficient_basis=None)
     """(A(θ) on the unknowns, load vector of f = 1, basis) for −∇·(κ∇u) = 1."""
     from skfem import Basis, ElementTriP0, ElementTriP1, LinearForm
 
-    from .dirichlet import Dirichlet
-    from .parametric import diffusion_operator, from_form
+    from ..autograd.dirichlet import Dirichlet
+    from ..fem.parametric import diffusion_operator, from_form
 
     basis = Basis(mesh, ElementTriP1())
     if form is None:
@@ -130,8 +130,8 @@ def evaluate(
     """
     import torch
 
-    from .bridge import solve
-    from .solver import KSPSolver, SolverError
+    from ..autograd.bridge import solve
+    from ..core.solver import KSPSolver, SolverError
 
     rng = np.random.default_rng(seed)
     n = A.shape[0]
@@ -201,8 +201,8 @@ def case_stiff_heat(quick: bool = False) -> list[dict]:
     """Neumann heat steps ``(M + Δt K(κ)) u¹ = M u⁰`` with Δt κ / h² from 1e-2 to 1e8."""
     from skfem import Basis, ElementTriP1
 
-    from .meshes import load_mesh
-    from .parametric import diffusion_operator, mass_matrix
+    from ..fem.meshes import load_mesh
+    from ..fem.parametric import diffusion_operator, mass_matrix
     from .problems import mean_edge_length
 
     mesh = load_mesh("lshape", 0 if quick else 1)
@@ -223,7 +223,7 @@ def case_stiff_heat(quick: bool = False) -> list[dict]:
 
 def case_contrast(quick: bool = False) -> list[dict]:
     """Dirichlet Poisson with disc inclusions or a checkerboard of contrast up to 1e8."""
-    from .meshes import load_mesh
+    from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
     A, b, _ = _poisson(mesh)
@@ -246,7 +246,7 @@ def case_anisotropy(quick: bool = False) -> list[dict]:
     """Rotated (30°) anisotropic diffusion ``−∇·(κ D ∇u) = 1``, D = R diag(1, 1/a) Rᵀ."""
     from skfem import BilinearForm
 
-    from .meshes import load_mesh
+    from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
     rows = []
@@ -272,7 +272,7 @@ def case_anisotropy(quick: bool = False) -> list[dict]:
 
 def case_neumann(quick: bool = False) -> list[dict]:
     """Pure Neumann Poisson: constant null space, compatible and incompatible rhs."""
-    from .meshes import load_mesh
+    from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
     A, _, basis = _poisson(mesh, dirichlet=False)
@@ -321,7 +321,7 @@ def case_neumann(quick: bool = False) -> list[dict]:
 
 def case_sliver(quick: bool = False) -> list[dict]:
     """Dirichlet Poisson on the ``sliver`` mesh (a strip of elements with angles < 5°)."""
-    from .meshes import load_mesh, min_angle_degrees
+    from ..fem.meshes import load_mesh, min_angle_degrees
 
     mesh = load_mesh("sliver", 0 if quick else 2)
     A, b, _ = _poisson(mesh)
@@ -334,7 +334,7 @@ def case_sliver(quick: bool = False) -> list[dict]:
 
 
 def _lshape_poisson(quick: bool):
-    from .meshes import load_mesh
+    from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
     A, b, _ = _poisson(mesh)
@@ -410,7 +410,7 @@ def case_magnitude(quick: bool = False) -> list[dict]:
 def case_no_transpose(quick: bool = False) -> list[dict]:
     """PCs/KSPs without a (correct) transpose, and real breakdowns: clear errors."""
     from .problems import advection
-    from .solver import AdjointSettings
+    from ..core.solver import AdjointSettings
 
     p = advection(refine=0)
     rows = [
@@ -437,7 +437,7 @@ def case_no_transpose(quick: bool = False) -> list[dict]:
         ),
     ]
     # BiCGStab on a skew-symmetric operator: r₀ᵀ A r₀ = 0 at once
-    from .parametric import ParametricMatrix
+    from ..fem.parametric import ParametricMatrix
 
     n = 40
     skew = sp.diags([-np.ones(n - 1), np.ones(n - 1)], [-1, 1]).tocsr()

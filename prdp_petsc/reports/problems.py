@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .dirichlet import Dirichlet
-from .meshes import load_mesh
-from .parametric import ParametricMatrix, diffusion_operator, mass_matrix
+from ..autograd.dirichlet import Dirichlet
+from ..fem.meshes import load_mesh
+from ..fem.parametric import ParametricMatrix, diffusion_operator, mass_matrix
 
 __all__ = ["PROBLEMS", "Problem", "build_problem", "direct_gradient", "mean_edge_length"]
 

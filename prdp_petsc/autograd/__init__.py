@@ -1,0 +1,1 @@
+"""torch layer: differentiable capped solves (implicit and unrolled) and Dirichlet lifting."""

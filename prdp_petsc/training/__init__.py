@@ -1,0 +1,1 @@
+"""Training layer: scenes, the training harness, PRDP-against-full comparisons and their plots."""
