@@ -638,6 +638,23 @@ class KSPSolver:
         kwargs.update(changes)
         return KSPSolver(**kwargs)
 
+    def describe(self) -> dict:
+        """JSON-ready record of the solver: prefixes, tolerances and, once the KSPs
+        exist, the KSP/PC types PETSc really uses (command-line options included)."""
+        record = {
+            "prefix": self.prefix,
+            "adjoint_prefix": self.adjoint_prefix,
+            "options": {k: option_value(v) for k, v in self.options.items()},
+            "max_it": self._max_it,
+            "rtol": self.rtol,
+            "atol": self.atol,
+            "adjoint_max_it": self.adjoint_max_it,
+        }
+        if self._ksp is not None:
+            for key, ksp in (("forward", self._ksp), ("adjoint", self._adj)):
+                record[key] = {"ksp_type": ksp.getType(), "pc_type": ksp.getPC().getType()}
+        return record
+
     def reset_stats(self) -> None:
         """Zero the counters in `stats`."""
         self.stats = SolverStats()
