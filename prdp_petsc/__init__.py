@@ -4,45 +4,56 @@ scikit-fem assembles sparse operators, petsc4py KSP solves them with a capped
 iteration count, transpose solves give implicit gradients through a torch
 autograd bridge, and the `PRDP` controller raises the cap only as far as the
 validation metric needs.
+
+The public names below are imported on first use (PEP 562), so that
+``import prdp_petsc`` (and the ``prdp-petsc`` command line) imports neither
+PETSc nor torch: the command line must call ``petsc4py.init`` with its PETSc
+options (``-log_view``, ...) before PETSc is first imported.
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
-
-from .autograd.bridge import matvec, solve
-from .autograd.dirichlet import Dirichlet
-from .fem.fd import grid_points, laplacian
-from .fem.meshes import available_meshes, load_mesh
-from .fem.parametric import ParametricMatrix, diffusion_operator, from_form, mass_matrix
-from .prdp import PRDP, PRDPStep, rtol_from_level, savings
-from .training.scene import Scene
-from .core.solver import AdjointSettings, KSPSolver, SolveInfo, SolverError, SolverStats
 
 try:
     __version__ = version("prdp-petsc")
 except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
-__all__ = [
-    "PRDP",
-    "AdjointSettings",
-    "Dirichlet",
-    "KSPSolver",
-    "PRDPStep",
-    "ParametricMatrix",
-    "SolveInfo",
-    "SolverError",
-    "Scene",
-    "SolverStats",
-    "__version__",
-    "available_meshes",
-    "diffusion_operator",
-    "from_form",
-    "grid_points",
-    "laplacian",
-    "load_mesh",
-    "mass_matrix",
-    "matvec",
-    "rtol_from_level",
-    "savings",
-    "solve",
-]
+# public name -> module that defines it
+_EXPORTS = {
+    "matvec": ".autograd.bridge",
+    "solve": ".autograd.bridge",
+    "Dirichlet": ".autograd.dirichlet",
+    "grid_points": ".fem.fd",
+    "laplacian": ".fem.fd",
+    "available_meshes": ".fem.meshes",
+    "load_mesh": ".fem.meshes",
+    "ParametricMatrix": ".fem.parametric",
+    "diffusion_operator": ".fem.parametric",
+    "from_form": ".fem.parametric",
+    "mass_matrix": ".fem.parametric",
+    "PRDP": ".prdp",
+    "PRDPStep": ".prdp",
+    "rtol_from_level": ".prdp",
+    "savings": ".prdp",
+    "Scene": ".training.scene",
+    "AdjointSettings": ".core.solver",
+    "KSPSolver": ".core.solver",
+    "SolveInfo": ".core.solver",
+    "SolverError": ".core.solver",
+    "SolverStats": ".core.solver",
+}
+
+__all__ = sorted([*_EXPORTS, "__version__"])
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(import_module(_EXPORTS[name], __name__), name)
+        globals()[name] = value  # later look-ups skip this function
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

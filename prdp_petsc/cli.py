@@ -2,16 +2,22 @@
 
 Sub-commands::
 
-    prdp-petsc run SCENE_FILE --schedule prdp|fixed:K [--preset quick|paper]
-                   [--epochs N] [--seed S] --out DIR [PETSc options]
-    prdp-petsc compare SCENE_FILE [--preset ...] [--epochs N] [--seed S] --out DIR
+    prdp-petsc run SCENE_FILE [--schedule prdp|fixed:K] [--preset quick|paper]
+                   [--epochs N] [--seed S] [--threads T] --out DIR [PETSc options]
+    prdp-petsc compare SCENE_FILE [--preset ...] [--epochs N] [--seed S]
+                   [--threads T] --out DIR [PETSc options]
     prdp-petsc bench bridge --out DIR
     prdp-petsc work-precision PROBLEM --out DIR
     prdp-petsc stability --out DIR
 
-Arguments that start with ``-`` and are not ours are PETSc options
-(``-fwd_ksp_type gmres -fwd_ksp_monitor``) and go into PETSc's options
-database, where the scene's KSPs read them at ``KSPSetFromOptions``.
+Arguments that start with a single ``-`` and are not ours are PETSc options
+(``-heat_ksp_type cg -heat_ksp_monitor -log_view``): PETSc starts with them
+(``petsc4py.init``), so the scene's KSPs read them at ``KSPSetFromOptions`` and
+start-up options such as ``-log_view`` work as in any PETSc program.
+
+Exit status: 0 on success; 1 if a run stopped early (diverged solve, invalid
+input) or on an error, which prints one line (``--debug`` shows the traceback);
+2 for a usage error; 130 after Ctrl-C (the results written so far stay).
 """
 
 from __future__ import annotations
@@ -21,7 +27,25 @@ import json
 import logging
 import sys
 
-__all__ = ["main", "scene_main"]
+# Nothing here imports PETSc (or torch) at module level: `init_petsc` must run first.
+
+__all__ = ["init_petsc", "main", "scene_main", "split_petsc_options"]
+
+_TOOLS = {
+    "bench": "prdp_petsc.reports.bench",
+    "work-precision": "prdp_petsc.reports.workprecision",
+    "stability": "prdp_petsc.reports.stability",
+}
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
 
 
 def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.ArgumentParser:
@@ -34,10 +58,19 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
         if scene_arg:
             p.add_argument("scene", help="scene file, e.g. demos/heat1d.py")
         p.add_argument("--preset", default="quick", help="preset name (quick | paper)")
-        p.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
+        p.add_argument(
+            "--epochs", type=_positive_int, default=None, help="override the preset's epochs"
+        )
         p.add_argument("--seed", type=int, default=0)
+        p.add_argument(
+            "--threads",
+            type=_positive_int,
+            default=1,
+            help="torch threads (default 1: honest wall times on a shared machine)",
+        )
         p.add_argument("--out", required=True, help="output folder")
         p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+        p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
         if name == "run":
             p.add_argument("--schedule", default="prdp", help="prdp | fixed:K")
     return parser
@@ -45,7 +78,7 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``)."""
-    from .core.options import is_number
+    from .core.options import is_number  # plain Python: does not import PETSc
 
     ours, petsc = [], []
     i = 0
@@ -69,16 +102,27 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     return ours, petsc
 
 
-def _insert_petsc_options(petsc: list[str]) -> None:
-    if not petsc:
-        return
-    from petsc4py import PETSc
+def init_petsc(options: list[str]) -> None:
+    """Start PETSc with the command line's PETSc options, as petsc4py's demos do.
 
-    PETSc.Options().insertString(" ".join(petsc))
+    ``petsc4py.init`` must come before the first ``from petsc4py import PETSc``:
+    options read only at ``PetscInitialize`` (``-log_view``, ``-malloc_debug``)
+    work only then.  If PETSc is already running (the CLI called in-process, as in
+    tests), the options go into its options database instead.
+    """
+    if "petsc4py.PETSc" in sys.modules:
+        if options:
+            from petsc4py import PETSc
+
+            PETSc.Options().insertString(" ".join(options))
+        return
+    import petsc4py
+
+    petsc4py.init([sys.argv[0] or "prdp-petsc", *options])
 
 
 def _run_scene_command(args, scene_file: str) -> int:
-    from .training.compare import compare, format_table
+    from .training.compare import compare, format_table, stopped_runs
     from .training.harness import run
 
     if args.command == "run":
@@ -90,10 +134,12 @@ def _run_scene_command(args, scene_file: str) -> int:
             seed=args.seed,
             out=args.out,
             progress=not args.no_progress,
+            threads=args.threads,
         )
         print(json.dumps(result["totals"], indent=1))
         if result["stopped"]:
-            print(f"stopped at epoch {result['stopped']['epoch']}: {result['stopped']['reason']}")
+            stop = result["stopped"]
+            print(f"stopped at epoch {stop['epoch']}: {stop['reason']}: {stop['message']}")
             return 1
         return 0
     summary = compare(
@@ -103,13 +149,47 @@ def _run_scene_command(args, scene_file: str) -> int:
         seed=args.seed,
         out=args.out,
         progress=not args.no_progress,
+        threads=args.threads,
     )
     print(format_table(summary))
     print(
         f"results in {args.out}/ (summary.json, error_vs_time.png, error_vs_iterations.png, "
         "k_schedule.png)"
     )
+    stopped = stopped_runs(summary)
+    if stopped:
+        print(f"runs that stopped early: {', '.join(stopped)} (see their results.json)")
+        return 1
     return 0
+
+
+def _guarded(command, debug: bool, out: str | None = None) -> int:
+    """Run ``command()``; an error prints one line (unless ``debug``) and returns 1."""
+    try:
+        return command()
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        where = f"; results so far in {out}/" if out else ""
+        print(f"prdp-petsc: interrupted (Ctrl-C){where}", file=sys.stderr)
+        return 130
+    except Exception as err:
+        if debug:
+            raise
+        message = " ".join(str(err).split()) or "(no message)"
+        print(
+            f"prdp-petsc: error: {type(err).__name__}: {message} (--debug shows the traceback)",
+            file=sys.stderr,
+        )
+        return 1
+
+
+def _scene_command(parser: argparse.ArgumentParser, argv: list[str], scene_file=None) -> int:
+    ours, petsc = split_petsc_options(argv)
+    args = parser.parse_args(ours)
+    init_petsc(petsc)
+    scene = scene_file if scene_file is not None else args.scene
+    return _guarded(lambda: _run_scene_command(args, scene), args.debug, args.out)
 
 
 def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
@@ -118,34 +198,25 @@ def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
     if not argv or argv[0] not in ("run", "compare", "-h", "--help"):
         argv.insert(0, "compare")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    argv, petsc = split_petsc_options(argv)
-    args = _scene_parser(scene_arg=False).parse_args(argv)
-    _insert_petsc_options(petsc)
-    return _run_scene_command(args, scene_file)
+    return _scene_command(_scene_parser(scene_arg=False), argv, scene_file)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``prdp-petsc`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    tools = {
-        "bench": "prdp_petsc.reports.bench",
-        "work-precision": "prdp_petsc.reports.workprecision",
-        "stability": "prdp_petsc.reports.stability",
-    }
-    if argv and argv[0] in tools:
+    if argv and argv[0] in _TOOLS:
         import importlib
 
-        return importlib.import_module(tools[argv[0]]).main(argv[1:])
+        debug = "--debug" in argv
+        rest = [a for a in argv[1:] if a != "--debug"]
+        return _guarded(lambda: importlib.import_module(_TOOLS[argv[0]]).main(rest), debug)
     parser = _scene_parser(prog="prdp-petsc")
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
-        print("\nother commands: " + ", ".join(tools))
+        print("\nother commands: " + ", ".join(_TOOLS))
         return 0
-    argv, petsc = split_petsc_options(argv)
-    args = parser.parse_args(argv)
-    _insert_petsc_options(petsc)
-    return _run_scene_command(args, args.scene)
+    return _scene_command(parser, argv)
 
 
 if __name__ == "__main__":

@@ -5,11 +5,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from petsc4py import PETSc
 
 from prdp_petsc.cli import main
-from prdp_petsc.training.compare import compare
-from prdp_petsc.training.harness import parse_schedule, run
+from prdp_petsc.training.compare import compare, format_table, summarize
+from prdp_petsc.training.harness import parse_schedule, run, to_json
 
 HEAT1D = Path(__file__).resolve().parent.parent / "demos" / "heat1d.py"
 
@@ -25,6 +26,8 @@ def test_compare_summary_is_complete(summary):
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["k_full"] == s["k_full"] > 1
     assert set(on_disk) >= {"scene", "k_full", "runs", "savings", "val_error_ratio", "plots"}
+    assert on_disk["threads"] == 1
+    assert on_disk["equal_accuracy"] == (on_disk["val_error_ratio"] <= 1.05)
     full = f"fixed:{s['k_full']}"
     assert "prdp" in s["runs"] and full in s["runs"] and "fixed:1" in s["runs"]
     for r in s["runs"].values():
@@ -95,22 +98,21 @@ def test_cli_run_passes_petsc_options(tmp_path):
                 "--out",
                 str(tmp_path),
                 "--no-progress",
-                "-heat_ksp_type",
-                "cg",
+                "-heat_pc_type",
+                "none",
             ]
         )
     finally:
-        opts.delValue("heat_ksp_type")
+        opts.delValue("heat_pc_type")
     assert rc == 0
     result = json.loads((tmp_path / "results.json").read_text())
     # the adjoint inherits the command-line forward options
-    assert result["ksp"] == {
-        "ksp_type": "cg",
-        "pc_type": "jacobi",
-        "adjoint_ksp_type": "cg",
-        "adjoint_pc_type": "jacobi",
-    }
+    (solver,) = result["solvers"]
+    assert solver["prefix"] == "heat_"
+    assert solver["forward"] == {"ksp_type": "richardson", "pc_type": "none"}
+    assert solver["adjoint"] == {"ksp_type": "richardson", "pc_type": "none"}
     assert [e["k"] for e in result["epochs"]] == [4, 4]
+    assert result["threads"] == 1
 
 
 DIVERGING_SCENE = """
@@ -145,3 +147,231 @@ def test_diverged_solve_stops_cleanly(tmp_path):
     assert stopped is not None and stopped["reason"] == "DIVERGED_DTOL"
     on_disk = json.loads((tmp_path / "out" / "results.json").read_text())
     assert on_disk["stopped"]["epoch"] == stopped["epoch"] == len(on_disk["epochs"]) > 0
+
+
+# A tiny scene whose presets switch on the situations the harness must survive.
+TINY_SCENE = """
+from pathlib import Path
+import numpy as np, scipy.sparse as sp, torch
+import prdp_petsc as pp
+
+PRESETS = {
+    "quick": {},
+    "two_solvers": {"two_solvers": True},
+    "interrupt": {"interrupt_at": 1},
+    "invalid": {"invalid_at": 2},
+    "odd_info": {"odd_info": True},
+}
+
+def build(config, seed):
+    A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
+    solvers = [pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi"},
+                            prefix="tiny_", max_it=1)]
+    if config.get("two_solvers"):
+        solvers.append(pp.KSPSolver({"ksp_type": "cg", "pc_type": "none"},
+                                    prefix="tiny2_", max_it=1))
+    theta = torch.ones(10, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.SGD([theta], lr=0.1)
+
+    def batches(epoch, generator):
+        if epoch == config.get("interrupt_at"):
+            raise KeyboardInterrupt
+        if epoch >= config.get("invalid_at", 10**9):
+            raise ValueError("b contains NaN or Inf")
+        return [None]
+
+    info = {"threads_seen": torch.get_num_threads()}
+    if config.get("odd_info"):
+        info.update(mesh=Path("meshes") / "lshape.msh", h=np.float64(0.5), n=np.int64(3),
+                    field=np.arange(3), flag=np.bool_(True), pair=(1, 2))
+        info[np.int64(7)] = "seven"
+    return pp.Scene(
+        solvers=solvers, optimizer=opt, batches=batches,
+        loss=lambda _: sum(pp.solve(A, theta, s).square().sum() for s in solvers),
+        validate=lambda: float(theta.detach().square().sum()),
+        probe=lambda: (A, np.ones(10)), epochs=4,
+        prdp={"window": 1, "ema_window": 1, "k_step": 2}, info=info,
+    )
+"""
+
+
+@pytest.fixture
+def tiny(tmp_path):
+    path = tmp_path / "tiny.py"
+    path.write_text(TINY_SCENE)
+    return path
+
+
+def test_run_sets_and_restores_torch_threads(tiny, tmp_path):
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        result = run(tiny, "fixed:2", epochs=1, out=tmp_path / "out", progress=False)
+        assert torch.get_num_threads() == 2  # restored
+        assert result["info"]["threads_seen"] == 1  # the default: one thread while running
+        assert result["threads"] == 1
+        assert json.loads((tmp_path / "out" / "results.json").read_text())["threads"] == 1
+        again = run(tiny, "fixed:2", epochs=1, threads=2, progress=False)
+        assert again["info"]["threads_seen"] == 2 and again["threads"] == 2
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="threads"):
+        run(tiny, "fixed:2", epochs=1, threads=0, progress=False)
+
+
+def test_epochs_must_be_positive(tiny):
+    for bad in (0, -3):
+        with pytest.raises(ValueError, match="epochs"):
+            run(tiny, "fixed:2", epochs=bad, progress=False)
+    with pytest.raises(ValueError, match="epochs"):
+        compare(tiny, epochs=0, progress=False, plots=False)
+
+
+def test_cli_refuses_nonpositive_epochs(tiny, tmp_path, capsys):
+    for bad in ("0", "-2"):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["run", str(tiny), "--epochs", bad, "--out", str(tmp_path)])
+        assert exit_info.value.code == 2
+        assert "--epochs" in capsys.readouterr().err
+
+
+def test_interrupt_is_recorded_then_reraised(tiny, tmp_path):
+    with pytest.raises(KeyboardInterrupt):
+        run(tiny, "fixed:2", preset="interrupt", out=tmp_path, progress=False)
+    result = json.loads((tmp_path / "results.json").read_text())
+    assert result["stopped"]["reason"] == "interrupted"
+    assert result["stopped"]["epoch"] == 1 == len(result["epochs"])
+    assert result["totals"]["epochs"] == 1
+    assert result["solvers"][0]["forward"]["ksp_type"] == "richardson"
+
+
+def test_cli_interrupt_exits_130_and_keeps_results(tiny, tmp_path, capsys):
+    rc = main(["run", str(tiny), "--preset", "interrupt", "--out", str(tmp_path), "--no-progress"])
+    assert rc == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert json.loads((tmp_path / "results.json").read_text())["stopped"]["epoch"] == 1
+
+
+def test_compare_interrupt_writes_summary(tiny, tmp_path):
+    with pytest.raises(KeyboardInterrupt):
+        compare(tiny, preset="interrupt", out=tmp_path, progress=False, plots=False)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["runs"]["prdp"]["stopped"]["reason"] == "interrupted"
+    assert summary["runs"]["prdp"]["epochs"] == 1
+    assert "prdp stopped at epoch 1 (interrupted)" in summary["savings_unavailable"]
+
+
+def test_info_with_paths_and_numpy_is_written(tiny, tmp_path):
+    run(tiny, "fixed:2", preset="odd_info", epochs=1, out=tmp_path, progress=False)
+    info = json.loads((tmp_path / "results.json").read_text())["info"]
+    assert info["mesh"] == str(Path("meshes") / "lshape.msh")
+    assert info["h"] == 0.5 and info["n"] == 3 and info["field"] == [0, 1, 2]
+    assert info["flag"] is True and info["pair"] == [1, 2] and info["7"] == "seven"
+
+
+def test_to_json():
+    data = {"t": torch.tensor([1.5, 2.0]), "s": {3, 3}, "o": object, np.float32(0.5): 1}
+    out = json.loads(json.dumps(to_json(data)))
+    assert out["t"] == [1.5, 2.0] and out["s"] == [3] and out["0.5"] == 1
+    assert out["o"] == str(object)
+
+
+def test_results_describe_every_solver(tiny, tmp_path):
+    result = run(tiny, "fixed:3", preset="two_solvers", epochs=2, out=tmp_path, progress=False)
+    on_disk = json.loads((tmp_path / "results.json").read_text())
+    assert on_disk["solvers"] == result["solvers"]
+    first, second = on_disk["solvers"]
+    assert (first["prefix"], second["prefix"]) == ("tiny_", "tiny2_")
+    assert first["forward"] == {"ksp_type": "richardson", "pc_type": "jacobi"}
+    assert second["forward"] == {"ksp_type": "cg", "pc_type": "none"}
+    assert first["max_it"] == second["max_it"] == 3
+    # both solvers' iterations are counted: 3 per forward solve, two solvers
+    assert result["epochs"][0]["fwd_iterations"] == 2 * 3
+
+
+def test_cli_errors_print_one_line(tmp_path, capsys):
+    missing = str(tmp_path / "no_such_scene.py")
+    rc = main(["run", missing, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "FileNotFoundError" in err and "no_such_scene.py" in err and "--debug" in err
+    with pytest.raises(FileNotFoundError):
+        main(["run", missing, "--out", str(tmp_path / "out"), "--debug"])
+    rc = main(["run", str(HEAT1D), "--schedule", "fixed:x", "--out", str(tmp_path / "o")])
+    assert rc == 1 and "schedule must be" in capsys.readouterr().err
+
+
+def test_cli_compare_with_stopped_runs_exits_nonzero(tiny, tmp_path, capsys):
+    out = tmp_path / "cmp"
+    rc = main(["compare", str(tiny), "--preset", "invalid", "--epochs", "3", "--out", str(out),
+               "--no-progress"])  # fmt: skip
+    printed = capsys.readouterr().out
+    assert rc == 1
+    summary = json.loads((out / "summary.json").read_text())
+    full = f"fixed:{summary['k_full']}"
+    assert summary["runs"]["prdp"]["stopped"]["reason"] == "INVALID_INPUT"
+    assert summary["runs"]["prdp"]["epochs"] == 2
+    assert "savings" not in summary
+    # the table has a stopped column and says why there is no savings line
+    assert "stopped" in printed.splitlines()[1]
+    assert "INVALID_INPUT at epoch 2" in printed
+    assert f"no savings: prdp stopped at epoch 2 (INVALID_INPUT); {full} stopped" in printed
+    assert "runs that stopped early: prdp" in printed
+
+
+def fake_log(ks, errors, stopped=None):
+    """A run's log as `run` returns it, with 10 forward and adjoint iterations per K."""
+    epochs = [
+        {"epoch": i, "k": k, "val_metric": e, "wall_time": 0.1 * k, "solver_time": 0.05 * k,
+         "fwd_iterations": 10 * k, "adj_iterations": 10 * k, "train_loss": 0.0}
+        for i, (k, e) in enumerate(zip(ks, errors))
+    ]  # fmt: skip
+    totals = {"epochs": len(epochs)}
+    if epochs:
+        totals.update(
+            final_val_error=errors[-1],
+            best_val_error=min(errors),
+            wall_time=sum(e["wall_time"] for e in epochs),
+            fwd_iterations=sum(e["fwd_iterations"] for e in epochs),
+            adj_iterations=sum(e["adj_iterations"] for e in epochs),
+            k_final=ks[-1],
+        )
+    return {"epochs": epochs, "totals": totals, "stopped": stopped}
+
+
+def test_summary_flags_prdp_less_accurate_than_k_full():
+    full = fake_log([10, 10, 10], [0.3, 0.2, 0.1])
+    worse = summarize("s", 10, {"prdp": fake_log([1, 2, 4], [0.5, 0.3, 0.112]), "fixed:10": full})
+    assert worse["val_error_ratio"] == pytest.approx(1.12)
+    assert worse["equal_accuracy"] is False
+    assert worse["savings"]["iterations"] == pytest.approx(1 - 7 / 30)
+    warning = "val error ratio 1.12 > 1.05: PRDP did not reach full-fidelity accuracy"
+    assert warning in worse["accuracy_warning"]
+    lines = format_table(worse).splitlines()
+    savings_line = next(i for i, line in enumerate(lines) if line.startswith("PRDP vs K_full"))
+    assert warning in lines[savings_line + 1]
+    assert "not at equal accuracy" in lines[savings_line + 1]
+
+    equal = summarize("s", 10, {"prdp": fake_log([1, 2, 4], [0.5, 0.3, 0.104]), "fixed:10": full})
+    assert equal["equal_accuracy"] is True and "accuracy_warning" not in equal
+    assert "equal accuracy" not in format_table(equal)
+
+
+def test_table_shows_stopped_runs_and_why_savings_are_missing():
+    logs = {
+        "prdp": fake_log([1, 2], [0.5, 0.4], {"epoch": 2, "reason": "DIVERGED_DTOL"}),
+        "fixed:10": fake_log([10, 10, 10], [0.3, 0.2, 0.1]),
+        "fixed:1": fake_log([], [], {"epoch": 0, "reason": "DIVERGED_NANORINF"}),
+    }
+    summary = summarize("s", 10, logs)
+    assert "savings" not in summary
+    table = format_table(summary)
+    rows = {line.split()[0]: line for line in table.splitlines()[2:5]}
+    assert rows["prdp"].endswith("DIVERGED_DTOL at epoch 2")
+    assert rows["fixed:10"].endswith("no")
+    assert rows["fixed:1"].split()[1:5] == ["—", "—", "0", "—"]
+    assert table.splitlines()[-1] == (
+        "PRDP vs K_full: no savings: prdp stopped at epoch 2 (DIVERGED_DTOL); "
+        "savings need prdp and fixed:10 over the same epochs"
+    )

@@ -3,18 +3,25 @@
 Runs PRDP, the constant K_full baseline (K_full found by the harness from the
 scene's tolerance) and a few constant coarse Ks for the same number of epochs,
 then reports savings in inner iterations (forward + adjoint) and wall time next
-to the validation errors, and plots error against cost.
+to the validation errors, and plots error against cost.  Savings count only at
+equal accuracy: the summary flags a PRDP validation error more than
+`ACCURACY_RATIO` times K_full's.
 """
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
-from .harness import build_scene, find_k_full, run, write_json
 from ..prdp import savings
+from .harness import build_scene, check_epochs, find_k_full, run, torch_threads, write_json
 from .scene import load_scene
 
-__all__ = ["compare", "format_table", "summarize"]
+__all__ = ["ACCURACY_RATIO", "compare", "format_table", "stopped_runs", "summarize"]
+
+#: Largest PRDP / K_full ratio of final validation errors that still counts as equal accuracy.
+ACCURACY_RATIO = 1.05
 
 
 def compare(
@@ -26,39 +33,75 @@ def compare(
     out="results",
     progress: bool = True,
     plots: bool = True,
+    threads: int = 1,
 ) -> dict:
     """PRDP against constant K_full and constant coarse Ks; write ``summary.json``.
+
+    Parameters
+    ----------
+    scene_file : str or Path
+        Scene file (see `prdp_petsc.training.scene`).
+    preset, epochs, seed
+        Preset name; number of epochs (>= 1; default: the scene's); random seed.
+    out : str or Path
+        Output folder: ``summary.json``, one ``<schedule>/results.json`` per run, plots.
+    progress, plots : bool
+        Show progress bars; write the plots.
+    threads : int
+        torch threads for every run (restored afterwards); recorded in the summary.
 
     Returns
     -------
     dict
-        ``scene``, ``k_full``, ``runs`` (per schedule: ``final_val_error``,
-        ``wall_time``, ``fwd_iterations``, ``adj_iterations``, ``k_final``),
-        ``savings`` of PRDP against K_full (``iterations``, ``wall_time``, ``pr``,
-        ``ic``, in inner iterations forward + adjoint) and ``val_error_ratio``.
+        ``scene``, ``k_full``, ``threads``, ``runs`` (per schedule:
+        ``final_val_error``, ``wall_time``, ``fwd_iterations``, ``adj_iterations``,
+        ``k_final``, ``stopped``), ``savings`` of PRDP against K_full
+        (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
+        adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
+        ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why.
+
+    Raises
+    ------
+    KeyboardInterrupt
+        Re-raised after ``summary.json`` records the runs so far, the interrupted one
+        with ``stopped: {"reason": "interrupted"}``.
     """
+    epochs = check_epochs(epochs)
     module = load_scene(scene_file)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scene = build_scene(module, preset, seed)
-    k_full = find_k_full(scene)
-    # warm-up (imports, PETSc and torch first-call costs) so the first timed run is fair
-    run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False, module=module)
-    coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
-    schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
-    logs = {}
-    for schedule in schedules:
-        logs[schedule] = run(
-            scene_file,
-            schedule,
-            preset=preset,
-            epochs=epochs,
-            seed=seed,
-            out=out / schedule.replace(":", "_"),
-            progress=progress,
-            module=module,
-        )
-    summary = summarize(Path(scene_file).stem, k_full, logs)
+    name = Path(scene_file).stem
+    with torch_threads(threads):
+        scene = build_scene(module, preset, seed)
+        k_full = find_k_full(scene)
+        # warm-up (imports, PETSc and torch first-call costs) so the first timed run is fair
+        run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False,
+            threads=threads, module=module)  # fmt: skip
+        coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
+        schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
+        logs = {}
+        for schedule in schedules:
+            folder = out / schedule.replace(":", "_")
+            try:
+                logs[schedule] = run(
+                    scene_file,
+                    schedule,
+                    preset=preset,
+                    epochs=epochs,
+                    seed=seed,
+                    out=folder,
+                    progress=progress,
+                    threads=threads,
+                    module=module,
+                )
+            except KeyboardInterrupt:
+                # the interrupted run has written what it measured: summarise it too
+                results = folder / "results.json"
+                if results.is_file():
+                    logs[schedule] = json.loads(results.read_text())
+                write_json(out / "summary.json", summarize(name, k_full, logs, threads=threads))
+                raise
+    summary = summarize(name, k_full, logs, threads=threads)
     write_json(out / "summary.json", summary)
     if plots:
         from .plots import plot_compare
@@ -68,7 +111,7 @@ def compare(
     return summary
 
 
-def summarize(scene: str, k_full: int, logs: dict) -> dict:
+def summarize(scene: str, k_full: int, logs: dict, *, threads: int | None = None) -> dict:
     """Summary of a comparison: runs, PRDP savings against K_full, error ratio."""
     runs = {}
     for schedule, log in logs.items():
@@ -84,44 +127,85 @@ def summarize(scene: str, k_full: int, logs: dict) -> dict:
             "epochs": t["epochs"],
             "stopped": log["stopped"],
         }
-    summary = {"scene": scene, "k_full": k_full, "runs": runs}
-    prdp, full = logs.get("prdp"), logs.get(f"fixed:{k_full}")
-    if prdp and full and prdp["epochs"] and len(prdp["epochs"]) == len(full["epochs"]):
-        inner = [e["fwd_iterations"] + e["adj_iterations"] for e in prdp["epochs"]]
-        inner_full = [e["fwd_iterations"] + e["adj_iterations"] for e in full["epochs"]]
-        by_iter = savings(costs=inner, cost_full=inner_full)
-        by_time = savings(
-            costs=[e["wall_time"] for e in prdp["epochs"]],
-            cost_full=[e["wall_time"] for e in full["epochs"]],
-        )
-        summary["savings"] = {
-            "iterations": by_iter["total"],
-            "wall_time": by_time["total"],
-            "pr": by_iter["pr"],
-            "ic": by_iter["ic"],
-        }
-        summary["val_error_ratio"] = (
-            runs["prdp"]["final_val_error"] / runs[f"fixed:{k_full}"]["final_val_error"]
-        )
-    else:
-        summary["savings_unavailable"] = (
-            "PRDP or the K_full baseline stopped early (see runs[...]['stopped']): "
-            "savings need both runs over the same epochs"
+    summary = {"scene": scene, "k_full": k_full, "threads": threads, "runs": runs}
+    full_name = f"fixed:{k_full}"
+    prdp, full = logs.get("prdp"), logs.get(full_name)
+    unavailable = _why_no_savings(prdp, full, full_name)
+    if unavailable:
+        summary["savings_unavailable"] = unavailable
+        return summary
+    inner = [e["fwd_iterations"] + e["adj_iterations"] for e in prdp["epochs"]]
+    inner_full = [e["fwd_iterations"] + e["adj_iterations"] for e in full["epochs"]]
+    by_iter = savings(costs=inner, cost_full=inner_full)
+    by_time = savings(
+        costs=[e["wall_time"] for e in prdp["epochs"]],
+        cost_full=[e["wall_time"] for e in full["epochs"]],
+    )
+    summary["savings"] = {
+        "iterations": by_iter["total"],
+        "wall_time": by_time["total"],
+        "pr": by_iter["pr"],
+        "ic": by_iter["ic"],
+    }
+    ratio = _ratio(runs["prdp"]["final_val_error"], runs[full_name]["final_val_error"])
+    summary["val_error_ratio"] = ratio
+    summary["equal_accuracy"] = ratio <= ACCURACY_RATIO
+    if not summary["equal_accuracy"]:
+        summary["accuracy_warning"] = (
+            f"val error ratio {ratio:.3g} > {ACCURACY_RATIO}: PRDP did not reach "
+            "full-fidelity accuracy; savings are not at equal accuracy"
         )
     return summary
 
 
+def _ratio(num: float, den: float) -> float:
+    """``num / den`` for errors >= 0; 0 / 0 is 1, x / 0 is inf, NaN stays NaN (unequal)."""
+    if den > 0 or math.isnan(den):
+        return num / den
+    return math.inf if num > 0 else 1.0
+
+
+def _why_no_savings(prdp: dict | None, full: dict | None, full_name: str) -> str | None:
+    """None if PRDP and K_full ran over the same epochs, else the reason in words."""
+    reasons = []
+    for name, log in (("prdp", prdp), (full_name, full)):
+        if log is None:
+            reasons.append(f"{name} did not run")
+        elif log["stopped"]:
+            stop = log["stopped"]
+            reasons.append(f"{name} stopped at epoch {stop['epoch']} ({stop['reason']})")
+    if not reasons and len(prdp["epochs"]) != len(full["epochs"]):
+        reasons.append(f"prdp ran {len(prdp['epochs'])} epochs, {full_name} {len(full['epochs'])}")
+    if not reasons and not prdp["epochs"]:
+        reasons.append("no epochs ran")
+    if reasons:
+        detail = "; ".join(reasons)
+        return f"no savings: {detail}; savings need prdp and {full_name} over the same epochs"
+    return None
+
+
+def stopped_runs(summary: dict) -> list[str]:
+    """Schedules of the summary whose run stopped early (diverged, invalid input, Ctrl-C)."""
+    return [name for name, r in summary["runs"].items() if r["stopped"]]
+
+
 def format_table(summary: dict) -> str:
-    """Plain-text table of a comparison summary."""
+    """Plain-text table of a comparison summary, with its savings line and warnings."""
+
+    def cell(value, width: int, spec: str = "") -> str:
+        return ("—" if value is None else format(value, spec)).rjust(width)
+
     lines = [
         f"scene {summary['scene']}   K_full = {summary['k_full']}",
-        f"{'schedule':<12}{'val error':>12}{'K final':>9}{'inner its':>12}{'wall s':>9}",
+        f"{'schedule':<12}{'val error':>12}{'K final':>9}{'inner its':>12}{'wall s':>9}  stopped",
     ]
     for name, r in summary["runs"].items():
         its = (r["fwd_iterations"] or 0) + (r["adj_iterations"] or 0)
+        stop = r["stopped"]
         lines.append(
-            f"{name:<12}{r['final_val_error']:>12.4e}{r['k_final']:>9}{its:>12}"
-            f"{r['wall_time']:>9.2f}"
+            f"{name:<12}{cell(r['final_val_error'], 12, '.4e')}{cell(r['k_final'], 9)}"
+            f"{its:>12}{cell(r['wall_time'], 9, '.2f')}  "
+            + (f"{stop['reason']} at epoch {stop['epoch']}" if stop else "no")
         )
     if "savings" in summary:
         s = summary["savings"]
@@ -131,4 +215,8 @@ def format_table(summary: dict) -> str:
             f"{100 * s['wall_time']:.1f} % less wall time, "
             f"val error ratio {summary['val_error_ratio']:.3f}"
         )
+        if "accuracy_warning" in summary:
+            lines.append(f"  !! {summary['accuracy_warning']}")
+    else:
+        lines.append(f"PRDP vs K_full: {summary['savings_unavailable']}")
     return "\n".join(lines)

@@ -11,18 +11,31 @@ from __future__ import annotations
 import json
 import logging
 import math
+import operator
+import os
 import random
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..core.solver import KSPSolver, SolverError
 from ..prdp import PRDP
 from .scene import load_scene
-from ..core.solver import KSPSolver, SolverError
 
-__all__ = ["build_scene", "find_k_full", "parse_schedule", "run"]
+__all__ = [
+    "build_scene",
+    "check_epochs",
+    "find_k_full",
+    "parse_schedule",
+    "run",
+    "to_json",
+    "torch_threads",
+    "write_json",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +52,40 @@ def parse_schedule(schedule: str) -> int | None:
         if k >= 1:
             return k
     raise ValueError(f"schedule must be 'prdp' or 'fixed:K' with K >= 1, got {schedule!r}")
+
+
+def check_epochs(epochs) -> int | None:
+    """Return ``epochs`` (None: the scene's default) or raise if it is not an integer >= 1."""
+    if epochs is None:
+        return None
+    try:
+        value = operator.index(epochs)
+    except TypeError:
+        raise ValueError(f"epochs must be an integer >= 1, got {epochs!r}") from None
+    if value < 1:
+        raise ValueError(f"epochs must be >= 1, got {value}")
+    return value
+
+
+@contextmanager
+def torch_threads(threads: int) -> Iterator[int]:
+    """Run the body with ``torch.set_num_threads(threads)``; restore the old count after.
+
+    torch's default (one thread per core) oversubscribes a machine that other
+    processes share, and OpenMP spin-waiting then makes wall times meaningless.
+    """
+    try:
+        threads = operator.index(threads)
+    except TypeError:
+        raise ValueError(f"threads must be an integer >= 1, got {threads!r}") from None
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield threads
+    finally:
+        torch.set_num_threads(previous)
 
 
 def _seed_everything(seed: int) -> None:
@@ -78,9 +125,32 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
     return max(iterations)
 
 
+def to_json(value):
+    """``value`` as plain JSON types: paths become strings, numpy/torch scalars and
+    arrays numbers and lists, other keys and objects their ``str``."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, dict):
+        return {_json_key(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [to_json(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if hasattr(value, "tolist"):  # numpy scalars and arrays, torch tensors
+        return to_json(value.tolist())
+    return str(value)
+
+
+def _json_key(key):
+    plain = key is None or isinstance(key, bool | int | float | str)
+    return key if plain else str(to_json(key))
+
+
 def write_json(path: Path, data: dict) -> None:
+    """Write ``to_json(data)`` to ``path`` atomically (through a temporary file)."""
+    path = Path(path)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=float))
+    tmp.write_text(json.dumps(to_json(data), indent=1))
     tmp.replace(path)
 
 
@@ -93,6 +163,7 @@ def run(
     seed: int = 0,
     out=None,
     progress: bool = True,
+    threads: int = 1,
     module=None,
 ) -> dict:
     """Train a scene once; return (and write to ``out/results.json``) the per-epoch log.
@@ -104,105 +175,132 @@ def run(
     schedule : str
         ``"prdp"`` or ``"fixed:K"``.
     preset, epochs, seed
-        Preset name; number of epochs (default: the scene's); random seed.
+        Preset name; number of epochs (>= 1; default: the scene's); random seed.
     out : str or Path, optional
         Output folder for ``results.json``.
     progress : bool
         Show a progress bar (epoch, K, validation metric).
+    threads : int
+        torch threads for the run (``torch.set_num_threads``; restored afterwards).
+        The default 1 keeps wall times honest on a shared machine.
 
     Returns
     -------
     dict
         ``epochs`` (per epoch: ``k``, ``train_loss``, ``val_metric``, ``wall_time``,
-        ``fwd_iterations``, ``adj_iterations``), ``totals`` and ``stopped`` (None, or
-        the epoch and PETSc reason of a diverged solve).
+        ``fwd_iterations``, ``adj_iterations``), ``totals``, ``threads``,
+        ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
+        and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
+        first epoch not completed), ``reason`` (a PETSc reason, ``INVALID_INPUT`` or
+        ``interrupted``) and ``message``.
+
+    Raises
+    ------
+    KeyboardInterrupt
+        Re-raised after ``results.json`` records ``stopped: {"reason": "interrupted"}``.
     """
-    module = module or load_scene(scene_file)
+    epochs = check_epochs(epochs)
     fixed_k = parse_schedule(schedule)
-    scene = build_scene(module, preset, seed)
-    epochs = epochs or scene.epochs
+    module = module or load_scene(scene_file)
+    with torch_threads(threads):
+        scene = build_scene(module, preset, seed)
+        result = {
+            "scene": Path(scene_file).stem,
+            "schedule": schedule,
+            "preset": preset,
+            "seed": seed,
+            "threads": threads,
+            "info": scene.info,
+            "solvers": [s.describe() for s in scene.solvers],
+            "epochs": [],
+            "stopped": None,
+        }
+        out = Path(out) if out is not None else None
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+        try:
+            _train(scene, result, fixed_k, epochs or scene.epochs, seed, out, progress)
+        except KeyboardInterrupt:
+            epoch = len(result["epochs"])
+            logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
+            result["stopped"] = {
+                "epoch": epoch,
+                "reason": "interrupted",
+                "message": f"KeyboardInterrupt during epoch {epoch}; earlier epochs are complete",
+            }
+            raise
+        finally:
+            result["solvers"] = [s.describe() for s in scene.solvers]
+            result["totals"] = _totals(result["epochs"])
+            if out is not None:
+                write_json(out / "results.json", result)
+    return result
+
+
+def _train(scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: bool) -> None:
+    """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place."""
+    from tqdm.auto import tqdm
+
     generator = torch.Generator().manual_seed(seed)
     controller = PRDP(**scene.prdp) if fixed_k is None else None
     k = fixed_k if fixed_k is not None else controller.k
-    out = Path(out) if out is not None else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-    result = {
-        "scene": Path(scene_file).stem,
-        "schedule": schedule,
-        "preset": preset,
-        "seed": seed,
-        "info": scene.info,
-        "solver": repr(scene.solvers[0]),
-        "epochs": [],
-        "stopped": None,
-    }
-    from tqdm.auto import tqdm
-
     bar = tqdm(
         range(epochs),
-        desc=f"{result['scene']} {schedule}",
+        desc=f"{result['scene']} {result['schedule']}",
         disable=None if progress else True,  # None: tqdm hides itself when not a terminal
         leave=False,
     )
-    for epoch in bar:
-        for s in scene.solvers:
-            s.max_it = k
-            s.reset_stats()
-        t0 = time.perf_counter()
-        try:
-            losses = []
-            for batch in scene.batches(epoch, generator):
-                scene.optimizer.zero_grad()
-                loss = scene.loss(batch)
-                loss.backward()
-                scene.optimizer.step()
-                losses.append(float(loss.detach()))
-            if scene.scheduler is not None:
-                scene.scheduler.step()
-            metric = float(scene.validate())
-        except SolverError as err:
-            logger.error("epoch %d: %s", epoch, err)
-            result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
-            break
-        except ValueError as err:  # the bridge's input checks: e.g. the network produced NaN
-            logger.error("epoch %d: %s", epoch, err)
-            result["stopped"] = {"epoch": epoch, "reason": "INVALID_INPUT", "message": str(err)}
-            break
-        wall = time.perf_counter() - t0
-        stats = [s.stats for s in scene.solvers]
-        result["epochs"].append(
-            {
-                "epoch": epoch,
-                "k": k,
-                "train_loss": float(np.mean(losses)) if losses else math.nan,
-                "val_metric": metric,
-                "wall_time": wall,
-                "fwd_iterations": sum(s.forward_iterations for s in stats),
-                "adj_iterations": sum(s.adjoint_iterations for s in stats),
-                "solver_time": sum(s.forward_time + s.adjoint_time for s in stats),
-            }
-        )
-        bar.set_postfix(K=k, val=f"{metric:.3e}")
-        if controller is not None:
-            k = controller.update(metric)
-        result["totals"] = _totals(result["epochs"])
-        if out is not None:
-            write_json(out / "results.json", result)
-    bar.close()
-    solver = scene.solvers[0]
-    if solver._ksp is not None:  # configured by at least one solve
-        fwd, adj = solver.ksp, solver.adjoint_ksp
-        result["ksp"] = {
-            "ksp_type": fwd.getType(),
-            "pc_type": fwd.getPC().getType(),
-            "adjoint_ksp_type": adj.getType(),
-            "adjoint_pc_type": adj.getPC().getType(),
-        }
-    result["totals"] = _totals(result["epochs"])
-    if out is not None:
-        write_json(out / "results.json", result)
-    return result
+    try:
+        for epoch in bar:
+            for s in scene.solvers:
+                s.max_it = k
+                s.reset_stats()
+            t0 = time.perf_counter()
+            try:
+                losses = []
+                for batch in scene.batches(epoch, generator):
+                    scene.optimizer.zero_grad()
+                    loss = scene.loss(batch)
+                    loss.backward()
+                    scene.optimizer.step()
+                    losses.append(float(loss.detach()))
+                if scene.scheduler is not None:
+                    scene.scheduler.step()
+                metric = float(scene.validate())
+            except SolverError as err:
+                logger.error("epoch %d: %s", epoch, err)
+                result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
+                return
+            except ValueError as err:  # the bridge's input checks: e.g. the network made NaN
+                logger.error("epoch %d: %s", epoch, err)
+                result["stopped"] = {
+                    "epoch": epoch,
+                    "reason": "INVALID_INPUT",
+                    "message": str(err),
+                }
+                return
+            wall = time.perf_counter() - t0
+            stats = [s.stats for s in scene.solvers]
+            result["epochs"].append(
+                {
+                    "epoch": epoch,
+                    "k": k,
+                    "train_loss": float(np.mean(losses)) if losses else math.nan,
+                    "val_metric": metric,
+                    "wall_time": wall,
+                    "fwd_iterations": sum(s.forward_iterations for s in stats),
+                    "adj_iterations": sum(s.adjoint_iterations for s in stats),
+                    "solver_time": sum(s.forward_time + s.adjoint_time for s in stats),
+                }
+            )
+            bar.set_postfix(K=k, val=f"{metric:.3e}")
+            if controller is not None:
+                k = controller.update(metric)
+            result["totals"] = _totals(result["epochs"])
+            if out is not None:
+                write_json(out / "results.json", result)
+    finally:
+        bar.close()
 
 
 def _totals(log: list[dict]) -> dict:

@@ -100,5 +100,7 @@ def load_scene(path: str | Path) -> ModuleType:
     spec.loader.exec_module(module)
     for attr in ("PRESETS", "build"):
         if not hasattr(module, attr):
-            raise AttributeError(f"scene {path.name} must define {attr} (see prdp_petsc.training.scene)")
+            raise AttributeError(
+                f"scene {path.name} must define {attr} (see prdp_petsc.training.scene)"
+            )
     return module
