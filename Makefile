@@ -1,7 +1,8 @@
 # Two commands do all the set-up:  `make demo`  and  `make test`.
 # Each creates .venv if needed and installs everything first.  The install is
-# recorded in a stamp file keyed on the hash of pyproject.toml and this Makefile,
-# so a second run skips it and starts in seconds.
+# recorded in a stamp file keyed on the hash of pyproject.toml, constraints.txt and
+# this Makefile, so a second run skips it and starts in seconds.  Every pip install
+# here takes constraints.txt (the exact torch the project is tested with).
 #
 #   PRDP_PETSC_SKIP_PETSC=1   use an existing petsc4py (conda, system PETSc):
 #                             the venv sees system site-packages and PETSc is
@@ -13,7 +14,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
-STAMP := $(VENV)/.installed-$(shell cat pyproject.toml Makefile | sha1sum | cut -c1-12)
+CONSTRAINTS := constraints.txt
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml $(CONSTRAINTS) Makefile | sha1sum | cut -c1-12)
 DEB_PKGS := libopenmpi-dev openmpi-bin libopenblas-dev
 PETSC_SPEC := petsc>=3.26,<3.27
 PETSC4PY_SPEC := petsc4py>=3.26,<3.27
@@ -56,16 +58,16 @@ $(STAMP):
 	  fi; \
 	  [ -x $(PY) ] || $(PYTHON) -m venv $(VENV); \
 	fi; \
-	$(PIP) install -q --upgrade pip wheel setuptools cython numpy; \
+	$(PIP) install -q -c $(CONSTRAINTS) --upgrade pip wheel setuptools cython numpy; \
 	if [ "$${PRDP_PETSC_SKIP_PETSC:-0}" != 1 ]; then \
 	  if ! $(PY) -c "import petsc4py" 2>/dev/null; then \
 	    echo ">> building PETSc 3.26 from PyPI (about 8 minutes the first time on this machine; pip caches the wheel)"; \
-	    PETSC_CONFIGURE_OPTIONS="--with-fc=0 $${PETSC_CONFIGURE_OPTIONS:-}" $(PIP) install -q "$(PETSC_SPEC)"; \
-	    $(PIP) install -q --no-build-isolation "$(PETSC4PY_SPEC)"; \
+	    PETSC_CONFIGURE_OPTIONS="--with-fc=0 $${PETSC_CONFIGURE_OPTIONS:-}" $(PIP) install -q -c $(CONSTRAINTS) "$(PETSC_SPEC)"; \
+	    $(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation "$(PETSC4PY_SPEC)"; \
 	  fi; \
 	fi; \
-	$(PIP) install -q torch==2.13.0; \
-	$(PIP) install -q --no-build-isolation -e ".[test,dev]"; \
+	$(PIP) install -q -c $(CONSTRAINTS) torch; \
+	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[test,dev]"; \
 	$(PY) -c "import petsc4py, torch, skfem, prdp_petsc; from petsc4py import PETSc; \
 	print('>> PETSc', '.'.join(map(str, PETSc.Sys.getVersion())), '| torch', torch.__version__, '| scikit-fem ok')"; \
 	rm -f $(VENV)/.installed-*; touch $@

@@ -6,8 +6,10 @@ The meshes in the repository's ``meshes/`` folder are made by
     >>> from prdp_petsc.fem.meshes import load_mesh
     >>> mesh = load_mesh("lshape", refine=1)  # doctest: +SKIP
 
-Set the environment variable ``PRDP_PETSC_MESH_DIR`` to look for named meshes in
-another folder.
+A wheel ships them as package data (``prdp_petsc/meshes/*.msh``); a source
+checkout (editable install) reads the repository's ``meshes/`` folder.  Set the
+environment variable ``PRDP_PETSC_MESH_DIR`` to look for named meshes in another
+folder.
 """
 
 from __future__ import annotations
@@ -33,12 +35,26 @@ def mesh_dir() -> Path:
     Returns
     -------
     pathlib.Path
-        ``$PRDP_PETSC_MESH_DIR`` if set, else the ``meshes/`` folder next to the
-        ``prdp_petsc`` package.
+        ``$PRDP_PETSC_MESH_DIR`` if set; else the package data folder
+        ``prdp_petsc/meshes`` of an installed wheel if it holds meshes; else the
+        repository's ``meshes/`` folder next to the ``prdp_petsc`` package (a source
+        checkout or editable install).
     """
     override = os.environ.get(MESH_DIR_ENV)
     if override:
         return Path(override).expanduser().resolve()
+    return _shipped_dir()
+
+
+def _shipped_dir() -> Path:
+    """The shipped meshes: package data in a wheel, ``meshes/`` in a source checkout."""
+    from importlib.resources import files
+
+    # A wheel maps the repository's meshes/ to prdp_petsc/meshes (see pyproject.toml).
+    # Installed packages live on the file system, so the Traversable is a real path.
+    packaged = Path(str(files("prdp_petsc") / "meshes"))
+    if packaged.is_dir() and any(packaged.glob("*.msh")):
+        return packaged
     return Path(__file__).resolve().parents[2] / "meshes"
 
 
@@ -58,7 +74,8 @@ def _resolve(name_or_path: str | os.PathLike) -> Path:
             return shipped
         raise FileNotFoundError(
             f"no mesh named {name_or_path!r} in {mesh_dir()}; available names: "
-            f"{available_meshes()} (or pass the path of a mesh file meshio reads)"
+            f"{available_meshes()}; pass the path of a mesh file meshio reads, or set "
+            f"{MESH_DIR_ENV} to a folder of <name>.msh files"
         )
     if not path.is_file():
         raise FileNotFoundError(
