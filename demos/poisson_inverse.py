@@ -8,9 +8,10 @@ Solver in the loop: plain Jacobi (Richardson + PCJACOBI, scale 1) in fixed mode,
 implicit gradients.  There is no network: the scene builds only the physics, θ
 and an SGD optimizer (learning rate 275, as in the reference).  With small K the
 truncated solve biases the recovered θ; the validation metric is the relative
-parameter error |θ − θ_ref| / θ_ref.  Reference PRDP settings (DESIGN §4): no EMA,
-window 2, τ_step 0.92, K₀ 25, ΔK 10, K ≤ 600.  Only progressive-refinement
-savings are possible here: the parameter error needs the converged solve.
+parameter error |θ − θ_ref| / θ_ref.  Reference PRDP settings (tum-pbs/PRDP; the
+algorithm is in docs/maths.md §7): no EMA, window 2, τ_step 0.92, K₀ 25, ΔK 10,
+K ≤ 600.  Only progressive-refinement savings are possible here: the parameter
+error needs the converged solve.
 
 Run ``python demos/poisson_inverse.py compare --preset paper --out results/poisson``.
 """
