@@ -70,10 +70,16 @@ class ParametricMatrix:
         return self.G.shape[1]
 
     def check_theta(self, theta: np.ndarray) -> np.ndarray:
-        """Validate a parameter vector (shape, finiteness, positivity) and return it."""
+        """Validate parameters (shape, finiteness, positivity) and return them as float64.
+
+        `theta` is one parameter vector, shape (p,), or a batch of them, shape
+        (B, p): one operator per sample.
+        """
         theta = np.asarray(theta, dtype=np.float64)
-        if theta.shape != (self.n_params,):
-            raise ValueError(f"theta must have shape ({self.n_params},), got {theta.shape}")
+        p = self.n_params
+        empty_batch = theta.ndim == 2 and len(theta) == 0
+        if theta.ndim not in (1, 2) or theta.shape[-1] != p or empty_batch:
+            raise ValueError(f"theta must have shape ({p},) or (batch, {p}), got {theta.shape}")
         if not np.all(np.isfinite(theta)):
             raise ValueError("theta contains NaN or Inf")
         if self.positive and not np.all(theta > 0):
@@ -83,17 +89,38 @@ class ParametricMatrix:
         return theta
 
     def values(self, theta: np.ndarray) -> np.ndarray:
-        """CSR values for parameters θ: ``a0 + G @ theta``."""
-        values = self.G @ self.check_theta(theta)
+        """CSR values ``a0 + G @ theta``: shape (nnz,), or (B, nnz) for θ of shape (B, p)."""
+        theta = self.check_theta(theta)
+        if theta.ndim == 2:
+            return np.asarray(self.G @ theta.T).T + self.a0
+        values = self.G @ theta
         values += self.a0
         return values
 
     def matrix(self, theta: np.ndarray) -> sp.csr_matrix:
-        """The assembled scipy CSR matrix A(θ)."""
+        """The assembled scipy CSR matrix A(θ) for one θ of shape (p,)."""
+        if np.ndim(theta) != 1:
+            raise ValueError(f"matrix() takes one theta of shape ({self.n_params},)")
         return sp.csr_matrix((self.values(theta), self.indices, self.indptr), shape=self.shape)
 
-    def theta_gradient(self, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """``∂L/∂θ = −Gᵀ Σ_batch (λ[rows] ⊙ x[cols])`` for ``x = A(θ)⁻¹ b``, ``Aᵀλ = ∂L/∂x``."""
+    def theta_gradient(self, lam: np.ndarray, x: np.ndarray, *, per_sample=False) -> np.ndarray:
+        """``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])`` for ``x = A(θ)⁻¹ b``, ``Aᵀλ = ∂L/∂x``.
+
+        Parameters
+        ----------
+        lam, x : ndarray, shape (n,) or (B, n)
+            Adjoint and forward solutions.
+        per_sample : bool
+            False (default): one θ shared by the batch, the result (p,) sums the
+            samples' contributions.  True: sample i has its own θ_i (θ of shape
+            (B, p)); the result (B, p) holds one gradient per sample, computed as
+            one (B, nnz) product and one sparse product with Gᵀ.
+        """
+        if per_sample:
+            lam, x = np.atleast_2d(lam), np.atleast_2d(x)
+            dA = np.take(lam, self.rows, axis=1)
+            dA *= np.take(x, self.indices, axis=1)
+            return -np.asarray(self.GT @ dA.T).T
         if lam.ndim == 1 and x.ndim == 1:
             dA = np.take(lam, self.rows)
             dA *= np.take(x, self.indices)
@@ -117,9 +144,25 @@ class ParametricMatrix:
         """Gᵀ in CSR form, built once (used by every θ-gradient)."""
         return self.G.T.tocsr()
 
-    def vjp_matvec(self, w: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """``∂/∂θ ⟨w, A(θ) v⟩ = Gᵀ Σ_batch (w[rows] ⊙ v[cols])``."""
-        return -self.theta_gradient(w, v)
+    def vjp_matvec(self, w: np.ndarray, v: np.ndarray, *, per_sample=False) -> np.ndarray:
+        """``∂/∂θ ⟨w, A(θ) v⟩ = Gᵀ(w[rows] ⊙ v[cols])``; `per_sample` as in `theta_gradient`."""
+        return -self.theta_gradient(w, v, per_sample=per_sample)
+
+    def matvecs(self, values: np.ndarray, v: np.ndarray, *, transpose=False) -> np.ndarray:
+        """``A_i v_i`` (or ``A_iᵀ v_i``) per sample for CSR values (B, nnz) and v (B, m).
+
+        One (B, nnz) product and one sparse product that sums it into rows
+        (columns for the transpose); no Python loop over samples.
+        """
+        if transpose:
+            src, dst, size = self.rows, self.indices, self.shape[1]
+        else:
+            src, dst, size = self.indices, self.rows, self.shape[0]
+        products = values * np.take(v, src, axis=1)
+        gather = sp.csr_matrix(
+            (np.ones(self.nnz), (dst, np.arange(self.nnz))), shape=(size, self.nnz)
+        )
+        return np.asarray(gather @ products.T).T
 
     def submatrix(self, rows: np.ndarray, cols: np.ndarray) -> ParametricMatrix:
         """The block ``A[rows][:, cols]`` as a ParametricMatrix with the same θ.
