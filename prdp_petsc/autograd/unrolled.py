@@ -6,110 +6,49 @@ from the `KSPSolver`'s PETSc configuration so that the iteration is the same one
 PETSc runs:
 
 * ``richardson`` with ``jacobi`` or ``none``: ``x ← x + ω M⁻¹(b − A x)``, ω from
-  ``-ksp_richardson_scale`` (default 1);
-* ``cg`` with ``jacobi`` or ``none``: preconditioned conjugate gradients.
+  ``-ksp_richardson_scale`` (default 1), step for step as ``KSPSolve_Richardson``;
+* ``cg`` with ``jacobi`` or ``none``: preconditioned conjugate gradients, step
+  for step as ``KSPSolve_CG``.
 
-Both start from x = 0 and run at most ``solver.max_it`` iterations, stopping
-where PETSc's default convergence test would (the solver's rtol and atol, the
-KSP's norm type), so in fixed mode (``rtol = atol = 0``) exactly K run and the
-iterates equal PETSc's.  Memory grows linearly with K (every iterate is kept
-for backward).
+Both start from x = 0, run at most ``solver.max_it`` iterations and stop where
+PETSc would (`prdp_petsc.autograd.convergence`: the KSP's rtol, atol, divtol and
+norm type), so in fixed mode (``rtol = atol = 0``) exactly K run and the
+iterates equal PETSc's.  θ of shape (B, p) runs B operators at once, one per
+column.  Memory grows linearly with K (every iterate is kept for backward).
+
+Failures are those of implicit mode: a divergence PETSc reports
+(``DIVERGED_DTOL``, ``DIVERGED_NANORINF``, CG's ``DIVERGED_INDEFINITE_PC``/``_MAT``)
+raises `SolverError` with the same reason name, and ``solver.last`` describes
+the last column (the failing one on error) with PETSc's iterations, reason and
+residual norm.  Right-hand sides beyond ``2^±100`` are scaled by a power of two
+first, as `KSPSolver` does.  Not repeated from implicit mode: the rescue of
+breakdowns at rounding level (`prdp_petsc.core.safeguards`); for the supported
+methods with a positive diagonal, zᵀr is a sum of non-negative terms and those
+breakdowns do not arise.
+
+Statistics: the forward counts ``forward_solves``/``forward_iterations``/
+``forward_time``.  The adjoint counters are advanced only when a backward pass
+actually runs through the result (by one solve and the column's iterations per
+column, each time it runs); ``adjoint_time`` is not recorded, the backward
+being torch's.
 """
 
 from __future__ import annotations
 
 import time
-import warnings
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from petsc4py import PETSc
 
-from ..fem.parametric import ParametricMatrix
-from ..core.solver import KSPSolver, SolveInfo
+from ..core import safeguards
+from ..core.solver import KSPSolver, SolverError
+from .convergence import Convergence, Reason
+from .unrolled_operator import UnrolledOperator
 
-__all__ = ["UnrolledOperator", "unrolled_solve"]
+__all__ = ["UnrolledOperator", "method_of", "unrolled_solve"]
 
 _SUPPORTED = {("richardson", "jacobi"), ("richardson", "none"), ("cg", "jacobi"), ("cg", "none")}
-
-
-def _csr_tensor(indptr, indices, values, shape) -> torch.Tensor:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        return torch.sparse_csr_tensor(
-            torch.from_numpy(np.asarray(indptr, dtype=np.int64)),
-            torch.from_numpy(np.asarray(indices, dtype=np.int64)),
-            values,
-            size=shape,
-            check_invariants=False,
-        )
-
-
-class UnrolledOperator:
-    """A(θ) inside the unrolled loop: ``A @ X`` with a cheap, exact backward.
-
-    The forward product uses a CSR tensor; backward uses the transpose, built once
-    per solve, for ``∂/∂X`` and ``(gY[rows] · X[cols])`` for ``∂/∂values``, so
-    no iteration differentiates through torch's sparse kernels.  ``values`` is
-    ``a0 + G θ`` (differentiable in θ) or the constant CSR data.
-    """
-
-    def __init__(self, A, theta: torch.Tensor | None = None):
-        if isinstance(A, ParametricMatrix):
-            G = A.G.tocoo()
-            G_t = torch.sparse_coo_tensor(
-                np.vstack([G.row, G.col]), G.data, G.shape, check_invariants=False
-            )
-            self.values = torch.from_numpy(A.a0) + torch.sparse.mm(G_t, theta.cpu()[:, None])[:, 0]
-            indptr, indices, shape = A.indptr, A.indices, A.shape
-        else:
-            A = sp.csr_matrix(A)
-            A.sort_indices()
-            self.values = torch.from_numpy(A.data.astype(np.float64))
-            indptr, indices, shape = A.indptr, A.indices, A.shape
-        nnz = len(indices)
-        T = sp.csr_matrix((np.arange(nnz), indices, indptr), shape=shape).T.tocsr()
-        self.shape = shape
-        self.rows = torch.from_numpy(np.repeat(np.arange(shape[0]), np.diff(indptr)))
-        self.cols = torch.from_numpy(np.asarray(indices, dtype=np.int64))
-        v = self.values.detach()
-        self.csr = _csr_tensor(indptr, indices, v, shape)
-        self.csr_t = _csr_tensor(T.indptr, T.indices, v[torch.from_numpy(T.data)], shape[::-1])
-
-    def __matmul__(self, X: torch.Tensor) -> torch.Tensor:
-        return _SpMM.apply(self.values, X, self)
-
-    def diagonal(self) -> torch.Tensor:
-        """Diagonal of A (differentiable in the values)."""
-        on_diag = self.rows == self.cols
-        diag = torch.zeros(self.shape[0], dtype=self.values.dtype)
-        return diag.index_add(0, self.rows[on_diag], self.values[on_diag])
-
-
-class _SpMM(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, values, X, op):
-        ctx.op = op
-        if ctx.needs_input_grad[0]:
-            ctx.save_for_backward(X)
-        return op.csr @ X
-
-    @staticmethod
-    def backward(ctx, gY):
-        op = ctx.op
-        g_values = g_X = None
-        if ctx.needs_input_grad[0]:
-            (X,) = ctx.saved_tensors
-            g_values = (gY[op.rows] * X[op.cols]).sum(-1)
-        if ctx.needs_input_grad[1]:
-            g_X = op.csr_t @ gY
-        return g_values, g_X, None
-
-
-def _jacobi(op: UnrolledOperator) -> torch.Tensor:
-    diag = op.diagonal()
-    return 1.0 / torch.where(diag == 0, 1.0, diag)  # PCJacobi replaces a zero diagonal by 1
 
 
 def method_of(solver: KSPSolver) -> tuple[str, str, float]:
@@ -123,7 +62,13 @@ def method_of(solver: KSPSolver) -> tuple[str, str, float]:
 
 
 def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torch.Tensor:
-    """K steps of the solver's method in torch; differentiable in b and θ."""
+    """K steps of the solver's method in torch; differentiable in b and θ.
+
+    Raises
+    ------
+    SolverError
+        When PETSc would report a divergence (same reason name as implicit mode).
+    """
     if solver.nullspace is not None:
         raise ValueError(
             "mode='unrolled' does not project null spaces as PETSc does; use mode='implicit' "
@@ -137,129 +82,137 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
             f"{ksp_type}/{pc_type}; use mode='implicit' for other KSP/PC pairs"
         )
     t0 = time.perf_counter()
+    n = b.shape[-1]
+    exponents = safeguards.rhs_exponents(b.detach().cpu().reshape(-1, n).numpy())
+    B = _ldexp(b.cpu().reshape(-1, n).T, -exponents)  # (n, batch): columns are samples
     A_t = UnrolledOperator(A, theta)
     inv_m = _jacobi(A_t) if pc_type == "jacobi" else None
-    B = b.cpu().reshape(-1, b.shape[-1]).T  # (n, batch): columns are right-hand sides
-    stop = _Stopping(solver)
+    conv = Convergence(solver.ksp, exponents)
     if ksp_type == "richardson":
-        x = _richardson(A_t, B, inv_m, scale, solver.max_it, stop)
+        x = _richardson(A_t, B, inv_m, scale, solver.max_it, conv)
     else:
-        x = _cg(A_t, B, inv_m, solver.max_it, stop)
-    its = int(stop.iterations.sum())
-    solver.last = stop.info()
+        x = _cg(A_t, B, inv_m, solver.max_it, conv)
+    column = conv.failed()
+    solver.last = conv.info(-1 if column is None else column)
+    conv.check(f"{ksp_type}/{pc_type}")
+    x = _ldexp(x, exponents)
+    if not bool(torch.isfinite(x).all()):  # e.g. -ksp_norm_type none: PETSc tests nothing
+        raise SolverError(
+            f"unrolled forward solve ({ksp_type}/{pc_type}) returned NaN/Inf",
+            reason="DIVERGED_NANORINF",
+        )
+    its = int(conv.iterations.sum())
     stats = solver.stats
     stats.forward_solves += B.shape[1]
     stats.forward_iterations += its
     stats.forward_time += time.perf_counter() - t0
-    if torch.is_grad_enabled() and (b.requires_grad or (theta is not None and theta.requires_grad)):
-        stats.adjoint_solves += B.shape[1]
-        stats.adjoint_iterations += its
-    return x.T.reshape(b.shape).to(b.device)
+    x = x.T.reshape(b.shape).to(b.device)
+    return _AdjointCount.apply(x, solver, B.shape[1], its)
 
 
-class _Stopping:
-    """PETSc's default convergence test (``KSPConvergedDefault``), one flag per column.
+class _AdjointCount(torch.autograd.Function):
+    """Identity on the unrolled solution whose backward records the adjoint work.
 
-    A column stops when its residual norm (of the KSP's norm type) falls to
-    ``max(rtol * ‖r₀‖, atol)``; with ``rtol = atol = 0`` only an exactly zero
-    residual stops it, as in PETSc.  Norms are compared, never differentiated.
+    The backward of the unrolled graph is the K transposed steps of every column;
+    it is counted in ``solver.stats`` when it runs, not when the forward does.
     """
 
-    def __init__(self, solver: KSPSolver):
-        norm_type = solver.ksp.getNormType()
-        self.norm_type = "none" if norm_type == PETSc.KSP.NormType.NONE else norm_type
-        self.rtol, self.atol = solver.rtol, solver.atol
-        self.ttol = None
-        self.active = None
-        self.iterations = None
-        self.norm = None
-        self.by_atol = None
+    @staticmethod
+    def forward(ctx, x, solver, solves, iterations):
+        ctx.solver, ctx.solves, ctx.iterations = solver, solves, iterations
+        return x.view_as(x)
 
-    def norm_of(self, r, z, rz) -> torch.Tensor:
-        with torch.no_grad():
-            if self.norm_type == PETSc.KSP.NormType.UNPRECONDITIONED:
-                return torch.linalg.vector_norm(r, dim=0)
-            if self.norm_type == PETSc.KSP.NormType.NATURAL:
-                return rz.abs().sqrt()
-            return torch.linalg.vector_norm(z, dim=0)  # preconditioned (PETSc's default)
-
-    def check(self, r, z, rz) -> torch.Tensor:
-        """Update and return the mask of columns still iterating."""
-        if self.active is None:
-            self.active = torch.ones(r.shape[1], dtype=torch.bool)
-            self.iterations = torch.zeros(r.shape[1], dtype=torch.int64)
-            self.by_atol = torch.zeros(r.shape[1], dtype=torch.bool)
-        if self.norm_type == "none":
-            return self.active
-        norm = self.norm_of(r, z, rz)
-        if self.ttol is None:
-            self.ttol = torch.clamp(self.rtol * norm, min=self.atol)
-        self.norm = norm
-        done = self.active & (norm <= self.ttol)
-        self.by_atol |= done & (norm < self.atol)
-        self.active = self.active & ~done
-        return self.active
-
-    def info(self) -> SolveInfo:
-        """`SolveInfo` of the last column, as PETSc reports it."""
-        last = -1
-        converged = not bool(self.active[last])
-        norm = float("nan") if self.norm is None else float(self.norm[last])
-        reason = "DIVERGED_MAX_IT"
-        if converged:
-            reason = "CONVERGED_ATOL" if bool(self.by_atol[last]) else "CONVERGED_RTOL"
-        return SolveInfo(int(self.iterations[last]), reason, norm)
+    @staticmethod
+    def backward(ctx, grad):
+        stats = ctx.solver.stats  # looked up now: reset_stats() may have replaced it
+        stats.adjoint_solves += ctx.solves
+        stats.adjoint_iterations += ctx.iterations
+        return grad, None, None, None
 
 
-def _precondition(inv_m, r):
-    return r if inv_m is None else inv_m[:, None] * r
-
-
-def _richardson(A_t, B, inv_m, scale, k, stop):
-    """``x ← x + ω M⁻¹(b − A x)`` from x = 0, as ``KSPSolve_Richardson``."""
-    x = torch.zeros_like(B)
-    r = B
-    for _ in range(k):
-        z = _precondition(inv_m, r)
-        active = stop.check(r, z, None)
-        if not active.any():
-            break
-        x = x + scale * torch.where(active, z, 0.0)
-        stop.iterations += active
-        r = B - A_t @ x
-    else:  # PETSc tests the residual after the last step too
-        stop.check(r, _precondition(inv_m, r), None)
+def _ldexp(x: torch.Tensor, exponents: np.ndarray) -> torch.Tensor:
+    """``x · 2^e`` per column, exactly (two factors, so that 2^e never overflows)."""
+    if not exponents.any():
+        return x
+    half = exponents // 2
+    for e in (half, exponents - half):
+        x = x * torch.from_numpy(np.ldexp(1.0, e))
     return x
 
 
-def _cg(A_t, B, inv_m, k, stop):
+def _jacobi(op: UnrolledOperator) -> torch.Tensor:
+    diag = op.diagonal()
+    return 1.0 / torch.where(diag == 0, 1.0, diag)  # PCJacobi replaces a zero diagonal by 1
+
+
+def _precondition(inv_m, r):
+    return r if inv_m is None else inv_m * r
+
+
+def _richardson(A_t, B, inv_m, scale, k, conv):
+    """``x ← x + ω M⁻¹(b − A x)`` from x = 0, step for step as ``KSPSolve_Richardson``."""
+    x = torch.zeros_like(B)
+    r = B
+    for i in range(k):
+        z = _precondition(inv_m, r)
+        conv.test(i, conv.residual_norm(r, z, None))
+        active = conv.active
+        if not active.any():
+            return x
+        x = x + scale * torch.where(active, z, 0.0)
+        conv.count(i + 1)
+        r = B - A_t @ x
+    # PETSc tests the residual after the last step too
+    conv.test(k, conv.residual_norm(r, _precondition(inv_m, r), None))
+    none = conv.norm_type == PETSc.KSP.NormType.NONE
+    conv.finish(Reason.CONVERGED_ITS if none else Reason.DIVERGED_MAX_IT)
+    return x
+
+
+def _cg(A_t, B, inv_m, k, conv):
     """Preconditioned CG from x = 0, step for step as ``KSPSolve_CG``.
 
-    A column stops on PETSc's convergence test or when ``zᵀr`` or ``pᵀAp`` is
-    exactly zero (PETSc: converged, or breakdown); stopped columns are frozen
-    with safe divisions, so their gradients stay finite.
+    Besides the convergence test a column stops as PETSc's does: ``zᵀr = 0``
+    (``CONVERGED_ATOL``), a sign change of ``zᵀr`` (``DIVERGED_INDEFINITE_PC``),
+    ``pᵀAp = 0`` or a sign change of it (``DIVERGED_INDEFINITE_MAT``), a NaN or Inf
+    inner product (``DIVERGED_NANORINF``).  Stopped columns are frozen with safe
+    divisions, so their gradients stay finite.
     """
     x = torch.zeros_like(B)
     r = B
     z = _precondition(inv_m, r)
     rho = (r * z).sum(0)
-    active = stop.check(r, z, rho)
+    conv.test(0, conv.residual_norm(r, z, rho))
+    conv.check_finite(rho)
     p = z
-    for _ in range(k):
-        active = active & (rho != 0)
-        if not active.any():
-            break
+    rho_old = pq_old = None
+    for i in range(k):
+        if not conv.active.any():
+            return x
+        conv.count(i + 1)  # PETSc counts the iteration before its breakdown checks
+        conv.stop(rho == 0, Reason.CONVERGED_ATOL)
+        if i > 0:
+            conv.stop(rho * rho_old < 0, Reason.DIVERGED_INDEFINITE_PC)
+            p = z + _safe_ratio(rho, rho_old, conv.active) * p
         q = A_t @ p
         pq = (p * q).sum(0)
-        active = active & (pq != 0)
-        alpha = torch.where(active, rho / torch.where(active, pq, 1.0), 0.0)
+        conv.check_finite(pq)
+        curvature_lost = pq == 0
+        if i > 0:
+            curvature_lost |= torch.sign(pq) * torch.sign(pq_old) < 0
+        conv.stop(curvature_lost, Reason.DIVERGED_INDEFINITE_MAT)
+        alpha = _safe_ratio(rho, pq, conv.active)
         x = x + alpha * p
         r = r - alpha * q
         z = _precondition(inv_m, r)
-        stop.iterations += active
-        rho_new = (r * z).sum(0)
-        active = active & stop.check(r, z, rho_new)
-        beta = torch.where(active, rho_new / torch.where(active, rho, 1.0), 0.0)
-        p = z + beta * p
-        rho = rho_new
+        rho_old, pq_old = rho, pq
+        rho = (r * z).sum(0)
+        conv.test(i + 1, conv.residual_norm(r, z, rho))
+        conv.check_finite(rho)
+    conv.finish(Reason.DIVERGED_MAX_IT)
     return x
+
+
+def _safe_ratio(num, den, active):
+    """``num / den`` on the active columns, 0 on the others (no division by their 0)."""
+    return torch.where(active, num / torch.where(active, den, 1.0), 0.0)
