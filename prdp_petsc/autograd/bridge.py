@@ -6,6 +6,12 @@ g (a forward ``KSPSolve`` when A and the PC are symmetric): ``Aᵀ λ = g``, the
 ``∂L/∂b = λ`` and ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``.  The forward solution is
 kept, never recomputed, and nothing is computed for an input that does not need
 a gradient.
+
+θ of shape (B, p) with b of shape (B, n) is a batch of operators (a network
+predicting one coefficient field per input): sample i solves ``A(θ_i) x_i = b_i``
+with its own operator and PC setup, all in one call, and gets its own
+``∂L/∂θ_i``.  The backward functions are once-differentiable: a second
+derivative raises rather than silently missing the solve's second-order term.
 """
 
 from __future__ import annotations
@@ -14,8 +20,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..core.solver import KSPSolver, SolverError
 from ..fem.parametric import ParametricMatrix
-from ..core.solver import KSPSolver
+from .once import once_differentiable
 
 __all__ = ["matvec", "solve"]
 
@@ -37,7 +44,10 @@ def _check_vector(arr: np.ndarray, n: int, name: str) -> None:
 
 
 def _operator(A, theta: torch.Tensor | None):
-    """Return (ParametricMatrix or None, CSR tuple ``(indptr, indices, data, shape)``)."""
+    """Return (ParametricMatrix or None, CSR tuple ``(indptr, indices, data, shape)``).
+
+    ``data`` is (nnz,), or (B, nnz) for θ of shape (B, p): one operator per sample.
+    """
     if isinstance(A, ParametricMatrix):
         if theta is None:
             raise ValueError("A is a ParametricMatrix: pass its parameters as theta=")
@@ -55,31 +65,69 @@ def _operator(A, theta: torch.Tensor | None):
     return None, (A.indptr, A.indices, A.data.astype(np.float64, copy=False), A.shape)
 
 
+def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) -> None:
+    """A batch of operators (θ of shape (B, p)) needs `name` of shape (B, n), same B."""
+    if values.ndim == 2 and (len(shape) != 2 or shape[0] != len(values)):
+        batch, p = len(values), P.n_params
+        raise ValueError(
+            f"theta must have shape ({p},) for {name} of shape {tuple(shape)}: theta of shape "
+            f"({batch}, {p}) is a batch of operators and needs {name} of shape ({batch}, "
+            f"{shape[-1]}); for a shared {name} pass {name}.expand({batch}, -1)"
+        )
+
+
+def _per_sample(csr: tuple, *, reverse: bool = False) -> list:
+    """``(rows, operator)`` pairs: every row with one shared operator, else one per sample."""
+    indptr, indices, data, shape = csr
+    if data.ndim == 1:
+        return [(slice(None), csr)]
+    order = range(len(data) - 1, -1, -1) if reverse else range(len(data))
+    return [(i, (indptr, indices, data[i], shape)) for i in order]
+
+
+def _solve_each(solver: KSPSolver, csr: tuple, rhs: np.ndarray, symmetric, *, transpose: bool):
+    """Solve every sample with its operator (one ``set_operator`` per operator)."""
+    out = np.empty_like(rhs)
+    run = solver.solve_transpose if transpose else solver.solve
+    for rows, operator in _per_sample(csr, reverse=transpose):
+        solver.set_operator(operator, symmetric=symmetric)
+        try:
+            out[rows] = run(rhs[rows])
+        except SolverError as err:
+            if isinstance(rows, slice):
+                raise
+            raise SolverError(f"sample {rows} of the batch: {err}", reason=err.reason) from err
+    return out
+
+
 class _ImplicitSolve(torch.autograd.Function):
     @staticmethod
     def forward(ctx, b, theta, P, csr, solver):
         ctx.symmetric = P.is_symmetric if P is not None else None  # None: solver checks values
-        solver.set_operator(csr, symmetric=ctx.symmetric)
-        x = torch.from_numpy(solver.solve(b.detach().cpu().numpy())).to(b.device)
+        x = _solve_each(solver, csr, b.detach().cpu().numpy(), ctx.symmetric, transpose=False)
+        x = torch.from_numpy(x).to(b.device)
         ctx.P, ctx.csr, ctx.solver = P, csr, solver
         if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
             ctx.save_for_backward(x)
         return x
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_x):
         need_b, need_theta = ctx.needs_input_grad[:2]
         if not (need_b or need_theta):
             return None, None, None, None, None
-        # a no-op unless another solve changed A since the forward pass
-        ctx.solver.set_operator(ctx.csr, symmetric=ctx.symmetric)
-        lam = ctx.solver.solve_transpose(grad_x.detach().cpu().numpy())
+        # set_operator is a no-op unless the values differ from the operator set last
+        g = grad_x.detach().cpu().numpy()
+        lam = _solve_each(ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True)
         grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
         grad_theta = None
         if need_theta:
             (x,) = ctx.saved_tensors
             x = x.detach().cpu().numpy()
-            grad_theta = torch.from_numpy(ctx.P.theta_gradient(lam, x)).to(grad_x.device)
+            per_sample = ctx.csr[2].ndim == 2
+            grad_theta = ctx.P.theta_gradient(lam, x, per_sample=per_sample)
+            grad_theta = torch.from_numpy(grad_theta).to(grad_x.device)
         return grad_b, grad_theta, None, None, None
 
 
@@ -98,11 +146,14 @@ def solve(
     A : scipy.sparse matrix or ParametricMatrix
         The operator; a `ParametricMatrix` is evaluated at `theta`.
     b : torch.Tensor, float64, shape (n,) or (B, n)
-        Right-hand side(s).  A batch shares one operator and one PC setup.
+        Right-hand side(s).  With one θ (or a scipy A) the batch shares one
+        operator and one PC setup.
     solver : KSPSolver
         Carries the KSP/PC options, ``max_it`` (K) and the adjoint settings.
-    theta : torch.Tensor, float64, shape (p,), optional
-        Parameters of a ParametricMatrix.
+    theta : torch.Tensor, float64, shape (p,) or (B, p), optional
+        Parameters of a ParametricMatrix.  Shape (B, p) is a batch of operators:
+        sample i solves ``A(θ_i) x_i = b_i``, so `b` must be (B, n) with the same B
+        (a shared right-hand side is ``b.expand(B, -1)``; it is not broadcast).
     mode : {"implicit", "unrolled"}
         ``"implicit"``: PETSc forward solve, PETSc transpose solve in backward.
         ``"unrolled"``: the same K-step iteration in torch under autograd (exact
@@ -111,12 +162,27 @@ def solve(
     Returns
     -------
     torch.Tensor
-        x, float64, on the device of `b`.  ``solver.last`` holds the last KSP's
-        iterations, reason and residual norm.
+        x, float64, on the device of `b`.  ``solver.last`` holds the KSP's
+        iterations, reason and residual norm for the last sample of the batch.
+
+    Raises
+    ------
+    SolverError
+        When a solve diverges (PETSc's reason in ``.reason``); in a batch of
+        operators the message names the sample.
 
     Notes
     -----
-    Dirichlet values enter through the right-hand side; see `prdp_petsc.autograd.dirichlet`.
+    A batch of operators runs one ``KSPSolve`` per sample, each after
+    ``set_operator`` with that sample's values, hence B PC setups forward.  The
+    backward visits the samples in reverse order, so the last forward operator is
+    still set: B − 1 more PC setups (B when another solve changed the operator in
+    between; an adjoint with its own PC, e.g. ``AdjointSettings(options={"pc_type":
+    ...})``, is set up once per sample).  ``∂L/∂θ_i = −Gᵀ(λ_i[rows] ⊙ x_i[cols])``
+    is one (B, nnz) product and one sparse product with Gᵀ.  The backward is
+    marked once-differentiable: a double backward raises instead of dropping
+    the solve's second-order term.  Dirichlet values enter through the
+    right-hand side; see `prdp_petsc.autograd.dirichlet`.
     """
     if mode not in ("implicit", "unrolled"):
         raise ValueError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
@@ -124,6 +190,8 @@ def solve(
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
     P, csr = _operator(A, theta)
     _check_vector(_as_numpy(b, "b"), csr[3][0], "b")
+    if P is not None:
+        _check_pairing(P, csr[2], b.shape, "b")
     if mode == "unrolled":
         from .unrolled import unrolled_solve
 
@@ -131,33 +199,48 @@ def solve(
     return _ImplicitSolve.apply(b, theta, P, csr, solver)
 
 
+def _product(P: ParametricMatrix, values: np.ndarray, v: np.ndarray, transpose: bool):
+    """``A v`` (``Aᵀ v``) for one operator or, with values (B, nnz), one per sample."""
+    if values.ndim == 2:
+        return P.matvecs(values, v, transpose=transpose)
+    A = sp.csr_matrix((values, P.indices, P.indptr), shape=P.shape)
+    return np.asarray(((A.T if transpose else A) @ v.T).T)
+
+
 class _MatVec(torch.autograd.Function):
     @staticmethod
     def forward(ctx, v, theta, P, values):
         ctx.P, ctx.values = P, values
-        ctx.save_for_backward(v)
-        A = sp.csr_matrix((values, P.indices, P.indptr), shape=P.shape)
-        return torch.from_numpy(np.asarray((A @ v.detach().cpu().numpy().T).T)).to(v.device)
+        ctx.save_for_backward(v, theta)  # θ: a second derivative must see it (see .once)
+        y = _product(P, values, v.detach().cpu().numpy(), transpose=False)
+        return torch.from_numpy(y).to(v.device)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_y):
-        (v,) = ctx.saved_tensors
+        v, _ = ctx.saved_tensors
         P = ctx.P
         g = grad_y.detach().cpu().numpy()
         grad_v = grad_theta = None
         if ctx.needs_input_grad[0]:
-            A = sp.csr_matrix((ctx.values, P.indices, P.indptr), shape=P.shape)
-            grad_v = torch.from_numpy(np.asarray((A.T @ g.T).T)).to(grad_y.device)
+            grad_v = torch.from_numpy(_product(P, ctx.values, g, transpose=True))
+            grad_v = grad_v.to(grad_y.device)
         if ctx.needs_input_grad[1]:
-            gt = P.vjp_matvec(g, v.detach().cpu().numpy())
+            per_sample = ctx.values.ndim == 2
+            gt = P.vjp_matvec(g, v.detach().cpu().numpy(), per_sample=per_sample)
             grad_theta = torch.from_numpy(gt).to(grad_y.device)
         return grad_v, grad_theta, None, None
 
 
 def matvec(A: ParametricMatrix, v: torch.Tensor, *, theta: torch.Tensor) -> torch.Tensor:
-    """Differentiable ``A(θ) v`` for v of shape (m,) or (B, m) (used for Dirichlet lifting)."""
+    """Differentiable ``A(θ) v`` (used for Dirichlet lifting).
+
+    v is (m,) or (B, m) with one θ (p,); with θ of shape (B, p) (one operator per
+    sample) v must be (B, m) and sample i gives ``A(θ_i) v_i``.
+    """
     if not isinstance(A, ParametricMatrix):
         raise TypeError("matvec expects a ParametricMatrix; for a constant matrix use torch")
     values = A.values(_as_numpy(theta, "theta"))  # validates θ
     _check_vector(_as_numpy(v, "v"), A.shape[1], "v")
+    _check_pairing(A, values, v.shape, "v")
     return _MatVec.apply(v, theta, A, values)

@@ -9,6 +9,7 @@ degrees of freedom B and unknowns I, the interior solve is
 ``A_IB`` once; `Dirichlet.solve` returns the full vector and is differentiable
 in f, g and θ: the gradient with respect to g is ``−A_IBᵀ λ`` from the same
 adjoint solve, computed by autograd through `prdp_petsc.autograd.bridge.matvec`.
+θ of shape (B, p) gives every sample its own operator (``A_II(θ_i)``, ``A_IB(θ_i)``).
 """
 
 from __future__ import annotations
@@ -17,9 +18,10 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .bridge import _as_numpy, _check_vector, matvec, solve
-from ..fem.parametric import ParametricMatrix
 from ..core.solver import KSPSolver
+from ..fem.parametric import ParametricMatrix
+from .bridge import _as_numpy, _check_vector, matvec, solve
+from .once import once_differentiable
 
 __all__ = ["Dirichlet"]
 
@@ -51,13 +53,36 @@ class Dirichlet:
             self.A_IB = A[self.interior][:, self.boundary].tocsr()
 
     def rhs(self, f: torch.Tensor, g: torch.Tensor, theta=None) -> torch.Tensor:
-        """Interior right-hand side ``f_I − A_IB(θ) g`` (differentiable)."""
+        """Interior right-hand side ``f_I − A_IB(θ) g`` (differentiable).
+
+        `f` is (n,) or (B, n), `g` is (n_B,) or (B, n_B).  With θ of shape (B, p)
+        (one operator per sample) a shared f or g is used by every sample and the
+        result is (B, n_I): row i is ``f_I − A_IB(θ_i) g_i``.
+        """
+        self._check_theta(theta)
         _check_vector(_as_numpy(f, "f"), self.n, "f")
         _check_vector(_as_numpy(g, "g"), len(self.boundary), "g")
         f_i = f[..., torch.from_numpy(self.interior).to(f.device)]
-        if isinstance(self.A_IB, ParametricMatrix):
-            return f_i - matvec(self.A_IB, g, theta=theta)
-        return f_i - _ConstMatVec.apply(g, self.A_IB).to(f.device)
+        if not isinstance(self.A_IB, ParametricMatrix):
+            return f_i - _ConstMatVec.apply(g, self.A_IB).to(f.device)
+        if isinstance(theta, torch.Tensor) and theta.ndim == 2:  # one operator per sample
+            batch = len(theta)
+            for name, t in (("f", f), ("g", g)):
+                if t.ndim == 2 and len(t) != batch:
+                    raise ValueError(
+                        f"{name} has batch size {len(t)} but theta has {batch}; pass {name} "
+                        f"of shape ({batch}, {t.shape[-1]}) or ({t.shape[-1]},)"
+                    )
+            g = g.expand(batch, -1)
+        return f_i - matvec(self.A_IB, g, theta=theta)
+
+    def _check_theta(self, theta) -> None:
+        """θ is required for a ParametricMatrix and refused otherwise, as in `solve`."""
+        if isinstance(self.A_II, ParametricMatrix):
+            if theta is None:
+                raise ValueError("A is a ParametricMatrix: pass its parameters as theta=")
+        elif theta is not None:
+            raise ValueError("theta= is only meaningful for a ParametricMatrix A")
 
     def expand(self, u_i: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """Full vector with ``u[I] = u_i`` and ``u[B] = g``."""
@@ -74,9 +99,13 @@ class Dirichlet:
         theta=None,
         mode: str = "implicit",
     ) -> torch.Tensor:
-        """Solve with ``u_B = g``; returns the full vector, differentiable in f, g, θ."""
-        theta_kw = {"theta": theta} if isinstance(self.A_II, ParametricMatrix) else {}
-        u_i = solve(self.A_II, self.rhs(f, g, theta), solver, mode=mode, **theta_kw)
+        """Solve with ``u_B = g``; returns the full vector, differentiable in f, g, θ.
+
+        θ of shape (B, p) solves a batch of operators, one per sample (see
+        `prdp_petsc.autograd.bridge.solve`); f and g may then be shared or per
+        sample, as in `rhs`.  θ with a scipy matrix raises ValueError, as in `solve`.
+        """
+        u_i = solve(self.A_II, self.rhs(f, g, theta), solver, theta=theta, mode=mode)
         return self.expand(u_i, g)
 
 
@@ -92,6 +121,7 @@ class _ConstMatVec(torch.autograd.Function):
         return torch.from_numpy(np.asarray((M @ v.detach().cpu().numpy().T).T))
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad):
         g = np.asarray((ctx.M.T @ grad.detach().cpu().numpy().T).T)
         return torch.from_numpy(g).to(grad.device), None

@@ -1,0 +1,81 @@
+"""The torch bridge refuses what it cannot do instead of answering wrongly.
+
+* A second derivative through a PETSc solve (or a numpy matvec) would silently
+  miss the solve's second-order term: the backward functions are
+  once-differentiable, so a double backward raises.
+* ``theta=`` with a scipy matrix is refused by `Dirichlet.solve` as by `solve`.
+"""
+
+import pytest
+import torch
+from _core import CONVERGED, fd_poisson, interior_operator, randn, random_theta, unit_square
+
+import prdp_petsc as pp
+
+
+def converged():
+    return pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, **CONVERGED)
+
+
+def second_grad(y, t):
+    """grad of ``Σy² + Σt³`` w.r.t. t with create_graph, then its gradient again.
+
+    The t³ term keeps the first gradient attached to the graph, so only the
+    missing second-order term of the solve can make the second call go wrong.
+    """
+    (g,) = torch.autograd.grad((y**2).sum() + (t**3).sum(), t, create_graph=True)
+    return torch.autograd.grad(g.sum(), t)
+
+
+@pytest.mark.parametrize("wrt", ["b", "theta"])
+def test_double_backward_through_a_solve_raises(wrt):
+    A = interior_operator(unit_square(2)).A_II
+    b = randn(A.shape[0], seed=1, requires_grad=wrt == "b")
+    theta = random_theta(A.n_params, seed=2, requires_grad=wrt == "theta")
+    x = pp.solve(A, b, converged(), theta=theta)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        second_grad(x, b if wrt == "b" else theta)
+
+
+def test_double_backward_of_a_loss_linear_in_x_raises_for_theta():
+    """L = ⟨w, x(θ)⟩: the upstream gradient w is constant, yet ∂²L/∂θ² ≠ 0 through x."""
+    A = interior_operator(unit_square(2)).A_II
+    theta = random_theta(A.n_params, seed=3, requires_grad=True)
+    x = pp.solve(A, randn(A.shape[0], seed=4), converged(), theta=theta)
+    (g,) = torch.autograd.grad(x @ randn(A.shape[0], seed=5), theta, create_graph=True)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        torch.autograd.grad(g.sum(), theta)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        g.sum().backward()
+
+
+def test_double_backward_through_matvec_raises():
+    A = interior_operator(unit_square(2)).A_IB
+    theta = random_theta(A.n_params, seed=6, requires_grad=True)
+    y = pp.matvec(A, randn(A.shape[1], seed=7), theta=theta)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        second_grad(y, theta)
+
+
+def test_double_backward_through_constant_dirichlet_lifting_raises():
+    D = pp.Dirichlet(fd_poisson(4), [0, 1, 2, 3])
+    g = randn(4, seed=8, requires_grad=True)
+    rhs = D.rhs(randn(16, seed=9), g)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        second_grad(rhs, g)
+
+
+def test_dirichlet_theta_with_a_scipy_matrix_is_refused():
+    D = pp.Dirichlet(fd_poisson(3), [0, 8])
+    solver = converged()
+    with pytest.raises(ValueError, match="theta= is only meaningful for a ParametricMatrix"):
+        D.solve(randn(9), randn(2), solver, theta=random_theta(4))
+    assert solver.last is None and solver.stats == pp.SolverStats()
+
+
+def test_dirichlet_parametric_matrix_without_theta_is_refused():
+    D = interior_operator(unit_square(2))
+    solver = converged()
+    with pytest.raises(ValueError, match="pass its parameters as theta="):
+        D.solve(randn(D.n), randn(len(D.boundary)), solver)
+    assert solver.last is None
