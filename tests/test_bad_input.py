@@ -26,9 +26,9 @@ def fresh_solver(**kw):
 
 
 def assert_untouched(solver):
-    """No PETSc object was created and nothing was solved."""
+    """No operator reached PETSc and nothing was solved."""
     with pytest.raises(RuntimeError, match="no operator"):
-        solver.ksp  # noqa: B018
+        solver.mat  # noqa: B018
     assert solver.stats == pp.SolverStats() and solver.last is None
 
 

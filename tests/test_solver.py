@@ -40,21 +40,6 @@ def pc_setups():
     return lambda: event.getPerfInfo()["count"]
 
 
-@pytest.fixture
-def petsc_option():
-    """Set options in the PETSc database (as from the command line); removed afterwards."""
-    opts = PETSc.Options()
-    names = []
-
-    def put(name, value):
-        opts.setValue(name, value)
-        names.append(name)
-
-    yield put
-    for name in names:
-        opts.delValue(name)
-
-
 # -- capped iterations ----------------------------------------------------------------------
 
 

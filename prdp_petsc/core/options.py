@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import shlex
 
-__all__ = ["is_number", "option_value", "parse_options"]
+__all__ = [
+    "KSP_ROOTS",
+    "PushedOptions",
+    "is_number",
+    "option_value",
+    "parse_options",
+    "prefixed_options",
+]
 
 
 def parse_options(options: dict | str | None) -> dict:
@@ -45,3 +52,61 @@ def option_value(value) -> str | None:
     if value is False:
         return "false"
     return str(value)
+
+
+#: option roots that belong to a KSP and its PC (sub-solvers included); with the
+#: empty prefix only these are read as the forward solver's, e.g. not ``-log_view``
+KSP_ROOTS = ("ksp_", "pc_", "mg_", "sub_", "fieldsplit_", "redundant_", "telescope_")
+
+
+def prefixed_options(prefix: str, exclude: str | None = None) -> dict:
+    """Options in PETSc's database under `prefix` (prefix removed), except under `exclude`.
+
+    With the empty prefix, only names with a KSP/PC root (`KSP_ROOTS`) are taken.
+    """
+    from petsc4py import PETSc
+
+    out = {}
+    for name, value in PETSc.Options().getAll().items():
+        if not name.startswith(prefix) or (exclude and name.startswith(exclude)):
+            continue
+        key = name[len(prefix) :]
+        if prefix or key.startswith(KSP_ROOTS):
+            out[key] = value
+    return out
+
+
+class PushedOptions:
+    """Options written into PETSc's database while a block runs, removed afterwards.
+
+    Names already in the database (the command line) are left alone: they win.
+    With ``watch=True`` the names that PETSc read during the block are collected
+    in `used` (``PetscOptionsUsed``) before they are removed.
+    """
+
+    def __init__(self, items: list[tuple[str, object]], *, watch: bool = False):
+        self.items = [(name, option_value(value)) for name, value in items]
+        self.watch = watch
+        self.used: set[str] = set()
+        self._pushed: list[str] = []
+
+    def __enter__(self) -> PushedOptions:
+        from petsc4py import PETSc
+
+        opts = PETSc.Options()
+        for name, value in self.items:
+            if not opts.hasName(name):
+                opts.setValue(name, value)
+                self._pushed.append(name)
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        from petsc4py import PETSc
+
+        opts = PETSc.Options()
+        if self.watch:
+            self.used = {name for name, _ in self.items if opts.used(name)}
+        for name in self._pushed:
+            opts.delValue(name)
+        self._pushed = []
+        return False

@@ -1,17 +1,26 @@
-"""CSR pattern helpers: transposed positions and symmetry up to rounding."""
+"""CSR pattern helpers: transposed positions and a scale-proof symmetry test."""
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["nearly_equal", "transpose_permutation"]
+__all__ = ["SYMMETRY_RTOL", "mirror_symmetric", "transpose_permutation"]
+
+#: entries may differ from their mirror by this fraction of their own size (assembly
+#: sums contributions in any order)
+SYMMETRY_RTOL = 1e-14
 
 
-def nearly_equal(a: np.ndarray, b: np.ndarray) -> bool:
-    """Equal up to rounding: ``max|a − b| ≤ 1e-14 max|a|`` (assembly sums in any order)."""
-    scale = np.abs(a).max(initial=0.0)
-    return bool(np.abs(a - b).max(initial=0.0) <= 1e-14 * scale)
+def mirror_symmetric(a: np.ndarray, mirror: np.ndarray, rtol: float = SYMMETRY_RTOL) -> bool:
+    """True when every entry equals its mirror up to rounding of its own size.
+
+    ``|a_ij − a_ji| ≤ rtol · max(|a_ij|, |a_ji|)`` entry by entry: no other entry
+    sets the scale, so a huge diagonal (a penalty ``1/ε``) cannot hide an
+    asymmetry elsewhere.  An entry against an exact zero must be zero itself.
+    """
+    diff = np.abs(a - mirror)
+    return bool(np.all(diff <= rtol * np.maximum(np.abs(a), np.abs(mirror))))
 
 
 def transpose_permutation(indptr, indices, shape) -> np.ndarray | None:

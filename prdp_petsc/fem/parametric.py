@@ -22,7 +22,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from ..core.sparsity import nearly_equal, transpose_permutation
+from ..core.sparsity import SYMMETRY_RTOL, mirror_symmetric, transpose_permutation
 
 __all__ = ["ParametricMatrix", "diffusion_operator", "from_form", "mass_matrix"]
 
@@ -43,6 +43,10 @@ class ParametricMatrix:
     positive : bool
         True when θ is a coefficient that must be > 0 (diffusivity); `check_theta`
         rejects other values before PETSc sees them.
+    symmetric : bool, optional
+        Declared structure: ``True`` if A(θ) = A(θ)ᵀ for every θ, ``False`` if not.
+        ``None`` (default) tests it once on a₀ and G, entry against mirror.  A wrong
+        declaration gives wrong gradients (the adjoint would solve with A).
     """
 
     indptr: np.ndarray
@@ -51,6 +55,7 @@ class ParametricMatrix:
     a0: np.ndarray
     G: sp.csr_matrix
     positive: bool = False
+    symmetric: bool | None = None
 
     def __post_init__(self):
         rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
@@ -131,13 +136,22 @@ class ParametricMatrix:
 
     @cached_property
     def is_symmetric(self) -> bool:
-        """True when A(θ) = A(θ)ᵀ for every θ (a₀ and every column of G symmetric)."""
+        """True when A(θ) = A(θ)ᵀ for every θ: ``symmetric`` if declared, else tested.
+
+        The test compares every entry of a₀ and of each column of G with its own
+        mirror (`prdp_petsc.core.sparsity.mirror_symmetric`), so no large entry
+        elsewhere can hide an asymmetry.
+        """
+        if self.symmetric is not None:
+            return bool(self.symmetric)
         perm = transpose_permutation(self.indptr, self.indices, self.shape)
         if perm is None:
             return False
-        diff = abs(self.G[perm] - self.G).max() if self.G.nnz else 0.0
-        scale = abs(self.G).max() if self.G.nnz else 0.0
-        return nearly_equal(self.a0, self.a0[perm]) and diff <= 1e-14 * scale
+        if not mirror_symmetric(self.a0, self.a0[perm]):
+            return False
+        G, mirror = self.G, self.G[perm]
+        bound = abs(G).maximum(abs(mirror)) * SYMMETRY_RTOL
+        return G.nnz == 0 or (abs(G - mirror) - bound).max() <= 0
 
     @cached_property
     def GT(self) -> sp.csr_matrix:

@@ -215,7 +215,10 @@ def peak_rss_increase(specs: list[dict]) -> dict:
 
     The subprocesses run side by side (each measures only itself) after the timings.
     """
-    code = "import sys; from prdp_petsc.reports.bench_unrolled import _peak_rss_child as f; f(sys.argv[1])"
+    code = (
+        "import sys; from prdp_petsc.reports.bench_unrolled import _peak_rss_child as f; "
+        "f(sys.argv[1])"
+    )
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", code, json.dumps(spec)],

@@ -409,8 +409,8 @@ def case_magnitude(quick: bool = False) -> list[dict]:
 
 def case_no_transpose(quick: bool = False) -> list[dict]:
     """PCs/KSPs without a (correct) transpose, and real breakdowns: clear errors."""
-    from .problems import advection
     from ..core.solver import AdjointSettings
+    from .problems import advection
 
     p = advection(refine=0)
     rows = [

@@ -1,0 +1,137 @@
+"""The PETSc Mat behind a `KSPSolver`, kept in step with the caller's operator.
+
+A scipy CSR matrix (or a tuple ``(indptr, indices, data, shape)``) becomes a
+``MATSEQAIJ`` once; later operators with the same pattern only update its values
+(``MatSetValuesCSR``), and operators with unchanged values change nothing, so
+PETSc sets the preconditioner up again only when the values really changed.
+Symmetry decides which maths the adjoint runs, so it is declared by the caller
+where known, otherwise tested entry against mirror whenever the values change.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from .sparsity import mirror_symmetric, transpose_permutation
+
+__all__ = ["OperatorMat", "as_csr"]
+
+
+def as_csr(A) -> tuple:
+    """``(indptr, indices, data, shape)`` of a scipy matrix or such a tuple (validated)."""
+    if isinstance(A, tuple):
+        indptr, indices, data, shape = A
+    else:
+        if not sp.issparse(A):
+            raise TypeError(f"A must be a scipy sparse matrix or PETSc.Mat, got {type(A)}")
+        A = A.tocsr()
+        if not A.has_sorted_indices:
+            A = A.sorted_indices()
+        indptr, indices, data, shape = A.indptr, A.indices, A.data, A.shape
+    if shape[0] != shape[1]:
+        raise ValueError(f"A must be square, got shape {shape}")
+    data = np.asarray(data, dtype=np.float64)
+    if not np.all(np.isfinite(data)):
+        raise ValueError("A has NaN or Inf entries")
+    return indptr, indices, data, tuple(shape)
+
+
+class OperatorMat:
+    """One PETSc Mat, its CSR pattern and the values it holds.
+
+    Attributes
+    ----------
+    mat : PETSc.Mat or None
+    symmetric : bool
+        Whether A = Aᵀ (declared, or tested on the values).
+    version : int
+        Increases whenever the Mat or its values change: a caller that remembers
+        it can tell in O(1) whether the Mat still holds its operator.
+    """
+
+    def __init__(self):
+        self.mat: PETSc.Mat | None = None
+        self.symmetric = False
+        self.version = 0
+        self._owned = False
+        self._declared: bool | None = None  # the caller's word on a Mat of its own
+        self._pattern: tuple | None = None  # (indptr, indices, shape) as PETSc ints
+        self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
+        self._values: np.ndarray | None = None
+        self._tperm: np.ndarray | None = None
+
+    def update(self, A, symmetric: bool | None = None) -> str:
+        """Hold operator `A`; return ``"new"`` (a new Mat), ``"values"`` or ``"same"``."""
+        if isinstance(A, PETSc.Mat):
+            if A is self.mat:
+                return "same"
+            self.destroy()
+            self.mat = A
+            self._declared = symmetric
+            self.refresh_symmetry()
+            self.version += 1
+            return "new"
+        indptr, indices, data, shape = as_csr(A)
+        if self._same_pattern(indptr, indices, shape):
+            # compare with a private copy: the caller may have changed `data` in place
+            if np.array_equal(data, self._values):
+                return "same"
+            self.mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
+            self.mat.assemble()
+            self._values = data.copy()
+            self._source = (indptr, indices)
+            self._mark_symmetry(symmetric)
+            self.version += 1
+            return "values"
+        self.destroy()
+        ip = np.asarray(indptr, dtype=PETSc.IntType)
+        ix = np.asarray(indices, dtype=PETSc.IntType)
+        self.mat = PETSc.Mat().createAIJ(size=shape, csr=(ip, ix, data), comm=PETSc.COMM_SELF)
+        self.mat.assemble()
+        self._owned = True
+        self._pattern = (ip, ix, shape)
+        self._source = (indptr, indices)
+        self._values = data.copy()
+        self._tperm = transpose_permutation(ip, ix, shape)
+        self._mark_symmetry(symmetric)
+        self.version += 1
+        return "new"
+
+    def refresh_symmetry(self) -> None:
+        """Ask a caller's Mat again whether it is symmetric (it may have been edited)."""
+        if self.mat is not None and not self._owned:
+            if self._declared is not None:
+                self.symmetric = bool(self._declared)
+            else:
+                known, flag = self.mat.isSymmetricKnown()
+                self.symmetric = bool(known and flag)
+
+    def _same_pattern(self, indptr, indices, shape) -> bool:
+        if self._pattern is None:
+            return False
+        if self._source[0] is indptr and self._source[1] is indices:
+            return True
+        return (
+            self._pattern[2] == shape
+            and np.array_equal(self._pattern[0], indptr)
+            and np.array_equal(self._pattern[1], indices)
+        )
+
+    def _mark_symmetry(self, symmetric: bool | None) -> None:
+        """Test A = Aᵀ entry against mirror (unless declared) and tell PETSc."""
+        if symmetric is None:
+            symmetric = self._tperm is not None and mirror_symmetric(
+                self._values, self._values[self._tperm]
+            )
+        self.symmetric = bool(symmetric)
+        self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
+
+    def destroy(self) -> None:
+        """Free a Mat made here (a caller's Mat is left alone) and forget the pattern."""
+        if self._owned and self.mat is not None:
+            self.mat.destroy()
+        self.mat = None
+        self._owned = False
+        self._pattern = self._source = self._values = self._tperm = None

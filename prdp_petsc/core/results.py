@@ -1,0 +1,66 @@
+"""What a capped solve returns besides the solution: outcome, counters, errors."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from petsc4py import PETSc
+
+__all__ = ["SolveInfo", "SolverError", "SolverStats", "reason_name"]
+
+_REASONS = {
+    getattr(PETSc.KSP.ConvergedReason, name): name
+    for name in dir(PETSc.KSP.ConvergedReason)
+    if name.isupper() and isinstance(getattr(PETSc.KSP.ConvergedReason, name), int)
+}
+
+
+def reason_name(reason: int) -> str:
+    """Name of a PETSc ``KSPConvergedReason`` value, e.g. ``"DIVERGED_MAX_IT"``."""
+    return _REASONS.get(int(reason), f"UNKNOWN({int(reason)})")
+
+
+class SolverError(RuntimeError):
+    """A KSP solve really diverged (NaN, breakdown, indefinite PC, DTOL, no transpose).
+
+    Hitting ``max_it`` is *not* an error; it is the normal outcome of a capped solve.
+
+    Attributes
+    ----------
+    reason : str
+        PETSc reason name (``"DIVERGED_DTOL"``, ``"DIVERGED_NANORINF"``, ...).
+    """
+
+    def __init__(self, message: str, reason: str = "UNKNOWN"):
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class SolveInfo:
+    """Outcome of one KSP solve: iteration count, reason name and residual norm."""
+
+    iterations: int
+    reason: str
+    residual_norm: float
+
+    @property
+    def converged(self) -> bool:
+        """True when PETSc reports convergence (not when the cap was hit)."""
+        return self.reason.startswith("CONVERGED")
+
+
+@dataclass
+class SolverStats:
+    """Counters of forward and adjoint work since the last `KSPSolver.reset_stats`."""
+
+    forward_solves: int = 0
+    forward_iterations: int = 0
+    forward_time: float = 0.0
+    adjoint_solves: int = 0
+    adjoint_iterations: int = 0
+    adjoint_time: float = 0.0
+    operator_updates: int = 0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)

@@ -1,0 +1,192 @@
+"""KSPSolver defects found by trying it as a new user: symmetry, lifecycle, options.
+
+Each test here failed on the code before the fix it names.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import skfem
+from _core import BETA, fd_poisson, randn, unit_square
+from petsc4py import PETSc
+from skfem import BilinearForm
+from skfem.helpers import dot, grad
+
+import prdp_petsc as pp
+from prdp_petsc.core.solver import UnusedOptionWarning
+
+CG_JACOBI = {"ksp_type": "cg", "pc_type": "jacobi"}
+
+
+def penalized_advection_diffusion(epsilon=None, beta: float = 1.0) -> sp.csr_matrix:
+    """``−Δu + β·∇u`` with Dirichlet rows penalised by ``1/ε`` (skfem.penalize's default
+    ε when None)."""
+    basis = unit_square(3)
+
+    @BilinearForm
+    def form(u, v, w):
+        return dot(grad(u), grad(v)) + beta * (BETA[0] * u.grad[0] + BETA[1] * u.grad[1]) * v
+
+    A = form.assemble(basis)
+    kw = {} if epsilon is None else {"epsilon": epsilon}
+    A, _ = skfem.penalize(A, np.zeros(A.shape[0]), D=basis.get_dofs(), **kw)
+    return A.tocsr()
+
+
+# -- B1: symmetry judged entry against mirror ------------------------------------------
+
+
+@pytest.mark.parametrize(("epsilon", "beta"), [(1e-20, 1.0), (None, 1e-5)])
+def test_large_penalty_does_not_hide_an_asymmetry(epsilon, beta):
+    """A 1/ε diagonal used to set the scale of the symmetry test: wrong ∂L/∂b."""
+    A = penalized_advection_diffusion(epsilon, beta)
+    solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "jacobi"}, max_it=2000, rtol=1e-13)
+    b = randn(A.shape[0], seed=1, requires_grad=True)
+    w = randn(A.shape[0], seed=2)
+    pp.solve(A, b, solver).backward(w)
+    assert not solver.symmetric
+    exact = spla.spsolve(A.T.tocsc(), w.numpy())
+    assert np.linalg.norm(b.grad.numpy() - exact) <= 1e-8 * np.linalg.norm(exact)
+
+
+def test_parametric_symmetry_is_tested_entry_against_mirror():
+    basis = unit_square(2)
+    K = pp.diffusion_operator(basis, "P0")
+    assert K.is_symmetric
+    n = K.shape[0]
+    big = sp.diags(np.r_[1e20, np.ones(n - 1)]).tocsr()
+    skew = sp.csr_matrix(([1.0, -1.0], ([1, 2], [2, 1])), shape=(n, n))
+    assert (K + big).is_symmetric
+    assert not (K + big + skew).is_symmetric  # the 1e20 entry used to hide ±1
+
+
+def test_declared_structure_wins_over_the_test():
+    A = penalized_advection_diffusion(1e-20)
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3, symmetric=False)
+    solver.set_operator(fd_poisson(4))
+    assert not solver.symmetric  # declared: no test, KSPSolveTranspose for the adjoint
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3)
+    solver.set_operator(A, symmetric=True)
+    assert solver.symmetric
+    K = pp.diffusion_operator(unit_square(1), "P0")
+    declared = pp.ParametricMatrix(K.indptr, K.indices, K.shape, K.a0, K.G, symmetric=False)
+    assert K.is_symmetric and not declared.is_symmetric
+
+
+# -- B3: lifecycle ---------------------------------------------------------------------
+
+
+def test_bad_option_value_fails_at_construction_naming_it():
+    with pytest.raises(ValueError, match="-pc_type no_such_pc: not a PETSc PC type"):
+        pp.KSPSolver({"ksp_type": "cg", "pc_type": "no_such_pc"}, max_it=3)
+    with pytest.raises(ValueError, match="-tst_ksp_type nope: not a PETSc KSP type"):
+        pp.KSPSolver("-ksp_type nope", prefix="tst_", max_it=3)
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3)  # the database is clean afterwards
+    solver.set_operator(fd_poisson(3))
+    assert solver.solve(np.ones(9)).shape == (9,)
+    assert not PETSc.Options().hasName("pc_type")
+
+
+def test_destroy_and_context_manager():
+    with pp.KSPSolver(CG_JACOBI, max_it=3) as solver:
+        solver.set_operator(fd_poisson(3))
+        x = solver.solve(np.ones(9))
+        mat = solver.mat
+    assert np.all(np.isfinite(x))
+    assert mat.handle == 0  # the Mat made by the solver was freed
+    with pytest.raises(RuntimeError, match="destroyed"):
+        solver.solve(np.ones(9))
+
+
+def test_work_vectors_are_reused_between_solves():
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3)
+    solver.set_operator(fd_poisson(3))
+    solver.solve(np.ones(9))
+    handles = (solver._x.handle, solver._b.handle)
+    solver.solve(np.ones((4, 9)))
+    solver.solve_transpose(np.ones(9))
+    assert (solver._x.handle, solver._b.handle) == handles
+
+
+# -- B4: options -----------------------------------------------------------------------
+
+
+def test_misspelt_option_in_the_dict_is_an_error():
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_typ": "gamg"}, max_it=3)
+    solver.set_operator(fd_poisson(4))
+    with pytest.warns(UnusedOptionWarning, match=r"never read .*-pc_typ"):
+        solver.solve(np.ones(16))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver.solve(np.ones(16))  # reported once; the solve itself is fine
+
+
+def test_misspelt_option_on_the_command_line_is_an_error(petsc_option):
+    petsc_option("h2d_ksp_tpye", "gmres")
+    solver = pp.KSPSolver(CG_JACOBI, prefix="h2d_", max_it=3)
+    solver.set_operator(fd_poisson(4))
+    with pytest.warns(UnusedOptionWarning, match="-h2d_ksp_tpye"):
+        solver.solve(np.ones(16))
+
+
+def test_options_read_only_at_pc_setup_or_solve_are_not_reported():
+    solver = pp.KSPSolver(
+        "-ksp_type cg -pc_type gamg -mg_levels_ksp_type richardson -ksp_converged_reason",
+        prefix="rd_",
+        max_it=3,
+    )
+    solver.set_operator(fd_poisson(8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver.solve(np.ones(64))
+        solver.solve_transpose(np.ones(64))
+
+
+def test_adjoint_option_misspelt_is_reported_at_the_first_adjoint_solve():
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3, adjoint={"options": {"ksp_tyep": "gmres"}})
+    solver.set_operator(fd_poisson(4))
+    solver.solve(np.ones(16))
+    with pytest.warns(UnusedOptionWarning, match="-adj_ksp_tyep"):
+        solver.solve_transpose(np.ones(16))
+
+
+@pytest.mark.parametrize("name", ["rtol", "atol"])
+def test_tolerances_are_properties(name):
+    solver = pp.KSPSolver(CG_JACOBI, max_it=500)
+    solver.set_operator(fd_poisson(8))
+    setattr(solver, name, 1e-3)
+    rtol, atol, _, _ = solver.ksp.getTolerances()
+    assert {"rtol": rtol, "atol": atol}[name] == 1e-3  # applied now, not at the next max_it
+    solver.solve(np.ones(64))
+    assert solver.last.converged
+    with pytest.raises(ValueError, match=name):
+        setattr(solver, name, -1.0)
+
+
+@pytest.mark.parametrize("key", ["ksp_rtol", "ksp_max_it", "adj_ksp_max_it"])
+def test_command_line_tolerances_are_refused(petsc_option, key):
+    petsc_option("cl_" + key, "7")
+    with pytest.raises(ValueError, match="PRDP schedule owns max_it"):
+        pp.KSPSolver(CG_JACOBI, prefix="cl_", max_it=3)
+
+
+def test_empty_prefix_does_not_copy_unrelated_options_to_the_adjoint(petsc_option):
+    petsc_option("log_view_memory", None)
+    petsc_option("ksp_type", "gmres")
+    solver = pp.KSPSolver({"pc_type": "jacobi"}, max_it=3)
+    names = [name for name, _ in solver._option_items()]
+    assert "adj_ksp_type" in names  # KSP options are inherited by the adjoint
+    assert "adj_log_view_memory" not in names
+    assert solver.adjoint_ksp.getType() == "gmres"
+
+
+def test_batch_solutions_with_reused_work_vectors_match_spsolve():
+    A = fd_poisson(5)
+    b = np.random.default_rng(0).standard_normal((3, 25))
+    solver = pp.KSPSolver(CG_JACOBI, max_it=200, rtol=1e-12)
+    solver.set_operator(A)
+    x = solver.solve(b)
+    assert np.allclose(x, spla.spsolve(A.tocsc(), b.T).T, atol=1e-10)
