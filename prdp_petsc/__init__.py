@@ -37,11 +37,11 @@ _EXPORTS = {
     "rtol_from_level": ".prdp",
     "savings": ".prdp",
     "Scene": ".training.scene",
-    "AdjointSettings": ".core.solver",
+    "AdjointSettings": ".core.settings",
     "KSPSolver": ".core.solver",
-    "SolveInfo": ".core.solver",
-    "SolverError": ".core.solver",
-    "SolverStats": ".core.solver",
+    "SolveInfo": ".core.results",
+    "SolverError": ".core.results",
+    "SolverStats": ".core.results",
 }
 
 __all__ = sorted([*_EXPORTS, "__version__"])

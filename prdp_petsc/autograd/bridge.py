@@ -20,7 +20,8 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..core.solver import KSPSolver, SolverError
+from ..core.results import SolverError
+from ..core.solver import KSPSolver
 from ..fem.parametric import ParametricMatrix
 from .once import once_differentiable
 
@@ -85,10 +86,18 @@ def _per_sample(csr: tuple, *, reverse: bool = False) -> list:
     return [(i, (indptr, indices, data[i], shape)) for i in order]
 
 
-def _solve_each(solver: KSPSolver, csr: tuple, rhs: np.ndarray, symmetric, *, transpose: bool):
-    """Solve every sample with its operator (one ``set_operator`` per operator)."""
-    out = np.empty_like(rhs)
+def _solve_each(
+    solver: KSPSolver, csr: tuple, rhs: np.ndarray, symmetric, *, transpose: bool, version=None
+):
+    """Solve every sample with its operator (one ``set_operator`` per operator).
+
+    `version`: the solver's `operator_version` right after one shared operator was
+    set; if it still holds, the solver still has that operator and no check runs.
+    """
     run = solver.solve_transpose if transpose else solver.solve
+    if version is not None and version == solver.operator_version:
+        return run(rhs)
+    out = np.empty_like(rhs)
     for rows, operator in _per_sample(csr, reverse=transpose):
         solver.set_operator(operator, symmetric=symmetric)
         try:
@@ -107,6 +116,7 @@ class _ImplicitSolve(torch.autograd.Function):
         x = _solve_each(solver, csr, b.detach().cpu().numpy(), ctx.symmetric, transpose=False)
         x = torch.from_numpy(x).to(b.device)
         ctx.P, ctx.csr, ctx.solver = P, csr, solver
+        ctx.version = solver.operator_version if csr[2].ndim == 1 else None
         if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
             ctx.save_for_backward(x)
         return x
@@ -117,9 +127,11 @@ class _ImplicitSolve(torch.autograd.Function):
         need_b, need_theta = ctx.needs_input_grad[:2]
         if not (need_b or need_theta):
             return None, None, None, None, None
-        # set_operator is a no-op unless the values differ from the operator set last
+        # the operator is set again only if another solve replaced it since the forward
         g = grad_x.detach().cpu().numpy()
-        lam = _solve_each(ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True)
+        lam = _solve_each(
+            ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True, version=ctx.version
+        )
         grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
         grad_theta = None
         if need_theta:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
-from ..core.solver import SolveInfo, SolverError, reason_name
+from ..core.results import SolveInfo, SolverError, reason_name
 
 __all__ = ["Convergence", "Reason"]
 

@@ -42,7 +42,8 @@ import torch
 from petsc4py import PETSc
 
 from ..core import safeguards
-from ..core.solver import KSPSolver, SolverError
+from ..core.results import SolverError
+from ..core.solver import KSPSolver
 from .convergence import Convergence, Reason
 from .unrolled_operator import UnrolledOperator
 

@@ -11,6 +11,7 @@ __all__ = [
     "option_value",
     "parse_options",
     "prefixed_options",
+    "read_at_solve",
 ]
 
 
@@ -76,6 +77,23 @@ def prefixed_options(prefix: str, exclude: str | None = None) -> dict:
     return out
 
 
+#: roots of options that ``KSPSolve`` itself reads, at its end (viewers, reports)
+SOLVE_TIME_ROOTS = (
+    "view",
+    "converged_reason",
+    "converged_rate",
+    "eigenvalues",
+    "singularvalues",
+    "final_residual",
+    "error_if_not_converged",
+)
+
+
+def read_at_solve(name: str) -> bool:
+    """Whether PETSc reads option `name` inside ``KSPSolve`` (not only at set-up)."""
+    return any(root in name for root in SOLVE_TIME_ROOTS)
+
+
 class PushedOptions:
     """Options written into PETSc's database while a block runs, removed afterwards.
 
@@ -91,6 +109,8 @@ class PushedOptions:
         self._pushed: list[str] = []
 
     def __enter__(self) -> PushedOptions:
+        if not self.items:
+            return self
         from petsc4py import PETSc
 
         opts = PETSc.Options()
@@ -101,6 +121,8 @@ class PushedOptions:
         return self
 
     def __exit__(self, *exc) -> bool:
+        if not self.items:
+            return False
         from petsc4py import PETSc
 
         opts = PETSc.Options()

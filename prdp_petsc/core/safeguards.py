@@ -33,6 +33,7 @@ from petsc4py import PETSc
 __all__ = [
     "FAR_BEYOND",
     "LATE_BREAKDOWNS",
+    "LATE_REASONS",
     "NO_TRANSPOSE_KSP",
     "ROUNDING_LEVEL",
     "SAFE_RANGE",
@@ -62,13 +63,17 @@ LATE_BREAKDOWNS = frozenset(
         "DIVERGED_NANORINF",
     }
 )
+#: the same as PETSc ``KSPConvergedReason`` values
+LATE_REASONS = frozenset(getattr(PETSc.KSP.ConvergedReason, name) for name in LATE_BREAKDOWNS)
 #: KSP types whose transpose solve silently runs another iteration (PETSc 3.26)
 NO_TRANSPOSE_KSP = frozenset({"cgls"})
 
 
 def rhs_exponents(batch: np.ndarray) -> np.ndarray:
     """`rhs_exponent` of every row of a ``(B, n)`` batch, vectorised."""
-    biggest = np.abs(batch).max(axis=1, initial=0.0)
+    if batch.shape[1] == 0:
+        return np.zeros(len(batch), dtype=int)
+    biggest = np.maximum(batch.max(axis=1), -batch.min(axis=1))  # no |batch| temporary
     safe = (biggest == 0.0) | ((SAFE_RANGE[0] <= biggest) & (biggest <= SAFE_RANGE[1]))
     return np.where(safe, 0, np.frexp(biggest)[1])
 
@@ -104,11 +109,14 @@ def went_far(ksp: PETSc.KSP) -> bool:
     Only then can an iterate have been corrupted by running past rounding level;
     the check costs nothing otherwise (the history is recorded anyway).
     """
-    h = np.asarray(ksp.getConvergenceHistory(), dtype=np.float64)
+    h = ksp.getConvergenceHistory()
     if h.size < 2 or not h[0] > 0:
         return False
-    tail = h[1:][np.isfinite(h[1:])]
-    return bool(tail.size and tail.min() <= FAR_BEYOND * h[0])
+    low = h[1:].min()
+    if np.isnan(low):  # rare: a NaN residual; look at the finite ones
+        tail = h[1:][np.isfinite(h[1:])]
+        low = tail.min() if tail.size else np.inf
+    return bool(low <= FAR_BEYOND * h[0])
 
 
 def _rerun_target(history: np.ndarray, iterations: int) -> int | None:

@@ -21,9 +21,16 @@ from petsc4py import PETSc
 from . import safeguards
 from .nullspace import check_nullspace, normalize_nullspace, petsc_nullspace
 from .operator import OperatorMat
-from .options import PushedOptions, option_value, parse_options, prefixed_options
-from .results import SolveInfo, SolverError, SolverStats, reason_name
+from .options import (
+    PushedOptions,
+    option_value,
+    parse_options,
+    prefixed_options,
+    read_at_solve,
+)
+from .results import SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings, check_tolerances
+from .step import SolveStep
 
 __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
@@ -302,6 +309,8 @@ class KSPSolver:
     def _build(self, comm) -> None:
         """Create and configure both KSPs on `comm`, fully or not at all."""
         self._items = self._option_items()
+        self._solve_items = [item for item in self._items if read_at_solve(item[0])]
+        self._setup_version = {"forward": -1, "adjoint": -1}
         ksp = adj = None
         pushed = PushedOptions(self._items, watch=True)
         try:
@@ -436,15 +445,22 @@ class KSPSolver:
         kind = "adjoint" if transpose else "forward"
         ksp = self._adj if transpose else self._ksp
         as_transpose = transpose and not self._adjoint_is_forward()
-        step = _Step(self, ksp, mat, kind, as_transpose)
+        step = SolveStep(ksp, mat, self._b, self._x, kind, as_transpose)
         out = np.empty_like(batch)
         exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
         check = self._unchecked[kind]
         t0 = time.perf_counter()
         iterations = 0
-        with PushedOptions(self._items, watch=check) as pushed:
-            for i in range(len(batch)):
-                iterations += step(batch[i], out[i], int(exponents[i]))
+        # all options while PETSc may read them (KSP/PC set-up after a new operator,
+        # the first solve), else only those KSPSolve reads at its end (viewers)
+        setup = check or self._setup_version[kind] != self._op.version
+        self._setup_version[kind] = self._op.version
+        with PushedOptions(self._items if setup else self._solve_items, watch=check) as pushed:
+            try:
+                for i in range(len(batch)):
+                    iterations += step(batch[i], out[i], int(exponents[i]))
+            finally:
+                self.last = step.info()
         if check:
             self._unchecked[kind] = False
             self._used |= pushed.used
@@ -560,86 +576,3 @@ def _rejected(items: list[tuple[str, object]], err: PETSc.Error) -> str:
                 return f"-{name} {option_value(value)}: not a PETSc {key[:-5].upper()} type"
     given = " ".join(f"-{n}" + (f" {option_value(v)}" if v is not None else "") for n, v in items)
     return f"PETSc refused the options {given!r} at KSPSetFromOptions ({err})"
-
-
-class _Step:
-    """One right-hand side through one KSP: scaling, solve, reason check, rescue."""
-
-    __slots__ = ("solver", "ksp", "mat", "kind", "transpose", "run")
-
-    def __init__(self, solver: KSPSolver, ksp, mat, kind: str, transpose: bool):
-        self.solver, self.ksp, self.mat, self.kind = solver, ksp, mat, kind
-        self.transpose = transpose
-        self.run = ksp.solveTranspose if transpose else ksp.solve
-
-    def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
-        """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
-        solver, ksp = self.solver, self.ksp
-        b_vec, x_vec = solver._b, solver._x
-        b_vec.setArray(np.ldexp(row, -exponent) if exponent else row)
-        x_vec.set(0.0)
-        atol = ksp.getTolerances()[1] if exponent else 0.0
-        if atol > 0:  # atol is absolute: scale it along
-            ksp.setTolerances(atol=float(np.ldexp(atol, -exponent)))
-        try:
-            self.run(b_vec, x_vec)
-        except PETSc.Error as err:
-            raise self._petsc_failure(err) from err
-        finally:
-            if atol > 0:
-                ksp.setTolerances(atol=atol)
-        reason = ksp.getConvergedReason()
-        reported = SolveInfo(  # PETSc's own outcome, before any rescue re-run
-            ksp.getIterationNumber(),
-            reason_name(reason),
-            float(np.ldexp(ksp.getResidualNorm(), exponent)),
-        )
-        solver.last = reported
-        rescued = None
-        late = reported.reason in safeguards.LATE_BREAKDOWNS
-        if late or safeguards.went_far(ksp):  # ran past rounding level: verify
-            rescued = safeguards.rescue(ksp, self.mat, b_vec, x_vec, transpose=self.transpose)
-            if rescued is None and not late:
-                raise SolverError(
-                    f"{self.kind} solve ({self._types()}) ran far beyond convergence and its "
-                    f"iterate lost accuracy after {reported.iterations} iterations; lower "
-                    "max_it or set rtol > 0",
-                    reason="LOST_ACCURACY",
-                )
-        if reason < 0 and reason != _MAX_IT and rescued is None:
-            raise SolverError(
-                f"{self.kind} solve diverged: {reported.reason} after {reported.iterations} "
-                f"iterations ({self._types()}, residual {reported.residual_norm:.3e}); check "
-                "the operator and the PC, or lower the Richardson scale",
-                reason=reported.reason,
-            )
-        if rescued is not None:
-            solver.last = SolveInfo(
-                ksp.getIterationNumber(),
-                reason_name(ksp.getConvergedReason()),
-                float(np.ldexp(ksp.getResidualNorm(), exponent)),
-            )
-        x = x_vec.getArray(readonly=True)
-        out[:] = np.ldexp(x, exponent) if exponent else x
-        return solver.last.iterations + (rescued or 0)
-
-    def _types(self) -> str:
-        return f"{self.ksp.getType()}/{self.ksp.getPC().getType()}"
-
-    def _petsc_failure(self, err: PETSc.Error) -> SolverError:
-        if self.kind == "adjoint" and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
-            return SolverError(
-                f"adjoint {self._types()}: the PC has no transpose (PCApplyTranspose) in "
-                "PETSc. Choose another adjoint pc_type, or solve with an explicit "
-                "transpose: AdjointSettings(options={'ksp_use_explicittranspose': True}).",
-                reason="NO_TRANSPOSE",
-            )
-        hint = (
-            " A PC without a transpose cannot serve the adjoint: choose another adjoint pc_type."
-            if self.kind == "adjoint"
-            else ""
-        )
-        return SolverError(
-            f"{self.kind} KSPSolve failed inside PETSc ({self._types()}): {err}.{hint}",
-            reason="PETSC_ERROR",
-        )

@@ -94,12 +94,21 @@ class ParametricMatrix:
         return theta
 
     def values(self, theta: np.ndarray) -> np.ndarray:
-        """CSR values ``a0 + G @ theta``: shape (nnz,), or (B, nnz) for θ of shape (B, p)."""
+        """CSR values ``a0 + G @ theta``: shape (nnz,), or (B, nnz) for θ of shape (B, p).
+
+        The values of the last single θ are kept: calling again with an equal θ
+        returns the same read-only array without the sparse product.
+        """
         theta = self.check_theta(theta)
         if theta.ndim == 2:
             return np.asarray(self.G @ theta.T).T + self.a0
+        last = self.__dict__.get("_last")
+        if last is not None and np.array_equal(last[0], theta):
+            return last[1]  # θ unchanged (a fixed operator): no sparse product
         values = self.G @ theta
         values += self.a0
+        values.flags.writeable = False  # shared by later calls with the same θ
+        object.__setattr__(self, "_last", (theta.copy(), values))
         return values
 
     def matrix(self, theta: np.ndarray) -> sp.csr_matrix:

@@ -131,7 +131,8 @@ def evaluate(
     import torch
 
     from ..autograd.bridge import solve
-    from ..core.solver import KSPSolver, SolverError
+    from ..core.results import SolverError
+    from ..core.solver import KSPSolver
 
     rng = np.random.default_rng(seed)
     n = A.shape[0]
@@ -409,7 +410,7 @@ def case_magnitude(quick: bool = False) -> list[dict]:
 
 def case_no_transpose(quick: bool = False) -> list[dict]:
     """PCs/KSPs without a (correct) transpose, and real breakdowns: clear errors."""
-    from ..core.solver import AdjointSettings
+    from ..core.settings import AdjointSettings
     from .problems import advection
 
     p = advection(refine=0)

@@ -113,7 +113,7 @@ def _gradient_step(problem, solver, x):
 
 def _measure(problem, A, opts, adjoint, ks, refs, max_seconds) -> list[dict]:
     """First pass over K for one pair: errors and times."""
-    from ..core.solver import SolverError
+    from ..core.results import SolverError
 
     x_ref, g_ref = refs
     solver, t_setup = _timed(lambda: _setup(opts, adjoint, A), 0.0)

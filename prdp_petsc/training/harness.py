@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.solver import KSPSolver, SolverError
+from ..core.results import SolverError
+from ..core.solver import KSPSolver
 from ..prdp import PRDP
 from .scene import load_scene
 

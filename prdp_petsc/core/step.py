@@ -1,0 +1,138 @@
+"""One right-hand side through one KSP: scaling, solve, outcome check, rescue.
+
+`SolveStep` is the inner loop of `KSPSolver`; it runs once per right-hand side,
+so the common case (a finished solve, capped or converged) costs a handful of
+PETSc queries, and everything else (rescue, errors) happens off that path.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from petsc4py import PETSc
+
+from . import safeguards
+from .results import SolveInfo, SolverError, reason_name
+
+__all__ = ["SolveStep"]
+
+_MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
+
+
+class SolveStep:
+    """Solve ``A x = b`` (``Aᵀ x = b`` with `transpose`) for one row at a time.
+
+    Parameters
+    ----------
+    ksp : PETSc.KSP
+    mat : PETSc.Mat
+        The operator (for the rescue's backward-error check).
+    b_vec, x_vec : PETSc.Vec
+        Work vectors, reused for every row.
+    kind : {"forward", "adjoint"}
+        Named in error messages.
+    transpose : bool
+        Run ``KSPSolveTranspose`` instead of ``KSPSolve``.
+    """
+
+    __slots__ = ("ksp", "mat", "b_vec", "x_vec", "kind", "transpose", "run", "_last")
+
+    def __init__(self, ksp, mat, b_vec, x_vec, kind: str, transpose: bool):
+        self.ksp, self.mat, self.kind, self.transpose = ksp, mat, kind, transpose
+        self.b_vec, self.x_vec = b_vec, x_vec
+        self.run = ksp.solveTranspose if transpose else ksp.solve
+        self._last: SolveInfo | int | None = None  # exponent of the last row, or its info
+
+    def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
+        """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
+        ksp, x_vec = self.ksp, self.x_vec
+        self.b_vec.setArray(np.ldexp(row, -exponent) if exponent else row)
+        x_vec.set(0.0)
+        atol = ksp.getTolerances()[1] if exponent else 0.0
+        if atol > 0:  # atol is absolute: scale it along
+            ksp.setTolerances(atol=float(np.ldexp(atol, -exponent)))
+        try:
+            self.run(self.b_vec, x_vec)
+        except PETSc.Error as err:
+            self._last = None
+            raise self._petsc_failure(err) from err
+        finally:
+            if atol > 0:
+                ksp.setTolerances(atol=atol)
+        reason = ksp.getConvergedReason()
+        rescued = 0
+        if reason in safeguards.LATE_REASONS or safeguards.went_far(ksp):
+            rescued = self._verify(reason, exponent)
+        elif reason < 0 and reason != _MAX_IT:
+            self._last = self._info(exponent)
+            raise self._diverged(self._last)
+        else:
+            self._last = exponent  # the SolveInfo is read from the KSP when asked for
+        x = x_vec.getArray(readonly=True)
+        out[:] = np.ldexp(x, exponent) if exponent else x
+        return ksp.getIterationNumber() + rescued
+
+    def info(self) -> SolveInfo | None:
+        """`SolveInfo` of the last row (PETSc's own outcome when a solve failed)."""
+        if isinstance(self._last, int):
+            self._last = self._info(self._last)
+        return self._last
+
+    def _info(self, exponent: int) -> SolveInfo:
+        ksp = self.ksp
+        return SolveInfo(
+            ksp.getIterationNumber(),
+            reason_name(ksp.getConvergedReason()),
+            float(np.ldexp(ksp.getResidualNorm(), exponent)),
+        )
+
+    def _verify(self, reason: int, exponent: int) -> int:
+        """A solve that ran past rounding level: accept, re-run (`safeguards.rescue`) or raise.
+
+        Returns the iterations of a discarded run.
+        """
+        reported = self._info(exponent)  # PETSc's own outcome, before any re-run
+        late = reported.reason in safeguards.LATE_BREAKDOWNS
+        rescued = safeguards.rescue(
+            self.ksp, self.mat, self.b_vec, self.x_vec, transpose=self.transpose
+        )
+        if rescued is None:
+            self._last = reported
+            if late:
+                raise self._diverged(reported)
+            raise SolverError(
+                f"{self.kind} solve ({self._types()}) ran far beyond convergence and its "
+                f"iterate lost accuracy after {reported.iterations} iterations; lower "
+                "max_it or set rtol > 0",
+                reason="LOST_ACCURACY",
+            )
+        self._last = self._info(exponent)
+        return rescued
+
+    def _diverged(self, info: SolveInfo) -> SolverError:
+        return SolverError(
+            f"{self.kind} solve diverged: {info.reason} after {info.iterations} iterations "
+            f"({self._types()}, residual {info.residual_norm:.3e}); check the operator and "
+            "the PC, or lower the Richardson scale",
+            reason=info.reason,
+        )
+
+    def _types(self) -> str:
+        return f"{self.ksp.getType()}/{self.ksp.getPC().getType()}"
+
+    def _petsc_failure(self, err: PETSc.Error) -> SolverError:
+        if self.kind == "adjoint" and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
+            return SolverError(
+                f"adjoint {self._types()}: the PC has no transpose (PCApplyTranspose) in "
+                "PETSc. Choose another adjoint pc_type, or solve with an explicit "
+                "transpose: AdjointSettings(options={'ksp_use_explicittranspose': True}).",
+                reason="NO_TRANSPOSE",
+            )
+        hint = (
+            " A PC without a transpose cannot serve the adjoint: choose another adjoint pc_type."
+            if self.kind == "adjoint"
+            else ""
+        )
+        return SolverError(
+            f"{self.kind} KSPSolve failed inside PETSc ({self._types()}): {err}.{hint}",
+            reason="PETSC_ERROR",
+        )
