@@ -20,12 +20,23 @@ def test_bench_bridge_quick_writes_json(tmp_path):
     assert data["n"] == 4851 and data["k"] == 10
     # ratios of two positive times; overhead = ratio - 1 may have either sign
     assert math.isfinite(data["overhead"]) and data["overhead"] > -1.0
-    for key in ("backward_over_forward", "unrolled_speedup", "handwritten_unrolled_speedup"):
+    assert math.isfinite(data["overhead_vs_raw_solve_transpose"])
+    for key in (
+        "backward_over_forward_symmetric",
+        "unrolled_speedup",
+        "handwritten_unrolled_speedup",
+    ):
         assert math.isfinite(data[key]) and data[key] > 0, key
     # peak RSS growth: finite and not negative (a solve may fit in pages already mapped)
     for key in ("unrolled_peak_rss_mb", "implicit_peak_rss_mb", "handwritten_peak_rss_mb"):
         assert math.isfinite(data[key]) and data[key] >= 0, key
 
+    small = data["throughput"]
+    assert small["n"] == 4851 and small["k"] == 10
+    for key in ("overhead_1_rhs", "overhead_32_rhs", "extra_per_call_s", "extra_per_rhs_s"):
+        assert math.isfinite(small[key]), key
+    for batch in data["throughput_detail"]["batches"].values():
+        assert all(v > 0 for v in batch["timings_s"]["raw"] + batch["timings_s"]["bridge"])
     over = data["overhead_detail"]
     assert over["ksp"]["raw"] == over["ksp"]["bridge"] == ["cg", "jacobi"]
     for key, values in over["timings_s"].items():

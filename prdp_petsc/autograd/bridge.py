@@ -28,13 +28,14 @@ from .once import once_differentiable
 __all__ = ["matvec", "solve"]
 
 
-def _as_numpy(t: torch.Tensor, name: str) -> np.ndarray:
+def _as_numpy(t: torch.Tensor, name: str, *, finite: bool = True) -> np.ndarray:
+    """float64 numpy view of tensor `t`; with `finite`, NaN/Inf raise ValueError."""
     if not isinstance(t, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
     if t.dtype != torch.float64:
         raise TypeError(f"{name} must be float64 (got {t.dtype}); call .double() first")
     arr = t.detach().cpu().numpy()
-    if not np.all(np.isfinite(arr)):
+    if finite and not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or Inf")
     return arr
 
@@ -52,7 +53,7 @@ def _operator(A, theta: torch.Tensor | None):
     if isinstance(A, ParametricMatrix):
         if theta is None:
             raise ValueError("A is a ParametricMatrix: pass its parameters as theta=")
-        values = A.values(_as_numpy(theta, "theta"))  # validates θ
+        values = A.values(_as_numpy(theta, "theta", finite=False))  # validates θ
         return A, (A.indptr, A.indices, values, A.shape)
     if theta is not None:
         raise ValueError("theta= is only meaningful for a ParametricMatrix A")
@@ -77,15 +78,6 @@ def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) ->
         )
 
 
-def _per_sample(csr: tuple, *, reverse: bool = False) -> list:
-    """``(rows, operator)`` pairs: every row with one shared operator, else one per sample."""
-    indptr, indices, data, shape = csr
-    if data.ndim == 1:
-        return [(slice(None), csr)]
-    order = range(len(data) - 1, -1, -1) if reverse else range(len(data))
-    return [(i, (indptr, indices, data[i], shape)) for i in order]
-
-
 def _solve_each(
     solver: KSPSolver, csr: tuple, rhs: np.ndarray, symmetric, *, transpose: bool, version=None
 ):
@@ -97,15 +89,17 @@ def _solve_each(
     run = solver.solve_transpose if transpose else solver.solve
     if version is not None and version == solver.operator_version:
         return run(rhs)
+    if csr[2].ndim == 1:  # one operator for every row
+        solver.set_operator(csr, symmetric=symmetric)
+        return run(rhs)
+    indptr, indices, data, shape = csr
     out = np.empty_like(rhs)
-    for rows, operator in _per_sample(csr, reverse=transpose):
-        solver.set_operator(operator, symmetric=symmetric)
+    for i in reversed(range(len(data))) if transpose else range(len(data)):
+        solver.set_operator((indptr, indices, data[i], shape), symmetric=symmetric)
         try:
-            out[rows] = run(rhs[rows])
+            out[i] = run(rhs[i])
         except SolverError as err:
-            if isinstance(rows, slice):
-                raise
-            raise SolverError(f"sample {rows} of the batch: {err}", reason=err.reason) from err
+            raise SolverError(f"sample {i} of the batch: {err}", reason=err.reason) from err
     return out
 
 

@@ -59,6 +59,7 @@ class OperatorMat:
         self._declared: bool | None = None  # the caller's word on a Mat of its own
         self._pattern: tuple | None = None  # (indptr, indices, shape) as PETSc ints
         self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
+        self._data: np.ndarray | None = None  # the caller's values array, for an `is` test
         self._values: np.ndarray | None = None
         self._tperm: np.ndarray | None = None
 
@@ -73,15 +74,26 @@ class OperatorMat:
             self.refresh_symmetry()
             self.version += 1
             return "new"
+        if (
+            isinstance(A, tuple)
+            and self._source is not None
+            and A[0] is self._source[0]
+            and A[1] is self._source[1]
+            and A[2] is self._data
+            and not A[2].flags.writeable
+        ):
+            return "same"  # the very read-only array set last: nothing can have changed
         indptr, indices, data, shape = as_csr(A)
         if self._same_pattern(indptr, indices, shape):
             # compare with a private copy: the caller may have changed `data` in place
             if np.array_equal(data, self._values):
+                self._data = data
                 return "same"
             self.mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
             self.mat.assemble()
             self._values = data.copy()
             self._source = (indptr, indices)
+            self._data = data
             self._mark_symmetry(symmetric)
             self.version += 1
             return "values"
@@ -94,6 +106,7 @@ class OperatorMat:
         self._pattern = (ip, ix, shape)
         self._source = (indptr, indices)
         self._values = data.copy()
+        self._data = data
         self._tperm = transpose_permutation(ip, ix, shape)
         self._mark_symmetry(symmetric)
         self.version += 1
@@ -134,4 +147,4 @@ class OperatorMat:
             self.mat.destroy()
         self.mat = None
         self._owned = False
-        self._pattern = self._source = self._values = self._tperm = None
+        self._pattern = self._source = self._values = self._tperm = self._data = None

@@ -99,12 +99,12 @@ class ParametricMatrix:
         The values of the last single θ are kept: calling again with an equal θ
         returns the same read-only array without the sparse product.
         """
+        last = self.__dict__.get("_last")
+        if last is not None and np.array_equal(last[0], theta):
+            return last[1]  # θ unchanged (a fixed operator): checked before, no product
         theta = self.check_theta(theta)
         if theta.ndim == 2:
             return np.asarray(self.G @ theta.T).T + self.a0
-        last = self.__dict__.get("_last")
-        if last is not None and np.array_equal(last[0], theta):
-            return last[1]  # θ unchanged (a fixed operator): no sparse product
         values = self.G @ theta
         values += self.a0
         values.flags.writeable = False  # shared by later calls with the same θ

@@ -1,17 +1,25 @@
-"""Benchmark of the torch bridge: overhead over raw PETSc, backward/forward, unrolled CG.
+"""Benchmark of the torch bridge: overhead over raw PETSc, throughput, unrolled CG.
 
-``prdp-petsc bench bridge --out DIR`` writes ``DIR/bench_bridge.json`` with the
-ratios of DESIGN.md §6, all from one run on one machine:
+``prdp-petsc bench bridge --out DIR`` writes ``DIR/bench_bridge.json``, all from
+one run on one machine:
 
-``overhead``
+``overhead`` (the headline)
     Bridge forward + backward (``solve(A, b, solver, theta=θ)``, then
-    ``x.backward(g)`` with gradients for b and θ) over raw petsc4py ``KSPSolve`` +
-    ``KSPSolveTranspose`` on the same PETSc Mat with the same KSP/PC and K, minus 1.
-    Problem: ``plate_holes`` refined twice, P1, ``−∇·(κ∇u) + u``, κ per element.
-    ``overhead_detail`` adds the same ratio against ``KSPSolve`` twice, for b only
-    (θ constant), of the minima, and the time the bridge spends outside KSPSolve.
-``backward_over_forward``
-    Bridge backward time over bridge forward time at equal K.
+    ``x.backward(g)`` with gradients for b and θ) over what the bridge runs in
+    PETSc for this symmetric operator and symmetric PC, raw petsc4py ``KSPSolve``
+    + ``KSPSolve`` on the same Mat with the same KSP/PC and K, minus 1: a
+    like-for-like figure.  Problem: ``plate_holes`` refined twice, P1,
+    ``−∇·(κ∇u) + u``, κ per element.  ``overhead_detail`` adds the ratio against
+    ``KSPSolve`` + ``KSPSolveTranspose`` (what a non-symmetric operator runs;
+    PETSc's transposed products are slower), for b only (θ constant), of the
+    minima, and the time the bridge spends outside KSPSolve.
+``throughput``
+    Small systems (n ≈ 5 000, K = 10), one and 32 right-hand sides: bridge over
+    raw ``KSPSolve`` + ``KSPSolve`` loops, and the bridge's fixed cost per call and
+    per right-hand side (see `prdp_petsc.reports.bench_throughput`).
+``backward_over_forward_symmetric``
+    Bridge backward time over bridge forward time at equal K, for this symmetric
+    case (the adjoint runs as a forward solve).
 ``unrolled_speedup``
     ``mode="unrolled"`` over ``mode="implicit"``, forward + backward at K = 300 on
     the five-point ``−Δ`` (175 × 175), gradient in b, with the peak memory of
@@ -26,6 +34,8 @@ busy the machine was; every single timing is in the JSON.  torch runs on
 ``--threads`` threads (default 1: PETSc's AIJ kernels are serial, and OpenMP
 spin-waiting on an oversubscribed machine makes threaded torch sparse kernels
 erratic).  Never assert these numbers in tests; they describe one machine.
+Targets: overhead ≤ 5 % at about 1e5 unknowns; small systems ≤ 25 % for one
+right-hand side and ≤ 10 % for 32; backward / forward ≤ 1.1.
 
 Notes
 -----
@@ -48,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bench_throughput import bench_throughput
 from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
 
 __all__ = ["main"]
@@ -180,19 +191,19 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         "n_params": int(A.n_params),
         "k": k,
         "statistic": "median over repeats of the ratio within each repeat (paired)",
-        "overhead": _median(bridge / raw_fb - 1.0),
-        "backward_over_forward": _median(r["bridge_backward"] / r["bridge_forward"]),
-        "overhead_vs_raw_solve_solve": _median(
-            bridge / (r["raw_forward"] + r["raw_adjoint_as_solve"]) - 1.0
-        ),
+        "overhead": _median(bridge / (r["raw_forward"] + r["raw_adjoint_as_solve"]) - 1.0),
+        "backward_over_forward_symmetric": _median(r["bridge_backward"] / r["bridge_forward"]),
+        "overhead_vs_raw_solve_transpose": _median(bridge / raw_fb - 1.0),
         "overhead_b_only": _median(
-            (r["bridge_b_only_forward"] + r["bridge_b_only_backward"]) / raw_fb - 1.0
+            (r["bridge_b_only_forward"] + r["bridge_b_only_backward"])
+            / (r["raw_forward"] + r["raw_adjoint_as_solve"])
+            - 1.0
         ),
         "overhead_of_medians": (med["bridge_forward"] + med["bridge_backward"])
-        / (med["raw_forward"] + med["raw_transpose"])
+        / (med["raw_forward"] + med["raw_adjoint_as_solve"])
         - 1.0,
         "overhead_of_minima": (low["bridge_forward"] + low["bridge_backward"])
-        / (low["raw_forward"] + low["raw_transpose"])
+        / (low["raw_forward"] + low["raw_adjoint_as_solve"])
         - 1.0,
         "raw_transpose_over_forward": _median(r["raw_transpose"] / r["raw_forward"]),
         "bridge_outside_ksp_s": {
@@ -288,8 +299,9 @@ def main(argv: list[str]) -> int:
         machine = {**machine_info(), "torch_default_threads": default_threads}
         t0 = time.perf_counter()
         over = bench_overhead(n, k, repeats, 2, args.ksp_type, args.pc_type)
-        logger.info(
-            "overhead %.4f, backward/forward %.3f", over["overhead"], over["backward_over_forward"]
+        logger.info("overhead %.4f", over["overhead"])
+        small = bench_throughput(
+            4851, 10, (1, 32), max(3, repeats), 2, args.ksp_type, args.pc_type
         )
         unr = bench_unrolled(un, uk, unrolled_repeats, 1, args.ksp_type, args.pc_type, memory_ks)
         wall = time.perf_counter() - t0
@@ -301,7 +313,16 @@ def main(argv: list[str]) -> int:
         "n": over["n"],
         "k": k,
         "overhead": over["overhead"],
-        "backward_over_forward": over["backward_over_forward"],
+        "overhead_vs_raw_solve_transpose": over["overhead_vs_raw_solve_transpose"],
+        "backward_over_forward_symmetric": over["backward_over_forward_symmetric"],
+        "throughput": {
+            "n": small["n"],
+            "k": small["k"],
+            "overhead_1_rhs": small["batches"]["1"]["overhead"],
+            "overhead_32_rhs": small["batches"]["32"]["overhead"],
+            "extra_per_call_s": small["extra_per_call_s"],
+            "extra_per_rhs_s": small["extra_per_rhs_s"],
+        },
         "unrolled_n": unr["n"],
         "unrolled_k": uk,
         "unrolled_speedup": unr["unrolled_speedup"],
@@ -312,8 +333,10 @@ def main(argv: list[str]) -> int:
         "peak_memory_method": unr["peak_memory_method"],
         "timing_noise": over["timing_noise"],
         "targets": {
-            "overhead": "<= 0.05",
-            "backward_over_forward": "<= 1.1",
+            "overhead": "<= 0.05 (like-for-like: raw KSPSolve + KSPSolve)",
+            "throughput.overhead_1_rhs": "<= 0.25",
+            "throughput.overhead_32_rhs": "<= 0.10",
+            "backward_over_forward_symmetric": "<= 1.1",
             "unrolled_speedup": ">= 20",
         },
         "settings": {
@@ -334,6 +357,7 @@ def main(argv: list[str]) -> int:
             "quick": quick,
         },
         "overhead_detail": over,
+        "throughput_detail": small,
         "unrolled_detail": unr,
         "machine": machine,
         "wall_s": wall,
