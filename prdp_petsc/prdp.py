@@ -1,7 +1,7 @@
 """PRDP controller: raise the solver's iteration cap K only as far as validation needs.
 
 Progressively Refined Differentiable Physics (reference: tum-pbs/PRDP,
-``experiments/src/prdp.py``; DESIGN.md section 4). Plain Python, no torch or PETSc.
+``experiments/src/prdp.py``; docs/maths.md §7). Plain Python, no torch or PETSc.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ def rtol_from_level(
 
 
 class PRDP:
-    """Per-epoch controller of the inner-solver iteration cap K (DESIGN.md section 4).
+    """Per-epoch controller of the inner-solver iteration cap K (docs/maths.md §7).
 
     Each :meth:`update` gets the validation metric e_t (lower is better, >= 0):
 

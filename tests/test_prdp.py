@@ -1,6 +1,6 @@
 """Tests of the PRDP controller on synthetic metric histories.
 
-Every expected K schedule below was worked out by hand from DESIGN.md section 4 (EMA
+Every expected K schedule below was worked out by hand from docs/maths.md §7 (EMA
 values for the noisy cases are written next to the test), not by re-running the code.
 Defaults: tau_step 0.98, tau_stop 0.9, ema_window 6 (alpha = 2/7), window 3, so the
 plateau test at call t + 1 compares E_t with E_{t-2} and first runs at the 4th call.

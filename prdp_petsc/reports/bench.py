@@ -300,9 +300,7 @@ def main(argv: list[str]) -> int:
         t0 = time.perf_counter()
         over = bench_overhead(n, k, repeats, 2, args.ksp_type, args.pc_type)
         logger.info("overhead %.4f", over["overhead"])
-        small = bench_throughput(
-            4851, 10, (1, 32), max(3, repeats), 2, args.ksp_type, args.pc_type
-        )
+        small = bench_throughput(4851, 10, (1, 32), max(3, repeats), 2, args.ksp_type, args.pc_type)
         unr = bench_unrolled(un, uk, unrolled_repeats, 1, args.ksp_type, args.pc_type, memory_ks)
         wall = time.perf_counter() - t0
     finally:
