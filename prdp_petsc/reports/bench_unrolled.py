@@ -11,7 +11,8 @@ Part of ``prdp-petsc bench bridge`` (see `prdp_petsc.reports.bench`).  Three way
     The same CG loop written by hand in torch, with a matrix product whose
     backward uses a transpose stored once (a fair baseline for ``unrolled``).
 
-Only b carries a gradient (the comparison the project targets: implicit ≥ 20× faster than unrolled at K = 300); ``mode="unrolled"`` also
+Only b carries a gradient (the project's target: implicit ≥ 20× faster than
+unrolled at K = 300, peak memory independent of K); ``mode="unrolled"`` also
 differentiates θ, through `prdp_petsc.autograd.unrolled.UnrolledOperator`.  Peak memory is
 the growth of the resident set over one forward + backward in a fresh subprocess,
 so nothing the parent process allocated before can hide it.
