@@ -1,1 +1,1 @@
-"""torch layer: differentiable capped solves (implicit and unrolled) and Dirichlet lifting."""
+"""torch layer: differentiable capped solves (implicit, unrolled), Dirichlet, Newton/Picard."""
