@@ -114,7 +114,7 @@ def test_work_vectors_are_reused_between_solves():
 # -- B4: options -----------------------------------------------------------------------
 
 
-def test_misspelt_option_in_the_dict_is_an_error():
+def test_misspelt_option_in_the_dict_is_reported():
     solver = pp.KSPSolver({"ksp_type": "cg", "pc_typ": "gamg"}, max_it=3)
     solver.set_operator(fd_poisson(4))
     with pytest.warns(UnusedOptionWarning, match=r"never read .*-pc_typ"):
@@ -124,7 +124,7 @@ def test_misspelt_option_in_the_dict_is_an_error():
         solver.solve(np.ones(16))  # reported once; the solve itself is fine
 
 
-def test_misspelt_option_on_the_command_line_is_an_error(petsc_option):
+def test_misspelt_option_on_the_command_line_is_reported(petsc_option):
     petsc_option("h2d_ksp_tpye", "gmres")
     solver = pp.KSPSolver(CG_JACOBI, prefix="h2d_", max_it=3)
     solver.set_operator(fd_poisson(4))
@@ -190,3 +190,80 @@ def test_batch_solutions_with_reused_work_vectors_match_spsolve():
     solver.set_operator(A)
     x = solver.solve(b)
     assert np.allclose(x, spla.spsolve(A.tocsc(), b.T).T, atol=1e-10)
+
+
+# -- fast paths must not go stale (review findings) ------------------------------------
+
+
+def test_options_reach_a_pc_set_up_again_for_a_new_pattern():
+    """GAMG reads its level options when it gets a new Mat: they must be pushed then too."""
+    solver = pp.KSPSolver(
+        "-ksp_type cg -pc_type gamg -mg_levels_ksp_type richardson -mg_levels_pc_type sor",
+        prefix="np_",
+        max_it=3,
+    )
+    solver.set_operator(fd_poisson(12))
+    solver.solve(np.ones(144))
+    solver.solve(np.ones(144))  # a steady solve pushes nothing
+    solver.set_operator(fd_poisson(14))  # a new pattern: a new Mat, GAMG set up again
+    solver.solve(np.ones(196))
+    smoother = solver.ksp.getPC().getMGSmoother(1)
+    assert (smoother.getType(), smoother.getPC().getType()) == ("richardson", "sor")
+
+
+def test_changed_symmetry_declaration_is_applied_for_unchanged_values():
+    A = fd_poisson(4)
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3)
+    solver.set_operator(A, symmetric=True)
+    version = solver.operator_version
+    solver.set_operator(A, symmetric=False)
+    assert not solver.symmetric and solver.operator_version > version
+    solver.set_operator(A)  # back to testing the values
+    assert solver.symmetric
+
+
+def test_read_only_view_of_a_changed_buffer_is_not_taken_as_unchanged():
+    A = fd_poisson(4).tocsr()
+    base = A.data.copy()
+    view = base[:]
+    view.flags.writeable = False
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "none"}, max_it=200, rtol=1e-12)
+    csr = (A.indptr, A.indices, view, A.shape)
+    solver.set_operator(csr)
+    x1 = solver.solve(np.ones(16))
+    base *= 2.0  # the caller changes the values behind the read-only view
+    solver.set_operator(csr)
+    x2 = solver.solve(np.ones(16))
+    assert np.allclose(x2, x1 / 2, rtol=1e-8)
+
+
+def test_parametric_matrix_returns_a_writeable_matrix_despite_the_values_cache():
+    P = pp.diffusion_operator(unit_square(1), "P0")
+    theta = np.ones(P.n_params)
+    M = P.matrix(theta)
+    M.data *= 2.0  # the user's own copy
+    assert np.allclose(P.matrix(theta).data * 2.0, M.data)
+    assert P.values(theta) is P.values(theta.copy())  # equal θ: the cached array
+
+
+def test_backward_after_another_operator_was_set_uses_its_own_operator():
+    """The backward skips set_operator only while the solver still holds its operator."""
+    A1, A2 = fd_poisson(4), 2.0 * fd_poisson(4) + sp.identity(16)
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=500, rtol=1e-13)
+    b1 = randn(16, seed=1, requires_grad=True)
+    x1 = pp.solve(A1, b1, solver)
+    pp.solve(A2, randn(16, seed=2), solver)  # the solver now holds A2
+    w = randn(16, seed=3)
+    x1.backward(w)
+    exact = spla.spsolve(A1.T.tocsc(), w.numpy())
+    assert np.allclose(b1.grad.numpy(), exact, rtol=1e-9, atol=1e-11)
+
+
+def test_setup_on_another_communicator_keeps_the_operator():
+    solver = pp.KSPSolver(CG_JACOBI, max_it=300, rtol=1e-12)
+    solver.set_operator(fd_poisson(3))
+    version = solver.operator_version
+    solver._destroy_ksps()  # what a rebuild on a larger communicator does first
+    solver._build(PETSc.COMM_SELF)
+    solver.setup(PETSc.COMM_SELF)  # same size: nothing to do
+    assert solver.operator_version == version

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..core.operator import as_csr
 from ..core.results import SolverError
 from ..core.solver import KSPSolver
 from ..fem.parametric import ParametricMatrix
@@ -59,12 +60,7 @@ def _operator(A, theta: torch.Tensor | None):
         raise ValueError("theta= is only meaningful for a ParametricMatrix A")
     if not sp.issparse(A):
         raise TypeError(f"A must be a scipy sparse matrix or ParametricMatrix, got {type(A)}")
-    A = A.tocsr()
-    if not A.has_sorted_indices:
-        A = A.sorted_indices()
-    if not np.all(np.isfinite(A.data)):
-        raise ValueError("A has NaN or Inf entries")
-    return None, (A.indptr, A.indices, A.data.astype(np.float64, copy=False), A.shape)
+    return None, as_csr(A)
 
 
 def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) -> None:

@@ -75,7 +75,6 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
             "mode='unrolled' does not project null spaces as PETSc does; use mode='implicit' "
             "for a solver with a nullspace"
         )
-    solver.setup()  # the configured KSP/PC types are read back from PETSc
     ksp_type, pc_type, scale = method_of(solver)
     if (ksp_type, pc_type) not in _SUPPORTED:
         raise ValueError(

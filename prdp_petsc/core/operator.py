@@ -64,7 +64,11 @@ class OperatorMat:
         self._tperm: np.ndarray | None = None
 
     def update(self, A, symmetric: bool | None = None) -> str:
-        """Hold operator `A`; return ``"new"`` (a new Mat), ``"values"`` or ``"same"``."""
+        """Hold operator `A`; return what changed.
+
+        ``"new"`` (a new Mat), ``"values"`` (new values in the same Mat),
+        ``"symmetry"`` (only the caller's symmetry declaration) or ``"same"``.
+        """
         if isinstance(A, PETSc.Mat):
             if A is self.mat:
                 return "same"
@@ -80,15 +84,17 @@ class OperatorMat:
             and A[0] is self._source[0]
             and A[1] is self._source[1]
             and A[2] is self._data
+            and A[2].base is None
             and not A[2].flags.writeable
         ):
-            return "same"  # the very read-only array set last: nothing can have changed
+            # the very read-only array (owning its data) set last: unchanged
+            return self._redeclare(symmetric)
         indptr, indices, data, shape = as_csr(A)
         if self._same_pattern(indptr, indices, shape):
             # compare with a private copy: the caller may have changed `data` in place
             if np.array_equal(data, self._values):
                 self._data = data
-                return "same"
+                return self._redeclare(symmetric)
             self.mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
             self.mat.assemble()
             self._values = data.copy()
@@ -112,6 +118,14 @@ class OperatorMat:
         self.version += 1
         return "new"
 
+    def _redeclare(self, symmetric: bool | None) -> str:
+        """Unchanged values: ``"same"``, unless the symmetry declaration changed."""
+        if symmetric == self._declared:
+            return "same"
+        self._mark_symmetry(symmetric)
+        self.version += 1
+        return "symmetry"
+
     def refresh_symmetry(self) -> None:
         """Ask a caller's Mat again whether it is symmetric (it may have been edited)."""
         if self.mat is not None and not self._owned:
@@ -134,6 +148,7 @@ class OperatorMat:
 
     def _mark_symmetry(self, symmetric: bool | None) -> None:
         """Test A = Aᵀ entry against mirror (unless declared) and tell PETSc."""
+        self._declared = symmetric
         if symmetric is None:
             symmetric = self._tperm is not None and mirror_symmetric(
                 self._values, self._values[self._tperm]

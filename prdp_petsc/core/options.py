@@ -11,7 +11,6 @@ __all__ = [
     "option_value",
     "parse_options",
     "prefixed_options",
-    "read_at_solve",
 ]
 
 
@@ -75,23 +74,6 @@ def prefixed_options(prefix: str, exclude: str | None = None) -> dict:
         if prefix or key.startswith(KSP_ROOTS):
             out[key] = value
     return out
-
-
-#: roots of options that ``KSPSolve`` itself reads, at its end (viewers, reports)
-SOLVE_TIME_ROOTS = (
-    "view",
-    "converged_reason",
-    "converged_rate",
-    "eigenvalues",
-    "singularvalues",
-    "final_residual",
-    "error_if_not_converged",
-)
-
-
-def read_at_solve(name: str) -> bool:
-    """Whether PETSc reads option `name` inside ``KSPSolve`` (not only at set-up)."""
-    return any(root in name for root in SOLVE_TIME_ROOTS)
 
 
 class PushedOptions:

@@ -26,7 +26,6 @@ from .options import (
     option_value,
     parse_options,
     prefixed_options,
-    read_at_solve,
 )
 from .results import SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings, check_tolerances
@@ -36,7 +35,6 @@ __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
 logger = logging.getLogger(__name__)
 
-_MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_divtol")
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
@@ -150,6 +148,7 @@ class KSPSolver:
             )
         own = parse_options(adjoint.options)
         _refuse_tolerance_options(own, "adjoint options", "AdjointSettings(max_it=, ...)")
+        self._adjoint_own = own
         self.adjoint_options = {**self.options, **own}
         self.prefix = prefix
         self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"
@@ -175,7 +174,6 @@ class KSPSolver:
         self._b: PETSc.Vec | None = None
         self._ksp: PETSc.KSP | None = None
         self._adj: PETSc.KSP | None = None
-        self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
         self._build(PETSc.COMM_SELF)
 
     # -- tolerances -------------------------------------------------------------
@@ -289,14 +287,13 @@ class KSPSolver:
         """
         exclude = self.adjoint_prefix if self.adjoint_prefix.startswith(self.prefix) else None
         forward = {**self.options, **prefixed_options(self.prefix, exclude)}
-        adjoint = {**forward, **parse_options(self.adjoint.options)}
+        adjoint = {**forward, **self._adjoint_own}
         return [(self.prefix + k, v) for k, v in self.options.items()] + [
             (self.adjoint_prefix + k, v) for k, v in adjoint.items()
         ]
 
     def _shares_pc(self) -> bool:
-        own = parse_options(self.adjoint.options)
-        if any(k.startswith("pc_") for k in own):
+        if any(k.startswith("pc_") for k in self._adjoint_own):
             return False
         cmdline = prefixed_options(self.adjoint_prefix)
         # an explicit transpose re-points the adjoint's operators (and a shared PC) to Aᵀ
@@ -309,8 +306,8 @@ class KSPSolver:
     def _build(self, comm) -> None:
         """Create and configure both KSPs on `comm`, fully or not at all."""
         self._items = self._option_items()
-        self._solve_items = [item for item in self._items if read_at_solve(item[0])]
         self._setup_version = {"forward": -1, "adjoint": -1}
+        self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
         ksp = adj = None
         pushed = PushedOptions(self._items, watch=True)
         try:
@@ -341,6 +338,10 @@ class KSPSolver:
         if comm is not None and comm.getSize() != self._ksp.getComm().getSize():
             self._destroy_ksps()
             self._build(comm)
+            if self._op.mat is not None:  # a caller's distributed Mat: re-attach it
+                self._ksp.setOperators(self._op.mat)
+                self._adj.setOperators(self._op.mat)
+                self._op.version += 1
 
     def destroy(self) -> None:
         """Free the KSPs, the Mat made here and the work vectors; the solver is unusable."""
@@ -393,6 +394,9 @@ class KSPSolver:
             mat.setNullSpace(petsc_nullspace(self.nullspace, mat))
             mat.setTransposeNullSpace(petsc_nullspace(self.transpose_nullspace, mat))
             self._check_nullspaces()
+        if self._x is not None and self._x.getSizes() != mat.getSizes()[1]:
+            for ksp in (self._ksp, self._adj):  # another size: KSPReset, options stay
+                ksp.reset()
         self._ksp.setOperators(mat)
         self._adj.setOperators(mat)
         for vec in (self._x, self._b):
@@ -451,16 +455,17 @@ class KSPSolver:
         check = self._unchecked[kind]
         t0 = time.perf_counter()
         iterations = 0
-        # all options while PETSc may read them (KSP/PC set-up after a new operator,
-        # the first solve), else only those KSPSolve reads at its end (viewers)
+        # the options are in PETSc's database while it may read them: at the PC set-up
+        # after a new operator (GAMG reads its level options there), and at the first
+        # solve, to learn which were never read.  KSPSolve itself reads none.
         setup = check or self._setup_version[kind] != self._op.version
-        self._setup_version[kind] = self._op.version
-        with PushedOptions(self._items if setup else self._solve_items, watch=check) as pushed:
+        with PushedOptions(self._items if setup else [], watch=check) as pushed:
             try:
                 for i in range(len(batch)):
                     iterations += step(batch[i], out[i], int(exponents[i]))
             finally:
                 self.last = step.info()
+        self._setup_version[kind] = self._op.version
         if check:
             self._unchecked[kind] = False
             self._used |= pushed.used
@@ -482,7 +487,7 @@ class KSPSolver:
     def _warn_unused(self, kind: str) -> None:
         """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
         prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
-        given = parse_options(self.adjoint.options) if kind == "adjoint" else self.options
+        given = self._adjoint_own if kind == "adjoint" else self.options
         names = {prefix + k for k in given}
         if prefix:  # the command line under a prefix of its own
             exclude = None if kind == "adjoint" else self.adjoint_prefix
@@ -510,9 +515,7 @@ class KSPSolver:
             "prefix": self.prefix,
             "adjoint_prefix": self.adjoint_prefix,
             "options": {k: option_value(v) for k, v in self.options.items()},
-            "adjoint_options": {
-                k: option_value(v) for k, v in parse_options(self.adjoint.options).items()
-            },
+            "adjoint_options": {k: option_value(v) for k, v in self._adjoint_own.items()},
             "max_it": self._max_it,
             "rtol": self._rtol,
             "atol": self._atol,

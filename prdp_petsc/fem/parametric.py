@@ -115,7 +115,8 @@ class ParametricMatrix:
         """The assembled scipy CSR matrix A(θ) for one θ of shape (p,)."""
         if np.ndim(theta) != 1:
             raise ValueError(f"matrix() takes one theta of shape ({self.n_params},)")
-        return sp.csr_matrix((self.values(theta), self.indices, self.indptr), shape=self.shape)
+        values = self.values(theta).copy()  # the cached array is shared and read-only
+        return sp.csr_matrix((values, self.indices, self.indptr), shape=self.shape)
 
     def theta_gradient(self, lam: np.ndarray, x: np.ndarray, *, per_sample=False) -> np.ndarray:
         """``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])`` for ``x = A(θ)⁻¹ b``, ``Aᵀλ = ∂L/∂x``.

@@ -99,7 +99,6 @@ def timing_noise(values) -> float:
 def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_type: str):
     """Time the bridge against raw petsc4py on the same Mat; return a JSON-ready dict."""
     import torch
-    from petsc4py import PETSc
 
     from ..autograd.bridge import solve
 
@@ -110,12 +109,7 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
     g = torch.tensor(g_np)
     solve(A, b, solver, theta=theta).backward(g)  # creates the Mat and both KSPs
 
-    raw = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-    raw.setType(ksp_type)
-    raw.getPC().setType(pc_type)
-    raw.setOperators(solver.mat)
-    raw.setTolerances(rtol=0.0, atol=0.0, max_it=k)
-    raw.setUp()
+    raw = raw_ksp(solver.mat, ksp_type, pc_type, k)
     x_vec, b_vec = solver.mat.createVecs()
     lam_vec, g_vec = x_vec.duplicate(), b_vec.duplicate()
     b_vec.array[:] = b_np
@@ -216,6 +210,19 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         "timings_s": t,
         "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": ksp_types(solver)},
     }
+
+
+def raw_ksp(mat, ksp_type: str, pc_type: str, k: int):
+    """A bare petsc4py KSP on `mat` in fixed mode (K iterations), set up: the baseline."""
+    from petsc4py import PETSc
+
+    raw = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    raw.setType(ksp_type)
+    raw.getPC().setType(pc_type)
+    raw.setOperators(mat)
+    raw.setTolerances(rtol=0.0, atol=0.0, max_it=k)
+    raw.setUp()
+    return raw
 
 
 def machine_info() -> dict:

@@ -40,11 +40,10 @@ def bench_throughput(
 ) -> dict:
     """Time the bridge against raw petsc4py loops for each batch size; JSON-ready dict."""
     import torch
-    from petsc4py import PETSc
 
     import prdp_petsc as pp
 
-    from .bench import overhead_problem
+    from .bench import overhead_problem, raw_ksp
 
     A, theta_np, _, _, refine = overhead_problem(n)
     rng = np.random.default_rng(2)
@@ -54,12 +53,7 @@ def bench_throughput(
     theta = torch.tensor(theta_np)
     pp.solve(A, torch.tensor(rhs[0], requires_grad=True), solver, theta=theta).sum().backward()
 
-    raw = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-    raw.setType(ksp_type)
-    raw.getPC().setType(pc_type)
-    raw.setOperators(solver.mat)
-    raw.setTolerances(rtol=0.0, atol=0.0, max_it=k)
-    raw.setUp()
+    raw = raw_ksp(solver.mat, ksp_type, pc_type, k)
     x_vec, b_vec = solver.mat.createVecs()
 
     def raw_step(B: int) -> float:

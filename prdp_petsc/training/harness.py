@@ -55,17 +55,20 @@ def parse_schedule(schedule: str) -> int | None:
     raise ValueError(f"schedule must be 'prdp' or 'fixed:K' with K >= 1, got {schedule!r}")
 
 
+def positive_int(value, name: str) -> int:
+    """``value`` as an int, or ValueError naming `name` unless it is an integer >= 1."""
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}") from None
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {value}")
+    return value
+
+
 def check_epochs(epochs) -> int | None:
     """Return ``epochs`` (None: the scene's default) or raise if it is not an integer >= 1."""
-    if epochs is None:
-        return None
-    try:
-        value = operator.index(epochs)
-    except TypeError:
-        raise ValueError(f"epochs must be an integer >= 1, got {epochs!r}") from None
-    if value < 1:
-        raise ValueError(f"epochs must be >= 1, got {value}")
-    return value
+    return None if epochs is None else positive_int(epochs, "epochs")
 
 
 @contextmanager
@@ -75,12 +78,7 @@ def torch_threads(threads: int) -> Iterator[int]:
     torch's default (one thread per core) oversubscribes a machine that other
     processes share, and OpenMP spin-waiting then makes wall times meaningless.
     """
-    try:
-        threads = operator.index(threads)
-    except TypeError:
-        raise ValueError(f"threads must be an integer >= 1, got {threads!r}") from None
-    if threads < 1:
-        raise ValueError(f"threads must be >= 1, got {threads}")
+    threads = positive_int(threads, "threads")
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -111,18 +109,18 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
     ref: KSPSolver = scene.solvers[0]
     A, b = scene.probe()
     b = np.atleast_2d(b)
-    probe = ref.clone(max_it=max_it, rtol=scene.rtol_full)
-    probe.set_operator(A)
     iterations = []
-    for row in b:
-        probe.solve(row)
-        if not probe.last.converged:
-            raise SolverError(
-                f"the scene's solver did not reach rtol={scene.rtol_full} in {max_it} "
-                f"iterations ({probe.last.reason}); K_full is undefined",
-                reason=probe.last.reason,
-            )
-        iterations.append(probe.last.iterations)
+    with ref.clone(max_it=max_it, rtol=scene.rtol_full) as probe:
+        probe.set_operator(A)
+        for row in b:
+            probe.solve(row)
+            if not probe.last.converged:
+                raise SolverError(
+                    f"the scene's solver did not reach rtol={scene.rtol_full} in {max_it} "
+                    f"iterations ({probe.last.reason}); K_full is undefined",
+                    reason=probe.last.reason,
+                )
+            iterations.append(probe.last.iterations)
     return max(iterations)
 
 
@@ -193,7 +191,8 @@ def run(
         ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
         and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
         first epoch not completed), ``reason`` (a PETSc reason, ``INVALID_INPUT`` or
-        ``interrupted``) and ``message``.
+        ``interrupted``) and ``message``; ``rollout``, the per-step error of the
+        trained model, for scenes that define it.
 
     Raises
     ------
@@ -221,6 +220,8 @@ def run(
             out.mkdir(parents=True, exist_ok=True)
         try:
             _train(scene, result, fixed_k, epochs or scene.epochs, seed, out, progress)
+            if scene.rollout is not None and not result["stopped"]:
+                result["rollout"] = [float(e) for e in scene.rollout()]
         except KeyboardInterrupt:
             epoch = len(result["epochs"])
             logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
