@@ -5,7 +5,7 @@ Sub-commands::
     prdp-petsc run SCENE_FILE [--schedule prdp|fixed:K] [--preset quick|paper]
                    [--epochs N] [--seed S] [--threads T] --out DIR [PETSc options]
     prdp-petsc compare SCENE_FILE [--preset ...] [--epochs N] [--seed S]
-                   [--threads T] --out DIR [PETSc options]
+                   [--threads T] [--routes cg/icc,cg/gamg] --out DIR [PETSc options]
     prdp-petsc bench bridge --out DIR
     prdp-petsc work-precision PROBLEM --out DIR
     prdp-petsc stability --out DIR
@@ -73,7 +73,27 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
         p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
         if name == "run":
             p.add_argument("--schedule", default="prdp", help="prdp | fixed:K")
+        else:
+            p.add_argument(
+                "--routes",
+                type=_routes,
+                default=(),
+                help="other solvers to run PRDP and full fidelity with, comma-separated "
+                "ksp_type/pc_type (e.g. cg/icc,cg/gamg); the summary names the fastest",
+            )
     return parser
+
+
+def _routes(text: str) -> tuple[str, ...]:
+    from .training.routes import parse_route
+
+    routes = tuple(r for r in text.split(",") if r)
+    try:
+        for route in routes:
+            parse_route(route)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return routes
 
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -150,12 +170,10 @@ def _run_scene_command(args, scene_file: str) -> int:
         out=args.out,
         progress=not args.no_progress,
         threads=args.threads,
+        routes=args.routes,
     )
     print(format_table(summary))
-    print(
-        f"results in {args.out}/ (summary.json, error_vs_time.png, error_vs_iterations.png, "
-        "k_schedule.png)"
-    )
+    print(f"results in {args.out}/ (summary.json, " + ", ".join(summary.get("plots", [])) + ")")
     stopped = stopped_runs(summary)
     if stopped:
         print(f"runs that stopped early: {', '.join(stopped)} (see their results.json)")

@@ -10,12 +10,14 @@ equal accuracy: the summary flags a PRDP validation error more than
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from pathlib import Path
 
 from ..prdp import savings
 from .harness import build_scene, check_epochs, find_k_full, run, torch_threads, write_json
+from .routes import fastest, parse_route, route_options
 from .scene import load_scene
 
 __all__ = ["ACCURACY_RATIO", "compare", "format_table", "stopped_runs", "summarize"]
@@ -34,6 +36,7 @@ def compare(
     progress: bool = True,
     plots: bool = True,
     threads: int = 1,
+    routes: tuple[str, ...] | list[str] = (),
 ) -> dict:
     """PRDP against constant K_full and constant coarse Ks; write ``summary.json``.
 
@@ -49,6 +52,12 @@ def compare(
         Show progress bars; write the plots.
     threads : int
         torch threads for every run (restored afterwards); recorded in the summary.
+    routes : sequence of str
+        Other solvers to try, ``"ksp_type/pc_type"`` (e.g. ``"cg/icc"``): PRDP and
+        full fidelity (the route's own K_full) run again with those options on every
+        solver prefix of the scene (`prdp_petsc.training.routes`), as
+        ``"prdp@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in the summary says
+        which run reached the full-fidelity validation error in the least wall time.
 
     Returns
     -------
@@ -67,10 +76,12 @@ def compare(
         with ``stopped: {"reason": "interrupted"}``.
     """
     epochs = check_epochs(epochs)
+    for route in routes:
+        parse_route(route)
     module = load_scene(scene_file)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    name = Path(scene_file).stem
+    scene_name = Path(scene_file).stem
     with torch_threads(threads):
         scene = build_scene(module, preset, seed)
         k_full = find_k_full(scene)
@@ -79,40 +90,59 @@ def compare(
             threads=threads, module=module)  # fmt: skip
         coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
         schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
+        prefixes = [s.prefix for s in scene.solvers]
+        runs = [(schedule, None) for schedule in schedules] + [
+            (schedule, route) for route in routes for schedule in ("prdp", "full")
+        ]
         logs = {}
-        for schedule in schedules:
-            folder = out / schedule.replace(":", "_")
+        k_fulls = {"": k_full}
+        for schedule, route in runs:
+            context = route_options(prefixes, route) if route else contextlib.nullcontext()
+            name = folder = None
             try:
-                logs[schedule] = run(
-                    scene_file,
-                    schedule,
-                    preset=preset,
-                    epochs=epochs,
-                    seed=seed,
-                    out=folder,
-                    progress=progress,
-                    threads=threads,
-                    module=module,
-                )
+                with context:
+                    if schedule == "full":  # the route's own K_full
+                        k_fulls[route] = find_k_full(build_scene(module, preset, seed))
+                        schedule = f"fixed:{k_fulls[route]}"
+                    name = schedule if route is None else f"{schedule}@{route}"
+                    folder = out / name.replace(":", "_").replace("@", "_on_").replace("/", "-")
+                    logs[name] = run(
+                        scene_file,
+                        schedule,
+                        preset=preset,
+                        epochs=epochs,
+                        seed=seed,
+                        out=folder,
+                        progress=progress,
+                        threads=threads,
+                        module=module,
+                    )
             except KeyboardInterrupt:
                 # the interrupted run has written what it measured: summarise it too
-                results = folder / "results.json"
-                if results.is_file():
-                    logs[schedule] = json.loads(results.read_text())
-                write_json(out / "summary.json", summarize(name, k_full, logs, threads=threads))
+                results = folder / "results.json" if folder else None
+                if results is not None and results.is_file():
+                    logs[name] = json.loads(results.read_text())
+                interrupted = summarize(scene_name, k_fulls, logs, threads=threads)
+                write_json(out / "summary.json", interrupted)
                 raise
-    summary = summarize(name, k_full, logs, threads=threads)
+    summary = summarize(scene_name, k_fulls, logs, threads=threads)
     write_json(out / "summary.json", summary)
     if plots:
         from .plots import plot_compare
 
-        summary["plots"] = plot_compare(logs, k_full, out)
+        summary["plots"] = plot_compare(logs, k_fulls, out)
         write_json(out / "summary.json", summary)
     return summary
 
 
-def summarize(scene: str, k_full: int, logs: dict, *, threads: int | None = None) -> dict:
-    """Summary of a comparison: runs, PRDP savings against K_full, error ratio."""
+def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None) -> dict:
+    """Summary of a comparison: runs, PRDP savings against K_full, error ratio.
+
+    `k_full` is an int, or ``{route: K_full}`` with ``""`` for the scene's own
+    solver; routes add ``routes`` (their K_full and PRDP savings) and ``fastest``.
+    """
+    k_fulls = k_full if isinstance(k_full, dict) else {"": k_full}
+    k_full = k_fulls[""]
     runs = {}
     for schedule, log in logs.items():
         t = log["totals"]
@@ -129,11 +159,24 @@ def summarize(scene: str, k_full: int, logs: dict, *, threads: int | None = None
         }
     summary = {"scene": scene, "k_full": k_full, "threads": threads, "runs": runs}
     full_name = f"fixed:{k_full}"
-    prdp, full = logs.get("prdp"), logs.get(full_name)
-    unavailable = _why_no_savings(prdp, full, full_name)
+    if len(k_fulls) > 1:
+        summary["routes"] = {
+            route: {"k_full": k, **_savings(logs, f"prdp@{route}", f"fixed:{k}@{route}")}
+            for route, k in k_fulls.items()
+            if route
+        }
+        summary["fastest"] = fastest(logs, full_name)
+    summary.update(_savings(logs, "prdp", full_name))
+    return summary
+
+
+def _savings(logs: dict, prdp_name: str, full_name: str) -> dict:
+    """``savings``, ``val_error_ratio``, ``equal_accuracy`` (or ``savings_unavailable``)."""
+    prdp, full = logs.get(prdp_name), logs.get(full_name)
+    unavailable = _why_no_savings(prdp, full, prdp_name, full_name)
     if unavailable:
-        summary["savings_unavailable"] = unavailable
-        return summary
+        return {"savings_unavailable": unavailable}
+    summary = {}
     inner = [e["fwd_iterations"] + e["adj_iterations"] for e in prdp["epochs"]]
     inner_full = [e["fwd_iterations"] + e["adj_iterations"] for e in full["epochs"]]
     by_iter = savings(costs=inner, cost_full=inner_full)
@@ -147,7 +190,7 @@ def summarize(scene: str, k_full: int, logs: dict, *, threads: int | None = None
         "pr": by_iter["pr"],
         "ic": by_iter["ic"],
     }
-    ratio = _ratio(runs["prdp"]["final_val_error"], runs[full_name]["final_val_error"])
+    ratio = _ratio(prdp["totals"]["final_val_error"], full["totals"]["final_val_error"])
     summary["val_error_ratio"] = ratio
     summary["equal_accuracy"] = ratio <= ACCURACY_RATIO
     if not summary["equal_accuracy"]:
@@ -165,22 +208,26 @@ def _ratio(num: float, den: float) -> float:
     return math.inf if num > 0 else 1.0
 
 
-def _why_no_savings(prdp: dict | None, full: dict | None, full_name: str) -> str | None:
+def _why_no_savings(prdp: dict | None, full: dict | None, prdp_name: str, full_name: str):
     """None if PRDP and K_full ran over the same epochs, else the reason in words."""
     reasons = []
-    for name, log in (("prdp", prdp), (full_name, full)):
+    for name, log in ((prdp_name, prdp), (full_name, full)):
         if log is None:
             reasons.append(f"{name} did not run")
         elif log["stopped"]:
             stop = log["stopped"]
             reasons.append(f"{name} stopped at epoch {stop['epoch']} ({stop['reason']})")
     if not reasons and len(prdp["epochs"]) != len(full["epochs"]):
-        reasons.append(f"prdp ran {len(prdp['epochs'])} epochs, {full_name} {len(full['epochs'])}")
+        reasons.append(
+            f"{prdp_name} ran {len(prdp['epochs'])} epochs, {full_name} {len(full['epochs'])}"
+        )
     if not reasons and not prdp["epochs"]:
         reasons.append("no epochs ran")
     if reasons:
         detail = "; ".join(reasons)
-        return f"no savings: {detail}; savings need prdp and {full_name} over the same epochs"
+        return (
+            f"no savings: {detail}; savings need {prdp_name} and {full_name} over the same epochs"
+        )
     return None
 
 
@@ -195,16 +242,23 @@ def format_table(summary: dict) -> str:
     def cell(value, width: int, spec: str = "") -> str:
         return ("—" if value is None else format(value, spec)).rjust(width)
 
+    width = max([12, *(len(name) + 2 for name in summary["runs"])])
     lines = [
         f"scene {summary['scene']}   K_full = {summary['k_full']}",
-        f"{'schedule':<12}{'val error':>12}{'K final':>9}{'inner its':>12}{'wall s':>9}  stopped",
+        f"{'schedule':<{width}}{'val error':>12}{'K final':>9}{'inner its':>12}{'wall s':>9}"
+        f"{'solver %':>10}  stopped",
     ]
     for name, r in summary["runs"].items():
         its = (r["fwd_iterations"] or 0) + (r["adj_iterations"] or 0)
         stop = r["stopped"]
+        share = (
+            100 * r["solver_time"] / r["wall_time"]
+            if r["wall_time"] and r["solver_time"] is not None
+            else None
+        )
         lines.append(
-            f"{name:<12}{cell(r['final_val_error'], 12, '.4e')}{cell(r['k_final'], 9)}"
-            f"{its:>12}{cell(r['wall_time'], 9, '.2f')}  "
+            f"{name:<{width}}{cell(r['final_val_error'], 12, '.4e')}{cell(r['k_final'], 9)}"
+            f"{its:>12}{cell(r['wall_time'], 9, '.2f')}{cell(share, 10, '.1f')}  "
             + (f"{stop['reason']} at epoch {stop['epoch']}" if stop else "no")
         )
     if "savings" in summary:
@@ -219,4 +273,34 @@ def format_table(summary: dict) -> str:
             lines.append(f"  !! {summary['accuracy_warning']}")
     else:
         lines.append(f"PRDP vs K_full: {summary['savings_unavailable']}")
+    for route, r in summary.get("routes", {}).items():
+        if "savings" in r:
+            lines.append(
+                f"PRDP vs K_full on {route} (K_full = {r['k_full']}): "
+                f"{100 * r['savings']['iterations']:.1f} % fewer inner iterations, "
+                f"{100 * r['savings']['wall_time']:.1f} % less wall time, "
+                f"val error ratio {r['val_error_ratio']:.3f}"
+            )
+        else:
+            lines.append(f"PRDP vs K_full on {route}: {r['savings_unavailable']}")
+    best = summary.get("fastest")
+    if best:
+        lines.append(
+            f"fastest to the full-fidelity validation error ({best['target_val_error']:.4e}, "
+            f"within 5 % of {best['reference']}): "
+            + (
+                f"{best['winner']} in {best['winner_seconds']:.2f} s"
+                if best["winner"]
+                else "no run reached it"
+            )
+        )
+        main = ["prdp", f"fixed:{summary['k_full']}"] + [
+            name
+            for route, r in summary.get("routes", {}).items()
+            for name in (f"prdp@{route}", f"fixed:{r['k_full']}@{route}")
+        ]
+        for name in main:
+            if name in best["seconds_to_target"]:
+                t = best["seconds_to_target"][name]
+                lines.append(f"  {name}: " + ("not reached" if t is None else f"{t:.2f} s"))
     return "\n".join(lines)

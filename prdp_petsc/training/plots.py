@@ -1,4 +1,5 @@
-"""Plots of a comparison: validation error against wall time and inner iterations, K."""
+"""Plots of a comparison: validation error against wall time and inner iterations, K,
+and the per-step error of each trained model over a long rollout."""
 
 from __future__ import annotations
 
@@ -8,11 +9,40 @@ import numpy as np
 
 __all__ = ["plot_compare"]
 
+_OTHERS = ["C0", "C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9"]
 
-def plot_compare(logs: dict, k_full: int, out: Path) -> list[str]:
-    """Write ``error_vs_time.png``, ``error_vs_iterations.png`` and ``k_schedule.png``.
 
-    One curve per schedule; returns the file names.
+def _styles(names: list[str], k_fulls: dict[str, int]) -> dict[str, dict]:
+    """Line style per run name ``schedule[@route]``: PRDP bold, K_full solid, others dashed.
+
+    A run on another solver route (``"prdp@cg/icc"``) is drawn dotted and labelled so.
+    """
+    colors = iter(_OTHERS * 4)
+    styles = {}
+    for name in names:
+        schedule, _, route = name.partition("@")
+        suffix = f" [{route}]" if route else ""
+        if schedule == "prdp":
+            style = {"color": "C3" if not route else "C6", "lw": 2.2, "label": "PRDP" + suffix}
+            style["zorder"] = 3
+        else:
+            k = int(schedule.split(":")[1])
+            full = k == k_fulls.get(route, k_fulls[""])
+            label = f"K = {k}" + (" (K_full)" if full else "") + suffix
+            style = {"color": next(colors), "lw": 1.4, "label": label}
+            style["ls"] = "-" if full else "--"
+        if route:
+            style["ls"] = ":"
+        styles[name] = style
+    return styles
+
+
+def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
+    """Write ``error_vs_time.png``, ``error_vs_iterations.png``, ``k_schedule.png`` and,
+    when the runs recorded one, ``rollout.png``.
+
+    `k_full` is an int, or ``{route: K_full}`` with ``""`` for the scene's own solver.
+    One curve per run; returns the file names.
     """
     import matplotlib
 
@@ -20,6 +50,7 @@ def plot_compare(logs: dict, k_full: int, out: Path) -> list[str]:
     import matplotlib.pyplot as plt
 
     out = Path(out)
+    k_fulls = k_full if isinstance(k_full, dict) else {"": k_full}
     curves = {}
     for name, log in logs.items():
         ep = log["epochs"]
@@ -30,50 +61,53 @@ def plot_compare(logs: dict, k_full: int, out: Path) -> list[str]:
             "iters": np.cumsum([e["fwd_iterations"] + e["adj_iterations"] for e in ep]),
             "val": np.array([e["val_metric"] for e in ep]),
             "k": np.array([e["k"] for e in ep]),
+            "rollout": log.get("rollout"),
         }
+    style = _styles(list(curves), k_fulls)
 
-    others = iter(["C0", "C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9"] * 3)
-    colors = {name: "C3" if name == "prdp" else next(others) for name in curves}
-
-    def style(name):
-        if name == "prdp":
-            return {"color": "C3", "lw": 2.2, "label": "PRDP", "zorder": 3}
-        k = int(name.split(":")[1])
-        label = f"K = {k}" + (" (K_full)" if k == k_full else "")
-        return {
-            "color": colors[name],
-            "lw": 1.4,
-            "label": label,
-            "ls": "-" if k == k_full else "--",
-        }
-
-    files = []
-    for key, xlabel, fname in (
-        ("time", "cumulative wall time [s]", "error_vs_time.png"),
-        ("iters", "cumulative inner iterations (forward + adjoint)", "error_vs_iterations.png"),
-    ):
+    def figure(fname: str, xlabel: str, ylabel: str, draw, *, log_y: bool = True) -> str:
         fig, ax = plt.subplots(figsize=(6, 4))
         for name, c in curves.items():
-            ax.plot(c[key], c["val"], **style(name))
+            draw(ax, c, style[name])
         ax.set_xlabel(xlabel)
-        ax.set_ylabel("validation error")
-        ax.set_yscale("log")
+        ax.set_ylabel(ylabel)
+        if log_y:
+            ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
+        ax.legend(fontsize=8)
         fig.tight_layout()
         fig.savefig(out / fname, dpi=120)
         plt.close(fig)
-        files.append(fname)
+        return fname
 
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    for name, c in curves.items():
-        ax.step(np.arange(len(c["k"])), c["k"], where="post", **style(name))
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("K (max_it)")
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "k_schedule.png", dpi=120)
-    plt.close(fig)
-    files.append("k_schedule.png")
+    files = [
+        figure(
+            "error_vs_time.png",
+            "cumulative wall time [s]",
+            "validation error",
+            lambda ax, c, s: ax.plot(c["time"], c["val"], **s),
+        ),
+        figure(
+            "error_vs_iterations.png",
+            "cumulative inner iterations (forward + adjoint)",
+            "validation error",
+            lambda ax, c, s: ax.plot(c["iters"], c["val"], **s),
+        ),
+        figure(
+            "k_schedule.png",
+            "epoch",
+            "K (max_it)",
+            lambda ax, c, s: ax.step(np.arange(len(c["k"])), c["k"], where="post", **s),
+            log_y=False,
+        ),
+    ]
+    if any(c["rollout"] for c in curves.values()):
+
+        def rollout(ax, c, s):
+            if c["rollout"]:
+                ax.plot(np.arange(1, len(c["rollout"]) + 1), c["rollout"], marker=".", **s)
+
+        files.append(
+            figure("rollout.png", "rollout step", "normalised error (trained model)", rollout)
+        )
     return files

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import importlib.util
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -62,6 +62,10 @@ class Scene:
         Constant coarse Ks for ``compare`` (default: 1, K_full/4, K_full/2).
     info : dict
         Free-form description written into results (sizes, settings).
+    rollout : callable ``() -> sequence of float``, optional
+        Per-step error of the trained model over a long autoregressive rollout
+        (`prdp_petsc.training.rollout.rollout_errors`); recorded after training
+        and plotted by ``compare``.  Emulator scenes validate on its mean.
     """
 
     solvers: list[KSPSolver]
@@ -76,6 +80,7 @@ class Scene:
     scheduler: object | None = None
     compare_ks: list[int] | None = None
     info: dict = field(default_factory=dict)
+    rollout: Callable[[], Sequence[float]] | None = None
 
     def __post_init__(self):
         if not self.solvers or not all(isinstance(s, KSPSolver) for s in self.solvers):

@@ -1,0 +1,107 @@
+"""Networks for fields on unstructured meshes.
+
+`MeshNet` is a message-passing network over the edges of the mesh (the sparsity
+pattern of the finite-element operator): each layer sums the neighbours' channel
+vectors with a learnable weight per edge, mixes the channels, and applies GELU.
+It suits emulators of local PDE time steps: its receptive field grows by one
+ring of neighbours per layer, its cost is linear in the number of edges, and it
+runs on any mesh, 2D or 3D, without a regular grid.  It is written with torch
+gathers and ``index_add`` (no torch-geometric dependency): one layer costs
+O(nnz · batch · channels).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+__all__ = ["MeshNet"]
+
+
+class MeshNet(torch.nn.Module):
+    """Residual message passing on a mesh graph: ``h ← h + σ(Θ_l (W_l h))``.
+
+    Parameters
+    ----------
+    adjacency : scipy.sparse matrix, shape (n, n)
+        Graph of the nodes (e.g. the pattern of the FE operator on the unknowns);
+        self-loops are added.  Edge weights start at the row-normalised adjacency.
+    channels : int
+        Hidden channels per node.
+    layers : int
+        Message-passing layers (receptive field: `layers` rings of neighbours).
+    features : array_like, shape (n, f), optional
+        Fixed per-node inputs appended to u (e.g. coordinates), so the network can
+        tell the boundary layer from the interior.
+    activation : {"gelu", None}
+        Nonlinearity after each layer; None makes the network linear in its inputs
+        (a product of learnable sparse operators), the right class for the step of
+        a linear PDE.
+
+    Notes
+    -----
+    Input and output have shape (B, n) (float64).  u is lifted to `channels`
+    channels (channel 0 carries u itself), each layer adds ``σ(Θ_l (W_l h))`` with
+    ``W_l`` the edge-weighted neighbour sum, and a linear readout gives û.  All
+    channel mixings start at zero, so the network starts as the identity map, the
+    natural first guess for a small time step, and trains like a residual network.
+    """
+
+    def __init__(
+        self, adjacency, channels: int = 4, layers: int = 3, features=None, activation="gelu"
+    ):
+        super().__init__()
+        if activation not in ("gelu", None):
+            raise ValueError(f"activation must be 'gelu' or None, got {activation!r}")
+        self.activation = activation
+        A = sp.csr_matrix(adjacency, dtype=np.float64)
+        A = (abs(A) + sp.identity(A.shape[0], format="csr")).tocsr()
+        A.data[:] = 1.0
+        A = sp.diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
+        A = A.tocoo()
+        self.register_buffer("rows", torch.from_numpy(A.row.astype(np.int64)))
+        self.register_buffer("cols", torch.from_numpy(A.col.astype(np.int64)))
+        feats = np.zeros((A.shape[0], 0)) if features is None else np.asarray(features)
+        if feats.shape[0] != A.shape[0]:
+            raise ValueError(f"features must have {A.shape[0]} rows, got {feats.shape}")
+        self.register_buffer("features", torch.from_numpy(feats.astype(np.float64)))
+        self.n = A.shape[0]
+        start = torch.from_numpy(A.data)
+        self.edge_weights = torch.nn.ParameterList(
+            [torch.nn.Parameter(start.clone()) for _ in range(layers)]
+        )
+        self.lift = torch.nn.Linear(1 + feats.shape[1], channels).double()
+        self.mix = torch.nn.ModuleList(
+            [torch.nn.Linear(channels, channels).double() for _ in range(layers)]
+        )
+        self.readout = torch.nn.Linear(channels, 1).double()
+        with torch.no_grad():  # start as the identity map: channel 0 carries u through
+            self.lift.weight[0].zero_()
+            self.lift.weight[0, 0] = 1.0
+            self.lift.bias[0] = 0.0
+            for mix in self.mix:
+                mix.weight.zero_()
+                mix.bias.zero_()
+            self.readout.weight.zero_()
+            self.readout.weight[0, 0] = 1.0
+            self.readout.bias.zero_()
+
+    def _propagate(self, h: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        messages = h[:, self.cols, :] * weights[:, None]
+        return torch.zeros_like(h).index_add_(1, self.rows, messages)
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        if u.shape[-1] != self.n:
+            raise ValueError(f"MeshNet expects (batch, {self.n}), got {tuple(u.shape)}")
+        squeeze = u.ndim == 1
+        u = u[None] if squeeze else u
+        inputs = [u[..., None]]
+        if self.features.shape[1]:
+            inputs.append(self.features.expand(u.shape[0], -1, -1))
+        h = self.lift(torch.cat(inputs, dim=-1))
+        for weights, mix in zip(self.edge_weights, self.mix, strict=True):
+            update = mix(self._propagate(h, weights))
+            h = h + (torch.nn.functional.gelu(update) if self.activation else update)
+        out = self.readout(h)[..., 0]
+        return out[0] if squeeze else out
