@@ -30,27 +30,23 @@ from .options import (
 from .results import SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings, check_tolerances
 from .step import SolveStep
+from .tolerances import (
+    Tolerances,
+    UnusedOptionWarning,
+    refuse_tolerance_options,
+    rejected_options_message,
+)
 
 __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
 logger = logging.getLogger(__name__)
 
-_TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_divtol")
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
 _OFF = ("0", "false", "no")
 
 
-class UnusedOptionWarning(UserWarning):
-    """Options of a `KSPSolver` that PETSc never read (misspelt, or meant for another type).
-
-    A warning, not an error: ``-fwd_ksp_type cg`` on the command line legitimately
-    leaves a scene's ``ksp_richardson_scale`` unread.  Turn it into an error with
-    ``warnings.simplefilter("error", UnusedOptionWarning)`` (or ``-W error::...``).
-    """
-
-
-class KSPSolver:
+class KSPSolver(Tolerances):
     """A PETSc KSP with a capped iteration count and a matching transpose solve.
 
     Parameters
@@ -131,7 +127,7 @@ class KSPSolver:
         if divtol is not None and not (np.isfinite(divtol) and divtol > 0):
             raise ValueError(f"divtol must be finite and > 0, got {divtol!r}")
         self.options = parse_options(options)
-        _refuse_tolerance_options(self.options, "options", "max_it=, rtol=, atol=, divtol=")
+        refuse_tolerance_options(self.options, "options", "max_it=, rtol=, atol=, divtol=")
         if adjoint is None:
             adjoint = AdjointSettings()
         elif isinstance(adjoint, dict):
@@ -147,13 +143,13 @@ class KSPSolver:
                 "adjoint ",
             )
         own = parse_options(adjoint.options)
-        _refuse_tolerance_options(own, "adjoint options", "AdjointSettings(max_it=, ...)")
+        refuse_tolerance_options(own, "adjoint options", "AdjointSettings(max_it=, ...)")
         self._adjoint_own = own
         self.adjoint_options = {**self.options, **own}
         self.prefix = prefix
         self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"
         for p in dict.fromkeys((prefix, self.adjoint_prefix)):
-            _refuse_tolerance_options(
+            refuse_tolerance_options(
                 prefixed_options(p), f"command-line options under prefix {p!r}", "the program"
             )
         self._max_it = int(max_it)
@@ -175,74 +171,6 @@ class KSPSolver:
         self._ksp: PETSc.KSP | None = None
         self._adj: PETSc.KSP | None = None
         self._build(PETSc.COMM_SELF)
-
-    # -- tolerances -------------------------------------------------------------
-    @property
-    def max_it(self) -> int:
-        """Forward iteration cap K (the adjoint follows unless set on its own)."""
-        return self._max_it
-
-    @max_it.setter
-    def max_it(self, value: int) -> None:
-        check_tolerances(value, self._rtol, self._atol)
-        self._max_it = int(value)
-        self._apply_tolerances()
-
-    @property
-    def rtol(self) -> float:
-        """Forward relative tolerance (0: off)."""
-        return self._rtol
-
-    @rtol.setter
-    def rtol(self, value: float) -> None:
-        self.set_tolerances(rtol=value)
-
-    @property
-    def atol(self) -> float:
-        """Forward absolute tolerance (0: off)."""
-        return self._atol
-
-    @atol.setter
-    def atol(self, value: float) -> None:
-        self.set_tolerances(atol=value)
-
-    @property
-    def divtol(self) -> float | None:
-        """Divergence tolerance (None: PETSc's default, 1e5)."""
-        return self._divtol
-
-    @property
-    def adjoint_max_it(self) -> int:
-        """Adjoint iteration cap: `AdjointSettings.max_it` or the forward `max_it`."""
-        return self.adjoint.max_it if self.adjoint.max_it is not None else self._max_it
-
-    @adjoint_max_it.setter
-    def adjoint_max_it(self, value: int | None) -> None:
-        if value is not None:
-            check_tolerances(value, 0.0, 0.0, "adjoint ")
-        self.adjoint.max_it = None if value is None else int(value)
-        self._apply_tolerances()
-
-    def set_tolerances(self, *, rtol: float | None = None, atol: float | None = None) -> None:
-        """Change the forward stopping tolerances (e.g. for an rtol schedule)."""
-        rtol = self._rtol if rtol is None else rtol
-        atol = self._atol if atol is None else atol
-        check_tolerances(self._max_it, rtol, atol)
-        self._rtol, self._atol = float(rtol), float(atol)
-        self._apply_tolerances()
-
-    def _apply_tolerances(self) -> None:
-        if self._ksp is None:
-            return
-        dt = self._divtol if self._divtol is not None else PETSc.DEFAULT
-        self._ksp.setTolerances(rtol=self._rtol, atol=self._atol, divtol=dt, max_it=self._max_it)
-        adj = self.adjoint
-        self._adj.setTolerances(
-            rtol=self._rtol if adj.rtol is None else adj.rtol,
-            atol=self._atol if adj.atol is None else adj.atol,
-            divtol=dt,
-            max_it=self.adjoint_max_it,
-        )
 
     # -- PETSc objects ------------------------------------------------------------
     @property
@@ -324,7 +252,7 @@ class KSPSolver:
             for obj in (ksp, adj):
                 if obj is not None:
                     obj.destroy()
-            raise ValueError(_rejected(self._items, err)) from err
+            raise ValueError(rejected_options_message(self._items, err)) from err
         self._used = set(pushed.used)
         for obj in (ksp, adj):  # read by safeguards.rescue
             obj.setConvergenceHistory(reset=True)
@@ -555,27 +483,3 @@ class KSPSolver:
             f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self._max_it}, "
             f"rtol={self._rtol}, atol={self._atol}, adjoint_max_it={self.adjoint_max_it})"
         )
-
-
-def _refuse_tolerance_options(options: dict, where: str, use: str) -> None:
-    bad = [k for k in options if k in _TOLERANCE_KEYS]
-    if bad:
-        raise ValueError(
-            f"{bad} in {where}: a KSPSolver's tolerances are set by {use} (the PRDP "
-            "schedule owns max_it); pass them as keyword arguments (max_it=, rtol=, atol=, "
-            "divtol=, or AdjointSettings for the adjoint)"
-        )
-
-
-def _rejected(items: list[tuple[str, object]], err: PETSc.Error) -> str:
-    """Message for options that PETSc refused at ``KSPSetFromOptions``, naming the culprit."""
-    known = {
-        "ksp_type": {v for k, v in vars(PETSc.KSP.Type).items() if k.isupper()},
-        "pc_type": {v for k, v in vars(PETSc.PC.Type).items() if k.isupper()},
-    }
-    for name, value in items:
-        for key, names in known.items():
-            if name.endswith(key) and option_value(value) not in names:
-                return f"-{name} {option_value(value)}: not a PETSc {key[:-5].upper()} type"
-    given = " ".join(f"-{n}" + (f" {option_value(v)}" if v is not None else "") for n, v in items)
-    return f"PETSc refused the options {given!r} at KSPSetFromOptions ({err})"
