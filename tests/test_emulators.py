@@ -1,0 +1,99 @@
+"""Pieces of the emulator scenes: MeshNet, rollout errors, solver routes in compare."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from _core import fd_poisson
+from petsc4py import PETSc
+
+from prdp_petsc.training.compare import compare, format_table
+from prdp_petsc.training.networks import MeshNet, _EdgeSum, _Pattern
+from prdp_petsc.training.rollout import rollout_errors
+from prdp_petsc.training.routes import fastest, parse_route, route_options
+
+HEAT2D = Path(__file__).resolve().parent.parent / "demos" / "heat2d.py"
+
+
+def test_edge_sum_gradcheck():
+    A = fd_poisson(3).tocsr()
+    pattern = _Pattern(A.indptr, A.indices, A.shape)
+    values = torch.from_numpy(np.random.default_rng(0).standard_normal(A.nnz))
+    X = torch.from_numpy(np.random.default_rng(1).standard_normal((9, 4)))
+    values.requires_grad_(True)
+    X.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda v, x: _EdgeSum.apply(v, x, pattern), (values, X))
+    W = A.copy()
+    W.data = values.detach().numpy()
+    assert np.allclose(_EdgeSum.apply(values, X, pattern).detach().numpy(), W @ X.detach().numpy())
+
+
+def test_meshnet_starts_as_identity_and_is_local():
+    A = fd_poisson(6)
+    net = MeshNet(A, channels=3, layers=2, features=np.random.default_rng(0).random((36, 2)))
+    u = torch.from_numpy(np.random.default_rng(1).standard_normal((5, 36)))
+    assert torch.equal(net(u), u)  # identity map at initialisation
+    with torch.no_grad():  # perturb the weights: output at node 0 sees 2 rings only
+        for p in net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    e = torch.zeros(36, dtype=torch.float64)
+    e[35] = 1.0  # the far corner of the 6 x 6 grid, > 2 rings from node 0
+    assert net(e)[0] == net(torch.zeros_like(e))[0]
+    assert net(e)[35] != net(torch.zeros_like(e))[35]
+
+
+def test_rollout_errors_of_the_exact_step_are_zero_and_of_identity_known():
+    u0 = torch.ones(2, 3, dtype=torch.float64)
+    ref = torch.stack([u0 * 0.5**t for t in range(1, 4)])
+    assert np.allclose(rollout_errors(lambda u: 0.5 * u, u0, ref), 0.0)
+    assert np.allclose(rollout_errors(lambda u: u, u0, ref), [1.0, 3.0, 7.0])
+    with pytest.raises(ValueError, match="reference must have shape"):
+        rollout_errors(lambda u: u, u0, ref[:, :1])
+
+
+@pytest.mark.parametrize("bad", ["cg", "cg/", "/icc", "cg/icc/x", "cg /icc"])
+def test_bad_routes_are_refused(bad):
+    with pytest.raises(ValueError, match="ksp_type/pc_type"):
+        parse_route(bad)
+
+
+def test_route_options_are_set_and_the_command_line_restored(petsc_option):
+    petsc_option("r1_pc_type", "sor")
+    opts = PETSc.Options()
+    with route_options(["r1_", "r2_"], "cg/icc"):
+        assert opts.getString("r1_pc_type") == "icc" and opts.getString("r2_ksp_type") == "cg"
+    assert opts.getString("r1_pc_type") == "sor"  # the user's value is back
+    assert not opts.hasName("r2_ksp_type") and not opts.hasName("r1_ksp_type")
+
+
+def _log(vals, walls):
+    return {"epochs": [{"val_metric": v, "wall_time": w} for v, w in zip(vals, walls)]}
+
+
+def test_fastest_is_the_first_run_within_5_percent_of_full_fidelity():
+    logs = {
+        "fixed:10": _log([0.5, 0.2, 0.1], [2, 2, 2]),  # reaches 0.105 at 6 s
+        "prdp": _log([0.5, 0.104, 0.1], [1, 1, 1]),  # at 2 s
+        "fixed:3@cg/icc": _log([0.3, 0.2, 0.15], [0.5, 0.5, 0.5]),  # never
+    }
+    best = fastest(logs, "fixed:10")
+    assert best["target_val_error"] == pytest.approx(0.105)
+    assert best["seconds_to_target"] == {"fixed:10": 6, "prdp": 2, "fixed:3@cg/icc": None}
+    assert best["winner"] == "prdp" and best["winner_seconds"] == 2
+
+
+def test_compare_with_a_route_reports_the_fastest(tmp_path):
+    s = compare(HEAT2D, preset="quick", out=tmp_path, progress=False, routes=["cg/icc"])
+    route = s["routes"]["cg/icc"]
+    assert 1 <= route["k_full"] < s["k_full"]  # CG + ICC needs far fewer iterations
+    assert {"prdp@cg/icc", f"fixed:{route['k_full']}@cg/icc"} <= set(s["runs"])
+    solvers = [
+        __import__("json").loads(p.read_text())["solvers"][0]["forward"]
+        for p in tmp_path.glob("*cg-icc/results.json")
+    ]
+    assert solvers and all(f == {"ksp_type": "cg", "pc_type": "icc"} for f in solvers)
+    assert s["fastest"]["reference"] == f"fixed:{s['k_full']}"
+    assert "rollout.png" in s["plots"]
+    assert "fastest to the full-fidelity validation error" in format_table(s)
+    assert not PETSc.Options().hasName("heat2d_ksp_type")  # the route's options are gone
