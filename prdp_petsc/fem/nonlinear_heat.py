@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .parametric import mass_matrix
+from .forms import mass_matrix
 
 __all__ = ["NonlinearHeat"]
 

@@ -74,8 +74,8 @@ def overhead_problem(n: int, seed: int = 0):
     """(A, θ, b, g, refine): plate_holes P1, κ per element plus unit reaction (SPD)."""
     import skfem
 
+    from ..fem.forms import diffusion_operator
     from ..fem.meshes import load_mesh
-    from ..fem.parametric import diffusion_operator
 
     refine = max(0, round(float(np.log(n / _PLATE_HOLES_N0) / np.log(4.0))))
     basis = skfem.Basis(load_mesh("plate_holes", refine=refine), skfem.ElementTriP1())

@@ -28,8 +28,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..autograd.dirichlet import Dirichlet
+from ..fem.forms import diffusion_operator, mass_matrix
 from ..fem.meshes import load_mesh
-from ..fem.parametric import ParametricMatrix, diffusion_operator, mass_matrix
+from ..fem.parametric import ParametricMatrix
 
 __all__ = ["PROBLEMS", "Problem", "build_problem", "direct_gradient", "mean_edge_length"]
 

@@ -77,7 +77,7 @@ def _poisson(mesh, *, dirichlet: bool = True, form=None, coefficient_basis=None)
     from skfem import Basis, ElementTriP0, ElementTriP1, LinearForm
 
     from ..autograd.dirichlet import Dirichlet
-    from ..fem.parametric import diffusion_operator, from_form
+    from ..fem.forms import diffusion_operator, from_form
 
     basis = Basis(mesh, ElementTriP1())
     if form is None:
@@ -202,8 +202,8 @@ def case_stiff_heat(quick: bool = False) -> list[dict]:
     """Neumann heat steps ``(M + Δt K(κ)) u¹ = M u⁰`` with Δt κ / h² from 1e-2 to 1e8."""
     from skfem import Basis, ElementTriP1
 
+    from ..fem.forms import diffusion_operator, mass_matrix
     from ..fem.meshes import load_mesh
-    from ..fem.parametric import diffusion_operator, mass_matrix
     from .problems import mean_edge_length
 
     mesh = load_mesh("lshape", 0 if quick else 1)
