@@ -88,6 +88,9 @@ def test_compare_with_a_route_reports_the_fastest(tmp_path):
     route = s["routes"]["cg/icc"]
     assert 1 <= route["k_full"] < s["k_full"]  # CG + ICC needs far fewer iterations
     assert {"prdp@cg/icc", f"fixed:{route['k_full']}@cg/icc"} <= set(s["runs"])
+    # PRDP never goes past its route's K_full (more iterations buy nothing)
+    assert s["runs"]["prdp@cg/icc"]["k_final"] <= route["k_full"]
+    assert s["runs"]["prdp"]["k_final"] <= s["k_full"]
     solvers = [
         __import__("json").loads(p.read_text())["solvers"][0]["forward"]
         for p in tmp_path.glob("*cg-icc/results.json")

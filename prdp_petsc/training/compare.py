@@ -116,6 +116,7 @@ def compare(
                         progress=progress,
                         threads=threads,
                         module=module,
+                        prdp=_prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full)),
                     )
             except KeyboardInterrupt:
                 # the interrupted run has written what it measured: summarise it too
@@ -133,6 +134,16 @@ def compare(
         summary["plots"] = plot_compare(logs, k_fulls, out)
         write_json(out / "summary.json", summary)
     return summary
+
+
+def _prdp_for(settings: dict, k_full: int, k_route: int) -> dict:
+    """PRDP settings of a run: K capped at the run's K_full (more buys nothing), and
+    for another route K₀ and ΔK scaled by ``K_full(route) / K_full(scene)``."""
+    scale = k_route / k_full
+    out = {"k_max": k_route}
+    for key, default in (("k_init", 1), ("k_step", 1)):
+        out[key] = min(k_route, max(1, round(settings.get(key, default) * scale)))
+    return out
 
 
 def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None) -> dict:

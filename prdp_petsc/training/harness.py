@@ -164,6 +164,7 @@ def run(
     progress: bool = True,
     threads: int = 1,
     module=None,
+    prdp: dict | None = None,
 ) -> dict:
     """Train a scene once; return (and write to ``out/results.json``) the per-epoch log.
 
@@ -182,6 +183,9 @@ def run(
     threads : int
         torch threads for the run (``torch.set_num_threads``; restored afterwards).
         The default 1 keeps wall times honest on a shared machine.
+    prdp : dict, optional
+        Settings of `prdp_petsc.PRDP` that replace the scene's (``compare`` caps K
+        at K_full with ``{"k_max": K_full}``); recorded in results.
 
     Returns
     -------
@@ -219,6 +223,8 @@ def run(
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
         try:
+            scene.prdp = {**scene.prdp, **(prdp or {})}
+            result["prdp"] = scene.prdp if fixed_k is None else None
             _train(scene, result, fixed_k, epochs or scene.epochs, seed, out, progress)
             if scene.rollout is not None and not result["stopped"]:
                 result["rollout"] = [float(e) for e in scene.rollout()]
