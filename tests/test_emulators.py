@@ -90,6 +90,8 @@ def test_compare_with_a_route_reports_the_fastest(tmp_path):
     assert {"prdp@cg/icc", f"fixed:{route['k_full']}@cg/icc"} <= set(s["runs"])
     # PRDP never goes past its route's K_full (more iterations buy nothing)
     assert s["runs"]["prdp@cg/icc"]["k_final"] <= route["k_full"]
+    log = __import__("json").loads((tmp_path / "prdp_on_cg-icc" / "results.json").read_text())
+    assert log["prdp"]["k_max"] == route["k_full"]
     assert s["runs"]["prdp"]["k_final"] <= s["k_full"]
     solvers = [
         __import__("json").loads(p.read_text())["solvers"][0]["forward"]

@@ -101,8 +101,9 @@ def compare(
             name = folder = None
             try:
                 with context:
-                    if schedule == "full":  # the route's own K_full
+                    if route and route not in k_fulls:  # the route's own K_full
                         k_fulls[route] = find_k_full(build_scene(module, preset, seed))
+                    if schedule == "full":
                         schedule = f"fixed:{k_fulls[route]}"
                     name = schedule if route is None else f"{schedule}@{route}"
                     folder = out / name.replace(":", "_").replace("@", "_on_").replace("/", "-")

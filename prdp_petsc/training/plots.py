@@ -101,11 +101,21 @@ def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
             log_y=False,
         ),
     ]
-    if any(c["rollout"] for c in curves.values()):
+    rollouts = [np.asarray(c["rollout"]) for c in curves.values() if c["rollout"]]
+    if rollouts:
+        # a diverging rollout (a model trained with far too small K) must not squash
+        # the others: the scale ends at 10 x the largest error below 10
+        tame = [r.max() for r in rollouts if np.all(np.isfinite(r)) and r.max() < 10]
+        top = 10 * max(tame) if tame else None
 
         def rollout(ax, c, s):
             if c["rollout"]:
-                ax.plot(np.arange(1, len(c["rollout"]) + 1), c["rollout"], marker=".", **s)
+                r = np.asarray(c["rollout"])
+                label = s["label"] + (" (off scale)" if top and not r.max() <= top else "")
+                steps = np.arange(1, len(r) + 1)
+                ax.plot(steps, r, marker=".", **{**s, "label": label})
+                if top:
+                    ax.set_ylim(top=top)
 
         files.append(
             figure("rollout.png", "rollout step", "normalised error (trained model)", rollout)
