@@ -37,6 +37,13 @@ def _styles(names: list[str], k_fulls: dict[str, int]) -> dict[str, dict]:
     return styles
 
 
+def _top(series) -> float | None:
+    """Upper y-limit: 10 x the largest value of the curves that stay below 10, so that
+    a diverging run (far too small K) does not squash the others; None if none do."""
+    tame = [np.max(v) for v in series if np.all(np.isfinite(v)) and np.max(v) < 10]
+    return 10 * max(tame) if tame else None
+
+
 def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
     """Write ``error_vs_time.png``, ``error_vs_iterations.png``, ``k_schedule.png`` and,
     when the runs recorded one, ``rollout.png``.
@@ -65,7 +72,7 @@ def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
         }
     style = _styles(list(curves), k_fulls)
 
-    def figure(fname: str, xlabel: str, ylabel: str, draw, *, log_y: bool = True) -> str:
+    def figure(fname: str, xlabel: str, ylabel: str, draw, *, log_y=True, top=None) -> str:
         fig, ax = plt.subplots(figsize=(6, 4))
         for name, c in curves.items():
             draw(ax, c, style[name])
@@ -73,6 +80,8 @@ def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
         ax.set_ylabel(ylabel)
         if log_y:
             ax.set_yscale("log")
+        if top is not None:
+            ax.set_ylim(top=top)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
@@ -80,18 +89,21 @@ def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
         plt.close(fig)
         return fname
 
+    top = _top([c["val"] for c in curves.values()])
     files = [
         figure(
             "error_vs_time.png",
             "cumulative wall time [s]",
             "validation error",
             lambda ax, c, s: ax.plot(c["time"], c["val"], **s),
+            top=top,
         ),
         figure(
             "error_vs_iterations.png",
             "cumulative inner iterations (forward + adjoint)",
             "validation error",
             lambda ax, c, s: ax.plot(c["iters"], c["val"], **s),
+            top=top,
         ),
         figure(
             "k_schedule.png",
@@ -103,10 +115,7 @@ def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
     ]
     rollouts = [np.asarray(c["rollout"]) for c in curves.values() if c["rollout"]]
     if rollouts:
-        # a diverging rollout (a model trained with far too small K) must not squash
-        # the others: the scale ends at 10 x the largest error below 10
-        tame = [r.max() for r in rollouts if np.all(np.isfinite(r)) and r.max() < 10]
-        top = 10 * max(tame) if tame else None
+        top = _top(rollouts)
 
         def rollout(ax, c, s):
             if c["rollout"]:
@@ -114,10 +123,10 @@ def plot_compare(logs: dict, k_full: int | dict, out: Path) -> list[str]:
                 label = s["label"] + (" (off scale)" if top and not r.max() <= top else "")
                 steps = np.arange(1, len(r) + 1)
                 ax.plot(steps, r, marker=".", **{**s, "label": label})
-                if top:
-                    ax.set_ylim(top=top)
 
         files.append(
-            figure("rollout.png", "rollout step", "normalised error (trained model)", rollout)
+            figure(
+                "rollout.png", "rollout step", "normalised error (trained model)", rollout, top=top
+            )
         )
     return files
