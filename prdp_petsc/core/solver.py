@@ -13,29 +13,27 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-import warnings
 
 import numpy as np
 from petsc4py import PETSc
 
 from . import safeguards
+from .configuration import (
+    Configuration,
+    UnusedOptionWarning,
+    refuse_tolerance_options,
+    rejected_options_message,
+)
 from .nullspace import check_nullspace, normalize_nullspace, petsc_nullspace
 from .operator import OperatorMat
 from .options import (
     PushedOptions,
-    option_value,
     parse_options,
     prefixed_options,
 )
 from .results import SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings, check_tolerances
 from .step import SolveStep
-from .tolerances import (
-    Tolerances,
-    UnusedOptionWarning,
-    refuse_tolerance_options,
-    rejected_options_message,
-)
 
 __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
@@ -43,10 +41,9 @@ logger = logging.getLogger(__name__)
 
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
-_OFF = ("0", "false", "no")
 
 
-class KSPSolver(Tolerances):
+class KSPSolver(Configuration):
     """A PETSc KSP with a capped iteration count and a matching transpose solve.
 
     Parameters
@@ -205,31 +202,6 @@ class KSPSolver(Tolerances):
     def _alive(self) -> None:
         if self._ksp is None:
             raise RuntimeError("this KSPSolver was destroyed")
-
-    def _option_items(self) -> list[tuple[str, object]]:
-        """(name, value) pairs this solver writes into PETSc's database.
-
-        The adjoint inherits the forward options *as the forward KSP sees them*, so
-        ``-fwd_ksp_type cg`` on the command line changes both solves unless
-        ``-fwd_adj_ksp_type`` says otherwise.
-        """
-        exclude = self.adjoint_prefix if self.adjoint_prefix.startswith(self.prefix) else None
-        forward = {**self.options, **prefixed_options(self.prefix, exclude)}
-        adjoint = {**forward, **self._adjoint_own}
-        return [(self.prefix + k, v) for k, v in self.options.items()] + [
-            (self.adjoint_prefix + k, v) for k, v in adjoint.items()
-        ]
-
-    def _shares_pc(self) -> bool:
-        if any(k.startswith("pc_") for k in self._adjoint_own):
-            return False
-        cmdline = prefixed_options(self.adjoint_prefix)
-        # an explicit transpose re-points the adjoint's operators (and a shared PC) to Aᵀ
-        explicit = "ksp_use_explicittranspose"
-        for given in (self.adjoint_options, cmdline):
-            if explicit in given and option_value(given[explicit]) not in _OFF:
-                return False
-        return not any(k.startswith("pc_") for k in cmdline)
 
     def _build(self, comm) -> None:
         """Create and configure both KSPs on `comm`, fully or not at all."""
@@ -411,68 +383,6 @@ class KSPSolver(Tolerances):
             stats.forward_iterations += iterations
             stats.forward_time += elapsed
         return out.reshape(rhs.shape)
-
-    def _warn_unused(self, kind: str) -> None:
-        """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
-        prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
-        given = self._adjoint_own if kind == "adjoint" else self.options
-        names = {prefix + k for k in given}
-        if prefix:  # the command line under a prefix of its own
-            exclude = None if kind == "adjoint" else self.adjoint_prefix
-            names |= {prefix + k for k in prefixed_options(prefix, exclude)}
-        opts = PETSc.Options()
-        unused = sorted(n for n in names if n not in self._used and not opts.used(n))
-        if unused:
-            warnings.warn(
-                f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
-                f"{self._types(kind)}): "
-                + ", ".join("-" + n for n in unused)
-                + "; check their spelling (-help lists the options PETSc reads)",
-                UnusedOptionWarning,
-                stacklevel=4,
-            )
-
-    def _types(self, kind: str) -> str:
-        ksp = self._adj if kind == "adjoint" else self._ksp
-        return f"{ksp.getType()}/{ksp.getPC().getType()}"
-
-    def describe(self) -> dict:
-        """JSON-ready record of the solver: prefixes, tolerances, options and the
-        KSP/PC types PETSc really uses (command-line options included)."""
-        return {
-            "prefix": self.prefix,
-            "adjoint_prefix": self.adjoint_prefix,
-            "options": {k: option_value(v) for k, v in self.options.items()},
-            "adjoint_options": {k: option_value(v) for k, v in self._adjoint_own.items()},
-            "max_it": self._max_it,
-            "rtol": self._rtol,
-            "atol": self._atol,
-            "adjoint_max_it": self.adjoint_max_it,
-            "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
-            "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
-        }
-
-    def clone(self, **changes) -> KSPSolver:
-        """A new solver with the same settings, some of them changed.
-
-        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces and
-        the symmetry declaration are copied; keyword arguments (any of
-        `KSPSolver`'s) replace them.
-        """
-        kwargs = {
-            "options": dict(self.options),
-            "prefix": self.prefix,
-            "max_it": self._max_it,
-            "rtol": self._rtol,
-            "atol": self._atol,
-            "adjoint": self.adjoint,
-            "divtol": self._divtol,
-            "nullspace": self.nullspace,
-            "transpose_nullspace": self.transpose_nullspace,
-            "symmetric": self.declared_symmetric,
-        }
-        kwargs.update(changes)
-        return KSPSolver(**kwargs)
 
     def reset_stats(self) -> None:
         """Zero the counters in `stats`."""

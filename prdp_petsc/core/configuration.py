@@ -1,4 +1,4 @@
-"""Tolerances of a `KSPSolver` (properties applied to both KSPs) and option checks.
+"""How a `KSPSolver` is configured: tolerances (properties on both KSPs) and options.
 
 The PRDP controller owns ``max_it``, so tolerances are set by the program, never
 by options: `refuse_tolerance_options` says so for ``-<prefix>ksp_max_it`` and
@@ -8,19 +8,22 @@ friends, `rejected_options_message` names an option PETSc refused, and
 
 from __future__ import annotations
 
+import warnings
+
 from petsc4py import PETSc
 
-from .options import option_value
+from .options import option_value, prefixed_options
 from .settings import check_tolerances
 
 __all__ = [
-    "Tolerances",
+    "Configuration",
     "UnusedOptionWarning",
     "refuse_tolerance_options",
     "rejected_options_message",
 ]
 
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_divtol")
+_OFF = ("0", "false", "no")
 
 
 class UnusedOptionWarning(UserWarning):
@@ -32,14 +35,65 @@ class UnusedOptionWarning(UserWarning):
     """
 
 
-class Tolerances:
-    """``max_it``, ``rtol``, ``atol``, ``divtol`` and the adjoint cap of a `KSPSolver`.
+class Configuration:
+    """``max_it``, ``rtol``, ``atol``, ``divtol``, the adjoint cap and the options of a
+    `KSPSolver`: what PETSc is told, and what it never read.
 
     Each setter validates the value and applies it to the forward and adjoint KSPs
     at once (``KSPSetTolerances``), so it holds from the next solve on.  The class
-    expects ``_max_it``, ``_rtol``, ``_atol``, ``_divtol``, ``adjoint``, ``_ksp``
-    and ``_adj`` on the instance.
+    expects ``_max_it``, ``_rtol``, ``_atol``, ``_divtol``, ``adjoint``, ``_ksp``,
+    ``_adj``, ``options``, ``_adjoint_own``, the prefixes and ``_used`` on the
+    instance.
     """
+
+    def _option_items(self) -> list[tuple[str, object]]:
+        """(name, value) pairs this solver writes into PETSc's database.
+
+        The adjoint inherits the forward options *as the forward KSP sees them*, so
+        ``-fwd_ksp_type cg`` on the command line changes both solves unless
+        ``-fwd_adj_ksp_type`` says otherwise.
+        """
+        exclude = self.adjoint_prefix if self.adjoint_prefix.startswith(self.prefix) else None
+        forward = {**self.options, **prefixed_options(self.prefix, exclude)}
+        adjoint = {**forward, **self._adjoint_own}
+        return [(self.prefix + k, v) for k, v in self.options.items()] + [
+            (self.adjoint_prefix + k, v) for k, v in adjoint.items()
+        ]
+
+    def _shares_pc(self) -> bool:
+        if any(k.startswith("pc_") for k in self._adjoint_own):
+            return False
+        cmdline = prefixed_options(self.adjoint_prefix)
+        # an explicit transpose re-points the adjoint's operators (and a shared PC) to Aᵀ
+        explicit = "ksp_use_explicittranspose"
+        for given in (self.adjoint_options, cmdline):
+            if explicit in given and option_value(given[explicit]) not in _OFF:
+                return False
+        return not any(k.startswith("pc_") for k in cmdline)
+
+    def _warn_unused(self, kind: str) -> None:
+        """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
+        prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
+        given = self._adjoint_own if kind == "adjoint" else self.options
+        names = {prefix + k for k in given}
+        if prefix:  # the command line under a prefix of its own
+            exclude = None if kind == "adjoint" else self.adjoint_prefix
+            names |= {prefix + k for k in prefixed_options(prefix, exclude)}
+        opts = PETSc.Options()
+        unused = sorted(n for n in names if n not in self._used and not opts.used(n))
+        if unused:
+            warnings.warn(
+                f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
+                f"{self._types(kind)}): "
+                + ", ".join("-" + n for n in unused)
+                + "; check their spelling (-help lists the options PETSc reads)",
+                UnusedOptionWarning,
+                stacklevel=4,
+            )
+
+    def _types(self, kind: str) -> str:
+        ksp = self._adj if kind == "adjoint" else self._ksp
+        return f"{ksp.getType()}/{ksp.getPC().getType()}"
 
     @property
     def max_it(self) -> int:
@@ -107,6 +161,44 @@ class Tolerances:
             divtol=dt,
             max_it=self.adjoint_max_it,
         )
+
+    def describe(self) -> dict:
+        """JSON-ready record of the solver: prefixes, tolerances, options and the
+        KSP/PC types PETSc really uses (command-line options included)."""
+        return {
+            "prefix": self.prefix,
+            "adjoint_prefix": self.adjoint_prefix,
+            "options": {k: option_value(v) for k, v in self.options.items()},
+            "adjoint_options": {k: option_value(v) for k, v in self._adjoint_own.items()},
+            "max_it": self._max_it,
+            "rtol": self._rtol,
+            "atol": self._atol,
+            "adjoint_max_it": self.adjoint_max_it,
+            "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
+            "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
+        }
+
+    def clone(self, **changes) -> Configuration:
+        """A new solver with the same settings, some of them changed.
+
+        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces and
+        the symmetry declaration are copied; keyword arguments (any of
+        `KSPSolver`'s) replace them.
+        """
+        kwargs = {
+            "options": dict(self.options),
+            "prefix": self.prefix,
+            "max_it": self._max_it,
+            "rtol": self._rtol,
+            "atol": self._atol,
+            "adjoint": self.adjoint,
+            "divtol": self._divtol,
+            "nullspace": self.nullspace,
+            "transpose_nullspace": self.transpose_nullspace,
+            "symmetric": self.declared_symmetric,
+        }
+        kwargs.update(changes)
+        return type(self)(**kwargs)
 
 
 def refuse_tolerance_options(options: dict, where: str, use: str) -> None:
