@@ -76,10 +76,16 @@ def test_fastest_is_the_first_run_within_5_percent_of_full_fidelity():
         "fixed:10": _log([0.5, 0.2, 0.1], [2, 2, 2]),  # reaches 0.105 at 6 s
         "prdp": _log([0.5, 0.104, 0.1], [1, 1, 1]),  # at 2 s
         "fixed:3@cg/icc": _log([0.3, 0.2, 0.15], [0.5, 0.5, 0.5]),  # never
+        "fixed:2": _log([0.1, 0.2, 0.3], [0.1, 0.1, 0.1]),  # dips below, drifts back: never
     }
     best = fastest(logs, "fixed:10")
     assert best["target_val_error"] == pytest.approx(0.105)
-    assert best["seconds_to_target"] == {"fixed:10": 6, "prdp": 2, "fixed:3@cg/icc": None}
+    assert best["seconds_to_target"] == {
+        "fixed:10": 6,
+        "prdp": 2,
+        "fixed:3@cg/icc": None,
+        "fixed:2": None,
+    }
     assert best["winner"] == "prdp" and best["winner_seconds"] == 2
 
 
