@@ -9,10 +9,11 @@ variant, where P's singular values spread over many more decades.
 
 Learning problem (Holl et al., "Scale-invariant learning by physics inversion"): a
 network f(y*; φ) maps an observed solution y* = P(x_true) to the source x, for random
-smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``).  f is a linear
-`prdp_petsc.training.networks.MeshNet` (2 layers, 2 channels, learnable edge weights on
-A's pattern; input divided and output multiplied by fixed data scales): a sparse
-operator like the inverse physics ``M⁻¹ A`` it has to learn.  ``method`` selects the
+smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``).  f is a learnable
+sparse linear map on A's pattern (`SparseLinear`, one value per entry, starting at
+zero; input divided and output multiplied by fixed data scales): the class of the
+inverse physics ``M⁻¹ A`` it has to learn, up to mass lumping.  (A linear MeshNet was
+tried first and barely trained in a few epochs.)  ``method`` selects the
 training rule:
 
 ``dp_adam``
@@ -71,6 +72,8 @@ invisible in y, which is why the x-space metric separates the methods.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -79,6 +82,7 @@ import torch
 from skfem.models.poisson import mass
 
 import prdp_petsc as pp
+from prdp_petsc.training.scene import load_scene
 
 METHODS = ("dp_adam", "dp_sgd", "sip")
 
@@ -113,17 +117,9 @@ PREFIX = "sip_"
 
 
 def bumps(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` random fields: sums of 4 Gaussian bumps (centres in the bounding box)."""
-    lo, hi = points.min(axis=1), points.max(axis=1)
-    size = float(np.max(hi - lo))
-    fields = np.zeros((count, points.shape[1]))
-    for i in range(count):
-        for _ in range(4):
-            centre = lo + (hi - lo) * rng.random(len(lo))
-            width = size * rng.uniform(0.08, 0.25)
-            r2 = ((points - centre[:, None]) ** 2).sum(axis=0)
-            fields[i] += rng.uniform(-1, 1) * np.exp(-r2 / (2 * width**2))
-    return fields
+    """Random smooth sources: the Gaussian-bump fields of ``heat2d``."""
+    heat2d = load_scene(Path(__file__).with_name("heat2d.py"))
+    return heat2d.bumps(points, count, rng)
 
 
 def physics(refine: int = 0, contrast: float = 1.0):
