@@ -4,11 +4,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from prdp_petsc.training.harness import build_scene, find_k_full, run
 from prdp_petsc.training.scene import load_scene
 
 SCENE = Path(__file__).resolve().parent.parent / "demos" / "poisson_field.py"
+MODULE = load_scene(SCENE)
 
 
 @pytest.fixture(scope="module")
@@ -50,3 +52,22 @@ def test_full_fidelity_recovers_kappa_and_coarse_k_fails():
     assert full["totals"]["final_val_error"] < 0.3
     # the truncated solve misleads the gradient: the recovered κ is far off
     assert coarse["totals"]["final_val_error"] > 3 * full["totals"]["final_val_error"]
+
+
+def test_unrolled_and_implicit_modes_give_the_same_forward_loss():
+    """CG + Jacobi in torch (mode="unrolled") runs PETSc's iteration: same loss at equal K."""
+    losses = {}
+    for mode in ("implicit", "unrolled"):
+        torch.manual_seed(0)
+        scene = MODULE.build({**MODULE.PRESETS["quick"], "mode": mode, "steps": 1}, 0)
+        for solver in scene.solvers:
+            solver.max_it = 30
+        losses[mode] = float(scene.loss(None))
+    assert losses["unrolled"] == pytest.approx(losses["implicit"], rel=1e-10)
+
+
+def test_plot_fields_writes_a_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    theta = np.zeros(2808)  # κ = 1 on the quick mesh
+    MODULE.plot_fields(theta, tmp_path / "fields.png")
+    assert (tmp_path / "fields.png").stat().st_size > 10_000
