@@ -27,6 +27,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc.training.rollout import rollout_errors
+from prdp_petsc.training.scene import shuffled_batches
 
 PRESETS = {
     "quick": {
@@ -97,10 +98,6 @@ def build(config: dict, seed: int) -> pp.Scene:
     net = mlp(n)
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
 
-    def batches(epoch, generator):
-        order = torch.randperm(config["n_train"], generator=generator)
-        return [order[i : i + config["batch"]] for i in range(0, len(order), config["batch"])]
-
     def loss(idx):
         u_hat = net(train[0][idx])
         u2_hat = pp.solve(A, u_hat, solver)
@@ -115,7 +112,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     return pp.Scene(
         solvers=[solver],
         optimizer=optimizer,
-        batches=batches,
+        batches=shuffled_batches(config["n_train"], config["batch"]),
         loss=loss,
         validate=validate,
         rollout=rollout,

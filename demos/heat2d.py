@@ -40,6 +40,7 @@ from skfem.models.poisson import laplace, mass
 import prdp_petsc as pp
 from prdp_petsc.training.networks import MeshNet
 from prdp_petsc.training.rollout import rollout_errors
+from prdp_petsc.training.scene import shuffled_batches
 
 PRESETS = {
     "quick": {
@@ -145,10 +146,6 @@ def build_emulator(config: dict, seed: int, *, prefix: str) -> pp.Scene:
     net = MeshNet(A, channels=channels, layers=3, features=features, activation=None)
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
 
-    def batches(epoch, generator):
-        order = torch.randperm(n_train, generator=generator)
-        return [order[i : i + config["batch"]] for i in range(0, n_train, config["batch"])]
-
     def loss(idx):
         u1_hat = net(train_in[idx])
         rhs = (B_t @ u1_hat.T).T
@@ -164,7 +161,7 @@ def build_emulator(config: dict, seed: int, *, prefix: str) -> pp.Scene:
     return pp.Scene(
         solvers=[solver],
         optimizer=optimizer,
-        batches=batches,
+        batches=shuffled_batches(n_train, config["batch"]),
         loss=loss,
         validate=validate,
         rollout=rollout,

@@ -51,6 +51,7 @@ import torch
 import prdp_petsc as pp
 from prdp_petsc.training.networks import MeshNet
 from prdp_petsc.training.rollout import rollout_errors
+from prdp_petsc.training.scene import shuffled_batches
 
 PRESETS = {
     "quick": {
@@ -181,10 +182,6 @@ def build(config: dict, seed: int) -> pp.Scene:
         newton["steps"] += sol.iterations
         return sol.value
 
-    def batches(epoch, generator):
-        order = torch.randperm(len(train_in), generator=generator)
-        return [order[i : i + config["batch"]] for i in range(0, len(order), config["batch"])]
-
     def loss(idx):
         u1_hat = net(train_in[idx])
         u2_hat = torch.stack([newton_step(u) for u in u1_hat])
@@ -205,7 +202,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     return pp.Scene(
         solvers=[solver],
         optimizer=optimizer,
-        batches=batches,
+        batches=shuffled_batches(len(train_in), config["batch"]),
         loss=loss,
         validate=validate,
         rollout=rollout,

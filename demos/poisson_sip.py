@@ -82,7 +82,7 @@ import torch
 from skfem.models.poisson import mass
 
 import prdp_petsc as pp
-from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.scene import load_scene, shuffled_batches
 
 METHODS = ("dp_adam", "dp_sgd", "sip")
 
@@ -183,10 +183,6 @@ def build(config: dict, seed: int) -> pp.Scene:
     else:
         optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
 
-    def batches(epoch, generator):
-        order = torch.randperm(n_train, generator=generator)
-        return [order[i : i + config["batch"]] for i in range(0, n_train, config["batch"])]
-
     def loss(idx):
         x = f(y_star[idx])
         if method == "sip":
@@ -217,7 +213,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     return pp.Scene(
         solvers=[solver],
         optimizer=optimizer,
-        batches=batches,
+        batches=shuffled_batches(n_train, config["batch"]),
         loss=loss,
         validate=validate,
         rollout=rollout,

@@ -27,7 +27,7 @@ import torch
 
 from ..core.solver import KSPSolver
 
-__all__ = ["Scene", "load_scene"]
+__all__ = ["Scene", "load_scene", "shuffled_batches"]
 
 
 @dataclass
@@ -89,6 +89,17 @@ class Scene:
             raise ValueError(f"rtol_full must lie in (0, 1), got {self.rtol_full}")
         if self.epochs < 1:
             raise ValueError(f"epochs must be >= 1, got {self.epochs}")
+
+
+def shuffled_batches(n: int, size: int) -> Callable[[int, torch.Generator], list]:
+    """`Scene.batches` for n training samples: a fresh permutation per epoch, cut into
+    index tensors of `size` (the last one may be shorter)."""
+
+    def batches(epoch: int, generator: torch.Generator) -> list:
+        order = torch.randperm(n, generator=generator)
+        return [order[i : i + size] for i in range(0, n, size)]
+
+    return batches
 
 
 def load_scene(path: str | Path) -> ModuleType:
