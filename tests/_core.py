@@ -60,3 +60,15 @@ def fd_poisson(n: int = 8) -> sp.csr_matrix:
 def observed_rate(xs, ys) -> float:
     """Least-squares slope of log(ys) against log(xs)."""
     return float(np.polyfit(np.log(xs), np.log(ys), 1)[0])
+
+
+def taylor_rate(J, m, h, eps0=1e-2, halvings=6):
+    """Fitted rate of |J(m+εh) − J(m) − ε dJ·h| as ε halves (2 for a consistent gradient)."""
+    m = m.detach().clone().requires_grad_(True)
+    j0 = J(m)
+    (grad,) = torch.autograd.grad(j0, m)
+    slope = float(grad @ h)
+    eps = eps0 * 0.5 ** np.arange(halvings)
+    with torch.no_grad():
+        rem = [abs(float(J(m + e * h)) - float(j0) - e * slope) for e in eps]
+    return observed_rate(eps, rem)

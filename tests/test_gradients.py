@@ -14,9 +14,9 @@ import torch
 from _core import (
     CONVERGED,
     interior_operator,
-    observed_rate,
     randn,
     random_theta,
+    taylor_rate,
     unit_square,
 )
 from torch.autograd import gradcheck
@@ -147,18 +147,6 @@ def test_nonsymmetric_adjoint_is_true_transpose():
 
 
 # -- Taylor tests -----------------------------------------------------------------------
-
-
-def taylor_rate(J, m, h, eps0=1e-2, halvings=6):
-    """Fitted rate of |J(m+εh) − J(m) − ε dJ·h| as ε halves (2 for a consistent gradient)."""
-    m = m.detach().clone().requires_grad_(True)
-    j0 = J(m)
-    (grad,) = torch.autograd.grad(j0, m)
-    slope = float(grad @ h)
-    eps = eps0 * 0.5 ** np.arange(halvings)
-    with torch.no_grad():
-        rem = [abs(float(J(m + e * h)) - float(j0) - e * slope) for e in eps]
-    return observed_rate(eps, rem)
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import scipy.optimize
 import scipy.sparse as sp
 import skfem
 import torch
-from _core import observed_rate, randn, unit_square
+from _core import observed_rate, randn, taylor_rate, unit_square
 
 import prdp_petsc as pp
 from prdp_petsc.autograd.nonlinear import NonlinearProblem, newton_solve
@@ -24,18 +24,6 @@ TIGHT = {"rtol": 1e-13, "atol": 1e-14}  # outer loop to rounding level
 
 def converged(options=GMRES, **kwargs):
     return pp.KSPSolver(options, max_it=1000, rtol=1e-14, atol=1e-50, **kwargs)
-
-
-def taylor_rate(J, m, h, eps0=1e-2, halvings=6):
-    """Fitted rate of |J(m+εh) − J(m) − ε dJ·h| as ε halves (2 for a consistent gradient)."""
-    m = m.detach().clone().requires_grad_(True)
-    j0 = J(m)
-    (grad,) = torch.autograd.grad(j0, m)
-    slope = float(grad @ h)
-    eps = eps0 * 0.5 ** np.arange(halvings)
-    with torch.no_grad():
-        rem = [abs(float(J(m + e * h)) - float(j0) - e * slope) for e in eps]
-    return observed_rate(eps, rem)
 
 
 def heat_inputs(refine=2, dt=0.05, seed=0):
