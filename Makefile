@@ -8,6 +8,7 @@
 #                             the venv sees system site-packages and PETSc is
 #                             not built.
 #   PYTHON=python3.12         interpreter used to create .venv.
+#   MPIEXEC=mpiexec           MPI launcher of the two-rank tests (tests/mpi).
 
 SHELL := /bin/bash
 PYTHON ?= python3
@@ -20,11 +21,15 @@ DEB_PKGS := libopenmpi-dev openmpi-bin libopenblas-dev
 PETSC_SPEC := petsc>=3.26,<3.27
 PETSC4PY_SPEC := petsc4py>=3.26,<3.27
 OUT ?= results
+MPIEXEC ?= mpiexec
+# Open MPI refuses root without the first two, and more ranks than cores without the third
+MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1
 
 .PHONY: test demo setup lint bench clean
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+	$(MPI_ENV) timeout 900 $(MPIEXEC) -n 2 $(PY) -m pytest -q -p no:cacheprovider tests/mpi
 
 demo: $(STAMP)
 	$(PY) -m prdp_petsc.cli compare demos/heat1d.py --preset paper --out $(OUT)/heat1d
@@ -67,7 +72,7 @@ $(STAMP):
 	  fi; \
 	fi; \
 	$(PIP) install -q -c $(CONSTRAINTS) torch; \
-	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[test,dev]"; \
+	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[test,dev,mpi]"; \
 	$(PY) -c "import petsc4py, torch, skfem, prdp_petsc; from petsc4py import PETSc; \
 	print('>> PETSc', '.'.join(map(str, PETSc.Sys.getVersion())), '| torch', torch.__version__, '| scikit-fem ok')"; \
 	rm -f $(VENV)/.installed-*; touch $@

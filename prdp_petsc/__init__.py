@@ -43,6 +43,7 @@ _EXPORTS = {
     "Scene": ".training.scene",
     "AdjointSettings": ".core.settings",
     "KSPSolver": ".core.solver",
+    "use_comm": ".core.parallel",
     "SolveInfo": ".core.results",
     "SolverError": ".core.results",
     "SolverStats": ".core.results",

@@ -3,9 +3,11 @@
 Sub-commands::
 
     prdp-petsc run SCENE_FILE [--schedule prdp|fixed:K] [--preset quick|paper]
-                   [--epochs N] [--seed S] [--threads T] --out DIR [PETSc options]
+                   [--epochs N] [--seed S] [--threads T] [--parallel domain|batch]
+                   --out DIR [PETSc options]
     prdp-petsc compare SCENE_FILE [--preset ...] [--epochs N] [--seed S]
-                   [--threads T] [--routes cg/icc,cg/gamg] --out DIR [PETSc options]
+                   [--threads T] [--routes cg/icc,cg/gamg] [--parallel domain|batch]
+                   --out DIR [PETSc options]
     prdp-petsc bench bridge --out DIR
     prdp-petsc work-precision PROBLEM --out DIR
     prdp-petsc stability --out DIR
@@ -14,6 +16,10 @@ Arguments that start with a single ``-`` and are not ours are PETSc options
 (``-heat_ksp_type cg -heat_ksp_monitor -log_view``): PETSc starts with them
 (``petsc4py.init``), so the scene's KSPs read them at ``KSPSetFromOptions`` and
 start-up options such as ``-log_view`` work as in any PETSc program.
+
+``--parallel domain|batch`` uses the ranks of ``mpiexec -n P``: distributed solves,
+or a split of every mini-batch (see `prdp_petsc.training.parallel`).  An error on
+one rank then aborts all of them (``MPI_Abort``) instead of leaving them waiting.
 
 Exit status: 0 on success; 1 if a run stopped early (diverged solve, invalid
 input) or on an error, which prints one line (``--debug`` shows the traceback);
@@ -67,6 +73,13 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
             type=_positive_int,
             default=1,
             help="torch threads (default 1: honest wall times on a shared machine)",
+        )
+        p.add_argument(
+            "--parallel",
+            choices=("domain", "batch"),
+            default=None,
+            help="under mpiexec: distribute every solve (domain) or split every "
+            "mini-batch across the ranks (batch)",
         )
         p.add_argument("--out", required=True, help="output folder")
         p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -155,7 +168,10 @@ def _run_scene_command(args, scene_file: str) -> int:
             out=args.out,
             progress=not args.no_progress,
             threads=args.threads,
+            parallel=args.parallel,
         )
+        if not _is_root(args):
+            return 1 if result["stopped"] else 0
         print(json.dumps(result["totals"], indent=1))
         if result["stopped"]:
             stop = result["stopped"]
@@ -171,7 +187,10 @@ def _run_scene_command(args, scene_file: str) -> int:
         progress=not args.no_progress,
         threads=args.threads,
         routes=args.routes,
+        parallel=args.parallel,
     )
+    if not _is_root(args):
+        return 1 if stopped_runs(summary) else 0
     print(format_table(summary))
     print(f"results in {args.out}/ (summary.json, " + ", ".join(summary.get("plots", [])) + ")")
     stopped = stopped_runs(summary)
@@ -181,7 +200,26 @@ def _run_scene_command(args, scene_file: str) -> int:
     return 0
 
 
-def _guarded(command, debug: bool, out: str | None = None) -> int:
+def _is_root(args) -> bool:
+    """False on the ranks other than 0 of a ``--parallel`` run (they print nothing)."""
+    if getattr(args, "parallel", None) is None:
+        return True
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD.Get_rank() == 0
+
+
+def _abort_others(args) -> None:
+    """After an error in a ``--parallel`` run, stop every rank (none waits forever)."""
+    if getattr(args, "parallel", None) is not None:
+        from mpi4py import MPI
+
+        if MPI.COMM_WORLD.Get_size() > 1:
+            sys.stderr.flush()
+            MPI.COMM_WORLD.Abort(1)
+
+
+def _guarded(command, debug: bool, out: str | None = None, args=None) -> int:
     """Run ``command()``; an error prints one line (unless ``debug``) and returns 1."""
     try:
         return command()
@@ -199,6 +237,7 @@ def _guarded(command, debug: bool, out: str | None = None) -> int:
             f"prdp-petsc: error: {type(err).__name__}: {message} (--debug shows the traceback)",
             file=sys.stderr,
         )
+        _abort_others(args)
         return 1
 
 
@@ -207,7 +246,7 @@ def _scene_command(parser: argparse.ArgumentParser, argv: list[str], scene_file=
     args = parser.parse_args(ours)
     init_petsc(petsc)
     scene = scene_file if scene_file is not None else args.scene
-    return _guarded(lambda: _run_scene_command(args, scene), args.debug, args.out)
+    return _guarded(lambda: _run_scene_command(args, scene), args.debug, args.out, args)
 
 
 def scene_main(scene_file: str, argv: list[str] | None = None) -> int:

@@ -176,14 +176,15 @@ class Configuration:
             "adjoint_max_it": self.adjoint_max_it,
             "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
             "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
+            "ranks": self.ksp.getComm().getSize(),
         }
 
     def clone(self, **changes) -> Configuration:
         """A new solver with the same settings, some of them changed.
 
-        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces and
-        the symmetry declaration are copied; keyword arguments (any of
-        `KSPSolver`'s) replace them.
+        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces, the
+        symmetry declaration and the communicator are copied; keyword arguments
+        (any of `KSPSolver`'s) replace them.
         """
         kwargs = {
             "options": dict(self.options),
@@ -196,6 +197,7 @@ class Configuration:
             "nullspace": self.nullspace,
             "transpose_nullspace": self.transpose_nullspace,
             "symmetric": self.declared_symmetric,
+            "comm": self.comm,
         }
         kwargs.update(changes)
         return type(self)(**kwargs)

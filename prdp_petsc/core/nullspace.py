@@ -59,10 +59,13 @@ def petsc_nullspace(spec, mat: PETSc.Mat) -> PETSc.NullSpace:
     vecs = []
     for row in spec:
         v = mat.createVecRight()
-        if v.getLocalSize() != row.size:
+        start, end = v.getOwnershipRange()
+        if row.size == v.getSize():  # full length (the replicated layout, or one rank)
+            row = row[start:end]
+        elif v.getLocalSize() != row.size:
             raise ValueError(
                 f"null-space vectors have {row.size} entries, the operator has "
-                f"{v.getLocalSize()} local columns"
+                f"{v.getSize()} columns ({v.getLocalSize()} on this rank)"
             )
         v.array[:] = row
         vecs.append(v)

@@ -1,7 +1,9 @@
 """The PETSc Mat behind a `KSPSolver`, kept in step with the caller's operator.
 
 A scipy CSR matrix (or a tuple ``(indptr, indices, data, shape)``) becomes a
-``MATSEQAIJ`` once; later operators with the same pattern only update its values
+``MATAIJ`` once (sequential, or on a larger communicator an MPIAIJ that holds
+this rank's rows of the full CSR matrix every rank passes: see
+`prdp_petsc.core.parallel`); later operators with the same pattern only update its values
 (``MatSetValuesCSR``), and operators with unchanged values change nothing, so
 PETSc sets the preconditioner up again only when the values really changed.
 Symmetry decides which maths the adjoint runs, so it is declared by the caller
@@ -14,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
+from .parallel import ownership_range
 from .sparsity import mirror_symmetric, transpose_permutation
 
 __all__ = ["OperatorMat", "as_csr"]
@@ -49,10 +52,16 @@ class OperatorMat:
     version : int
         Increases whenever the Mat or its values change: a caller that remembers
         it can tell in O(1) whether the Mat still holds its operator.
+    replicated : bool
+        True when the Mat was made here from a CSR matrix every rank holds in full
+        (vectors are full length), False for a caller's Mat (vectors hold the
+        rank's own rows).
     """
 
-    def __init__(self):
+    def __init__(self, comm=None):
+        self.comm = PETSc.COMM_SELF if comm is None else comm
         self.mat: PETSc.Mat | None = None
+        self.replicated = True
         self.symmetric = False
         self.version = 0
         self._owned = False
@@ -74,6 +83,7 @@ class OperatorMat:
                 return "same"
             self.destroy()
             self.mat = A
+            self.replicated = False
             self._declared = symmetric
             self.refresh_symmetry()
             self.version += 1
@@ -95,8 +105,7 @@ class OperatorMat:
             if np.array_equal(data, self._values):
                 self._data = data
                 return self._redeclare(symmetric)
-            self.mat.setValuesCSR(self._pattern[0], self._pattern[1], data)
-            self.mat.assemble()
+            self._set_values(data)
             self._values = data.copy()
             self._source = (indptr, indices)
             self._data = data
@@ -106,10 +115,10 @@ class OperatorMat:
         self.destroy()
         ip = np.asarray(indptr, dtype=PETSc.IntType)
         ix = np.asarray(indices, dtype=PETSc.IntType)
-        self.mat = PETSc.Mat().createAIJ(size=shape, csr=(ip, ix, data), comm=PETSc.COMM_SELF)
-        self.mat.assemble()
-        self._owned = True
         self._pattern = (ip, ix, shape)
+        self._make_mat(data)
+        self._owned = True
+        self.replicated = True
         self._source = (indptr, indices)
         self._values = data.copy()
         self._data = data
@@ -117,6 +126,31 @@ class OperatorMat:
         self._mark_symmetry(symmetric)
         self.version += 1
         return "new"
+
+    def _local_rows(self, data: np.ndarray) -> tuple:
+        """This rank's rows of the CSR pattern and of `data` (all of them on one rank)."""
+        ip, ix, shape = self._pattern
+        if self.comm.getSize() == 1:
+            return ip, ix, data
+        start, end = ownership_range(shape[0], self.comm)
+        lo, hi = int(ip[start]), int(ip[end])
+        return ip[start : end + 1] - ip[start], ix[lo:hi], data[lo:hi]
+
+    def _make_mat(self, data: np.ndarray) -> None:
+        shape = self._pattern[2]
+        ip, ix, local = self._local_rows(data)
+        if self.comm.getSize() == 1:
+            size = shape
+        else:
+            rows = len(ip) - 1
+            size = ((rows, shape[0]), (rows, shape[1]))
+        self.mat = PETSc.Mat().createAIJ(size=size, csr=(ip, ix, local), comm=self.comm)
+        self.mat.assemble()
+
+    def _set_values(self, data: np.ndarray) -> None:
+        ip, ix, local = self._local_rows(data)
+        self.mat.setValuesCSR(ip, ix, local)
+        self.mat.assemble()
 
     def _redeclare(self, symmetric: bool | None) -> str:
         """Unchanged values: ``"same"``, unless the symmetry declaration changed."""

@@ -31,6 +31,7 @@ from .options import (
     parse_options,
     prefixed_options,
 )
+from .parallel import RowLayout, as_petsc_comm
 from .results import SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings, check_tolerances
 from .step import SolveStep
@@ -81,6 +82,13 @@ class KSPSolver(Configuration):
         ``False``, or ``None`` (default) to take the operator's own declaration
         (`ParametricMatrix.symmetric`, the ``symmetric=`` of `set_operator`) or
         else test every entry against its mirror whenever the values change.
+    comm : PETSc.Comm or mpi4py communicator, optional
+        Communicator of the KSPs and of the Mat made from a scipy operator
+        (default: `prdp_petsc.core.parallel.default_comm`, i.e. ``COMM_SELF``
+        unless inside ``use_comm``).  On more than one rank every solve is
+        collective: each rank passes the same full operator and right-hand sides,
+        keeps its own rows in an MPIAIJ matrix, and gets the full solution back
+        (the *replicated* layout of `prdp_petsc.core.parallel`).
 
     Notes
     -----
@@ -88,7 +96,9 @@ class KSPSolver(Configuration):
     same under the adjoint prefix (``-{prefix}adj_ksp_type``).  The KSPs are built
     at construction, so a bad option value raises ``ValueError`` here, and after
     the first forward (adjoint) solve an option of this solver that PETSc never
-    read (a misspelt ``pc_typ``) is named in an `UnusedOptionWarning`.  Tolerances are
+    read (a misspelt ``pc_typ``) is named in an `UnusedOptionWarning`.  Given a
+    caller's distributed PETSc Mat, vectors hold this rank's rows only (the
+    *owned* layout).  Tolerances are
     set from the keyword arguments, not from options, because the PRDP controller
     owns ``max_it``: ``-{prefix}ksp_max_it`` / ``ksp_rtol`` / ``ksp_atol`` /
     ``ksp_divtol`` in the options or on the command line are refused.  The KSPs
@@ -119,8 +129,10 @@ class KSPSolver(Configuration):
         nullspace=None,
         transpose_nullspace=None,
         symmetric: bool | None = None,
+        comm=None,
     ):
         check_tolerances(max_it, rtol, atol)
+        self.comm = as_petsc_comm(comm)
         if divtol is not None and not (np.isfinite(divtol) and divtol > 0):
             raise ValueError(f"divtol must be finite and > 0, got {divtol!r}")
         self.options = parse_options(options)
@@ -162,12 +174,13 @@ class KSPSolver(Configuration):
         )
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
-        self._op = OperatorMat()
+        self._op = OperatorMat(self.comm)
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
+        self._layout: RowLayout | None = None
         self._ksp: PETSc.KSP | None = None
         self._adj: PETSc.KSP | None = None
-        self._build(PETSc.COMM_SELF)
+        self._build(self.comm)
 
     # -- PETSc objects ------------------------------------------------------------
     @property
@@ -246,11 +259,14 @@ class KSPSolver(Configuration):
     def destroy(self) -> None:
         """Free the KSPs, the Mat made here and the work vectors; the solver is unusable."""
         self._op.destroy()
-        for vec in (self._x, self._b):
-            if vec is not None:
-                vec.destroy()
-        self._x = self._b = None
+        self._free_vecs()
         self._destroy_ksps()
+
+    def _free_vecs(self) -> None:
+        for obj in (self._x, self._b, self._layout):
+            if obj is not None:
+                obj.destroy()
+        self._x = self._b = self._layout = None
 
     def _destroy_ksps(self) -> None:
         for obj in (self._ksp, self._adj):
@@ -299,10 +315,9 @@ class KSPSolver(Configuration):
                 ksp.reset()
         self._ksp.setOperators(mat)
         self._adj.setOperators(mat)
-        for vec in (self._x, self._b):
-            if vec is not None:
-                vec.destroy()
+        self._free_vecs()
         self._x, self._b = mat.createVecs()
+        self._layout = RowLayout(self._b, replicated=self._op.replicated)
         self.stats.operator_updates += 1
 
     def _check_nullspaces(self) -> None:
@@ -341,15 +356,16 @@ class KSPSolver(Configuration):
         mat = self.mat
         rhs = np.asarray(rhs, dtype=np.float64)
         batch = rhs.reshape(-1, rhs.shape[-1])
-        if batch.shape[1] != self._b.getLocalSize():
+        layout = self._layout
+        if batch.shape[1] != layout.size:
+            rows = "rows" if layout.replicated or not layout.distributed else "local rows"
             raise ValueError(
-                f"right-hand side has {batch.shape[1]} entries, operator has "
-                f"{self._b.getLocalSize()} local rows"
+                f"right-hand side has {batch.shape[1]} entries, operator has {layout.size} {rows}"
             )
         kind = "adjoint" if transpose else "forward"
         ksp = self._adj if transpose else self._ksp
         as_transpose = transpose and not self._adjoint_is_forward()
-        step = SolveStep(ksp, mat, self._b, self._x, kind, as_transpose)
+        step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
         out = np.empty_like(batch)
         exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
         check = self._unchecked[kind]

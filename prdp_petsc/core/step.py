@@ -28,23 +28,26 @@ class SolveStep:
         The operator (for the rescue's backward-error check).
     b_vec, x_vec : PETSc.Vec
         Work vectors, reused for every row.
+    layout : RowLayout
+        How rows and results map onto the Vecs (`prdp_petsc.core.parallel`).
     kind : {"forward", "adjoint"}
         Named in error messages.
     transpose : bool
         Run ``KSPSolveTranspose`` instead of ``KSPSolve``.
     """
 
-    __slots__ = ("ksp", "mat", "b_vec", "x_vec", "kind", "transpose", "run", "_last")
+    __slots__ = ("ksp", "mat", "b_vec", "x_vec", "layout", "kind", "transpose", "run", "_last")
 
-    def __init__(self, ksp, mat, b_vec, x_vec, kind: str, transpose: bool):
+    def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool):
         self.ksp, self.mat, self.kind, self.transpose = ksp, mat, kind, transpose
-        self.b_vec, self.x_vec = b_vec, x_vec
+        self.b_vec, self.x_vec, self.layout = b_vec, x_vec, layout
         self.run = ksp.solveTranspose if transpose else ksp.solve
         self._last: SolveInfo | int | None = None  # exponent of the last row, or its info
 
     def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
         """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
         ksp, x_vec = self.ksp, self.x_vec
+        row = self.layout.local(row)
         self.b_vec.setArray(np.ldexp(row, -exponent) if exponent else row)
         x_vec.set(0.0)
         atol = ksp.getTolerances()[1] if exponent else 0.0
@@ -67,7 +70,7 @@ class SolveStep:
             raise self._diverged(self._last)
         else:
             self._last = exponent  # the SolveInfo is read from the KSP when asked for
-        x = x_vec.getArray(readonly=True)
+        x = self.layout.gather(x_vec)
         out[:] = np.ldexp(x, exponent) if exponent else x
         return ksp.getIterationNumber() + rescued
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..prdp import savings
 from .harness import build_scene, check_epochs, find_k_full, run, torch_threads, write_json
+from .parallel import Parallel
 from .routes import fastest, parse_route, route_options
 from .scene import load_scene
 
@@ -37,6 +38,7 @@ def compare(
     plots: bool = True,
     threads: int = 1,
     routes: tuple[str, ...] | list[str] = (),
+    parallel: str | None = None,
 ) -> dict:
     """PRDP against constant K_full and constant coarse Ks; write ``summary.json``.
 
@@ -58,6 +60,9 @@ def compare(
         solver prefix of the scene (`prdp_petsc.training.routes`), as
         ``"prdp@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in the summary says
         which run reached the full-fidelity validation error in the least wall time.
+    parallel : {None, "domain", "batch"}
+        Every run uses the MPI ranks this way (`prdp_petsc.training.parallel`);
+        rank 0 writes the files.
 
     Returns
     -------
@@ -79,15 +84,18 @@ def compare(
     for route in routes:
         parse_route(route)
     module = load_scene(scene_file)
+    ranks = Parallel(parallel)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if ranks.root:
+        out.mkdir(parents=True, exist_ok=True)
     scene_name = Path(scene_file).stem
-    with torch_threads(threads):
+    write = write_json if ranks.root else lambda path, data: None
+    with torch_threads(threads), ranks.solvers():
         scene = build_scene(module, preset, seed)
         k_full = find_k_full(scene)
         # warm-up (imports, PETSc and torch first-call costs) so the first timed run is fair
         run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False,
-            threads=threads, module=module)  # fmt: skip
+            threads=threads, module=module, parallel=parallel)  # fmt: skip
         coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
         schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
         prefixes = [s.prefix for s in scene.solvers]
@@ -118,6 +126,7 @@ def compare(
                         threads=threads,
                         module=module,
                         prdp=_prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full)),
+                        parallel=parallel,
                     )
             except KeyboardInterrupt:
                 # the interrupted run has written what it measured: summarise it too
@@ -125,11 +134,12 @@ def compare(
                 if results is not None and results.is_file():
                     logs[name] = json.loads(results.read_text())
                 interrupted = summarize(scene_name, k_fulls, logs, threads=threads)
-                write_json(out / "summary.json", interrupted)
+                write(out / "summary.json", interrupted)
                 raise
     summary = summarize(scene_name, k_fulls, logs, threads=threads)
-    write_json(out / "summary.json", summary)
-    if plots:
+    summary["parallel"] = ranks.describe()
+    write(out / "summary.json", summary)
+    if plots and ranks.root:
         from .plots import plot_compare
 
         summary["plots"] = plot_compare(logs, k_fulls, out)

@@ -25,6 +25,7 @@ import torch
 from ..core.results import SolverError
 from ..core.solver import KSPSolver
 from ..prdp import PRDP
+from .parallel import Parallel
 from .scene import load_scene
 
 __all__ = [
@@ -165,6 +166,7 @@ def run(
     threads: int = 1,
     module=None,
     prdp: dict | None = None,
+    parallel: str | None = None,
 ) -> dict:
     """Train a scene once; return (and write to ``out/results.json``) the per-epoch log.
 
@@ -186,6 +188,10 @@ def run(
     prdp : dict, optional
         Settings of `prdp_petsc.PRDP` that replace the scene's (``compare`` caps K
         at K_full with ``{"k_max": K_full}``); recorded in results.
+    parallel : {None, "domain", "batch"}
+        Use the ranks of ``MPI.COMM_WORLD`` (start under ``mpiexec``): distributed
+        solves, or a split of every mini-batch (`prdp_petsc.training.parallel`).
+        Rank 0 writes ``results.json``; every rank returns the same result.
 
     Returns
     -------
@@ -206,28 +212,34 @@ def run(
     epochs = check_epochs(epochs)
     fixed_k = parse_schedule(schedule)
     module = module or load_scene(scene_file)
+    ranks = Parallel(parallel)
     with torch_threads(threads):
-        scene = build_scene(module, preset, seed)
+        with ranks.solvers():
+            scene = build_scene(module, preset, seed)
         result = {
             "scene": Path(scene_file).stem,
             "schedule": schedule,
             "preset": preset,
             "seed": seed,
             "threads": threads,
+            "parallel": ranks.describe(),
             "info": scene.info,
             "solvers": [s.describe() for s in scene.solvers],
             "epochs": [],
             "stopped": None,
         }
-        out = Path(out) if out is not None else None
+        out = Path(out) if out is not None and ranks.root else None
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
         try:
             scene.prdp = {**scene.prdp, **(prdp or {})}
             result["prdp"] = scene.prdp if fixed_k is None else None
-            _train(scene, result, fixed_k, epochs or scene.epochs, seed, out, progress)
+            _train(
+                scene, result, fixed_k, epochs or scene.epochs, seed, out,
+                progress and ranks.root, ranks,
+            )  # fmt: skip
             if scene.rollout is not None and not result["stopped"]:
-                result["rollout"] = [float(e) for e in scene.rollout()]
+                result["rollout"] = ranks.rollout(scene)
         except KeyboardInterrupt:
             epoch = len(result["epochs"])
             logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
@@ -245,7 +257,9 @@ def run(
     return result
 
 
-def _train(scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: bool) -> None:
+def _train(
+    scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: bool, ranks: Parallel
+) -> None:
     """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place."""
     from tqdm.auto import tqdm
 
@@ -265,16 +279,10 @@ def _train(scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: 
                 s.reset_stats()
             t0 = time.perf_counter()
             try:
-                losses = []
-                for batch in scene.batches(epoch, generator):
-                    scene.optimizer.zero_grad()
-                    loss = scene.loss(batch)
-                    loss.backward()
-                    scene.optimizer.step()
-                    losses.append(float(loss.detach()))
+                losses = [ranks.step(scene, batch) for batch in scene.batches(epoch, generator)]
                 if scene.scheduler is not None:
                     scene.scheduler.step()
-                metric = float(scene.validate())
+                metric = ranks.validate(scene)
             except SolverError as err:
                 logger.error("epoch %d: %s", epoch, err)
                 result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
@@ -289,6 +297,11 @@ def _train(scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: 
                 return
             wall = time.perf_counter() - t0
             stats = [s.stats for s in scene.solvers]
+            fwd, adj, solver_time = ranks.totals(
+                sum(s.forward_iterations for s in stats),
+                sum(s.adjoint_iterations for s in stats),
+                sum(s.forward_time + s.adjoint_time for s in stats),
+            )
             result["epochs"].append(
                 {
                     "epoch": epoch,
@@ -296,14 +309,14 @@ def _train(scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: 
                     "train_loss": float(np.mean(losses)) if losses else math.nan,
                     "val_metric": metric,
                     "wall_time": wall,
-                    "fwd_iterations": sum(s.forward_iterations for s in stats),
-                    "adj_iterations": sum(s.adjoint_iterations for s in stats),
-                    "solver_time": sum(s.forward_time + s.adjoint_time for s in stats),
+                    "fwd_iterations": fwd,
+                    "adj_iterations": adj,
+                    "solver_time": solver_time,
                 }
             )
             bar.set_postfix(K=k, val=f"{metric:.3e}")
             if controller is not None:
-                k = controller.update(metric)
+                k = ranks.agree(controller.update(metric))
             result["totals"] = _totals(result["epochs"])
             if out is not None:
                 write_json(out / "results.json", result)

@@ -1,0 +1,106 @@
+"""Training on two ranks gives the serial training's numbers.
+
+``batch``: each rank trains on its half of every mini-batch and the gradients are
+summed, so the parameters equal serial training with the same global batch (to
+round-off).  ``domain``: every solve is distributed; the run equals the serial one.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from _mpi import COMM, all_ranks, same_on_all_ranks
+
+from prdp_petsc.core.results import SolverError
+from prdp_petsc.training.harness import build_scene, run
+from prdp_petsc.training.parallel import Parallel
+from prdp_petsc.training.scene import load_scene, shuffled_batches
+
+DEMOS = Path(__file__).resolve().parents[2] / "demos"
+
+
+def _params(scene) -> np.ndarray:
+    params = [p for g in scene.optimizer.param_groups for p in g["params"]]
+    return torch.cat([p.detach().reshape(-1) for p in params]).numpy().copy()
+
+
+def _train(scene, ranks: Parallel, epochs: int) -> list[float]:
+    generator = torch.Generator().manual_seed(0)
+    losses = []
+    for epoch in range(epochs):
+        for s in scene.solvers:
+            s.max_it = 4
+        losses += [ranks.step(scene, batch) for batch in scene.batches(epoch, generator)]
+    return losses
+
+
+def test_batch_parallel_parameters_equal_serial_training():
+    module = load_scene(DEMOS / "heat1d.py")
+    serial, split = (build_scene(module, "quick", seed=3) for _ in range(2))
+    # batches of 7 (40 samples): 4 + 3 per rank and a last batch of 5, so a wrong
+    # weighting of the ranks' shares would show
+    serial.batches = split.batches = shuffled_batches(40, 7)
+    losses_serial = _train(serial, Parallel(None), epochs=3)
+    losses_split = _train(split, Parallel("batch"), epochs=3)
+    expected, got = _params(serial), _params(split)
+    assert not np.allclose(got, _params(build_scene(module, "quick", seed=3)))  # it trained
+    rel = np.abs(got - expected).max() / np.abs(expected).max()
+    assert all_ranks(rel <= 1e-12), rel
+    assert all_ranks(np.allclose(losses_split, losses_serial, rtol=1e-12, atol=0))
+    assert same_on_all_ranks(got)
+
+
+def _epochs(result, key):
+    return np.array([e[key] for e in result["epochs"]])
+
+
+@pytest.mark.parametrize(
+    "scene, mode",
+    [("heat1d.py", "batch"), ("heat2d.py", "domain"), ("poisson_inverse.py", "domain")],
+)
+def test_run_equals_serial_run(scene, mode, tmp_path):
+    """``run(parallel=...)`` on two ranks reproduces the serial run: same K schedule,
+    losses and validation errors; iteration totals count every rank's work."""
+    kwargs = {"preset": "quick", "epochs": 4, "seed": 1, "progress": False}
+    serial = run(DEMOS / scene, "prdp", **kwargs)
+    out = Path(COMM.bcast(str(tmp_path), root=0))
+    parallel = run(DEMOS / scene, "prdp", out=out, parallel=mode, **kwargs)
+    assert all_ranks(parallel["stopped"] is None and serial["stopped"] is None)
+    assert all_ranks(np.array_equal(_epochs(parallel, "k"), _epochs(serial, "k")))
+    for key in ("train_loss", "val_metric"):
+        got, expected = _epochs(parallel, key), _epochs(serial, key)
+        assert all_ranks(np.allclose(got, expected, rtol=1e-9, atol=0)), (key, got, expected)
+    # the same solves ran (split across ranks for batch, collectively for domain)
+    total = parallel["totals"]["fwd_iterations"] + parallel["totals"]["adj_iterations"]
+    assert all_ranks(
+        total == serial["totals"]["fwd_iterations"] + serial["totals"]["adj_iterations"]
+    )
+    assert parallel["parallel"] == {"mode": mode, "ranks": COMM.Get_size()}
+    assert all_ranks((out / "results.json").is_file())  # rank 0 wrote it
+    assert same_on_all_ranks(_epochs(parallel, "val_metric"))
+
+
+class _Failing:
+    """A scene whose loss fails on rank 1 only: every rank must stop, none may hang."""
+
+    def __init__(self):
+        self.weight = torch.nn.Parameter(torch.ones(2, dtype=torch.float64))
+        self.optimizer = torch.optim.SGD([self.weight], lr=0.1)
+
+    def loss(self, idx):
+        if COMM.Get_rank() == 1:
+            raise SolverError("forward solve diverged: DIVERGED_DTOL", reason="DIVERGED_DTOL")
+        return (self.weight**2).sum() * len(idx)
+
+
+def test_a_failed_solve_on_one_rank_stops_every_rank():
+    with pytest.raises(SolverError) as caught:
+        Parallel("batch").step(_Failing(), torch.arange(4))
+    assert caught.value.reason == "DIVERGED_DTOL"
+    assert all_ranks("DIVERGED_DTOL" in str(caught.value))
+
+
+def test_batch_mode_refuses_batches_that_are_not_sample_indices():
+    with pytest.raises(TypeError, match="--parallel domain"):
+        Parallel("batch").step(_Failing(), None)
