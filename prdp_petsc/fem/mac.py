@@ -1,0 +1,204 @@
+"""Incompressible Navier–Stokes on a periodic MAC (staggered) grid, finite differences.
+
+One implicit Euler step with one Picard linearisation about the previous velocity
+(the advecting "wind" a = uⁿ) and first-order upwind advection,
+
+    uⁿ⁺¹/Δt + (a·∇)uⁿ⁺¹ − ν Δuⁿ⁺¹ + ∇pⁿ⁺¹ = uⁿ/Δt,      ∇·uⁿ⁺¹ = 0,
+
+is one monolithic linear system in (u, v, p) on the periodic unit square with N × N
+cells of width h = 1/N.  Layout (arrays ``[j, i]``, axis −1 is x, axis −2 is y):
+``p[j, i]`` at the cell centre ((i + ½)h, (j + ½)h), ``u[j, i]`` on the cell's right
+face ((i + 1)h, (j + ½)h), ``v[j, i]`` on its top face ((i + ½)h, (j + 1)h).  The
+pressure gradient is the forward difference, the divergence the backward one, so
+the gradient is minus the transpose of the divergence and constant pressures are
+the null space of the operator and of its transpose.  The unknowns are ordered
+``[u, v, p]`` (each row-major), n = 3N².
+
+Upwind advection makes every entry linear in a⁺ = max(a, 0) and a⁻ = min(a, 0)
+of the wind at the face, so the operator is a `ParametricMatrix`
+``A(θ) = A₀ + G θ`` with θ = [a⁺; a⁻] (`winds` computes θ from the state in
+torch, so gradients flow into the previous velocity through the operator).
+The wind at a u-face is (u, v̄) with v̄ the mean of the four surrounding v's;
+at a v-face (ū, v) likewise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from .parametric import ParametricMatrix, csr_pattern
+
+__all__ = [
+    "divergence",
+    "from_streamfunction",
+    "ns_operator",
+    "nullspace",
+    "restrict",
+    "rhs",
+    "solve_direct",
+    "winds",
+]
+
+
+def _index(n: int) -> np.ndarray:
+    return np.arange(n * n).reshape(n, n)
+
+
+def _shift(idx: np.ndarray, dj: int, di: int) -> np.ndarray:
+    """Index of the neighbour at (j + dj, i + di), periodic."""
+    return np.roll(idx, (-dj, -di), axis=(0, 1))
+
+
+def ns_operator(n: int, dt: float, nu: float) -> ParametricMatrix:
+    """The Picard-linearised implicit Euler MAC operator as ``A₀ + G θ``.
+
+    Parameters
+    ----------
+    n : int
+        Cells per direction (≥ 3); the system has 3n² unknowns.
+    dt, nu : float
+        Time step and kinematic viscosity (> 0 and ≥ 0).
+
+    Returns
+    -------
+    ParametricMatrix
+        Shape (3n², 3n²), 8n² parameters θ = [a⁺; a⁻], each half ordered
+        [a_x at u, a_y at u, a_x at v, a_y at v] (as `winds` returns them).
+    """
+    if n < 3 or dt <= 0 or nu < 0:
+        raise ValueError(f"need n >= 3, dt > 0, nu >= 0; got n={n}, dt={dt}, nu={nu}")
+    h = 1.0 / n
+    m = n * n
+    idx = _index(n).ravel()
+    rows, cols, vals, params, coefs = [], [], [], [], []
+
+    def add(r, c, v=0.0, param=-1, coef=0.0):
+        r, c = np.broadcast_arrays(r, c)
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+        vals.append(np.broadcast_to(v, r.shape).ravel().astype(float))
+        params.append(np.broadcast_to(param, r.shape).ravel())
+        coefs.append(np.broadcast_to(coef, r.shape).ravel().astype(float))
+
+    grid = _index(n)
+    for block in (0, 1):  # momentum of u (block 0) and v (block 1)
+        off = block * m
+        r = off + idx
+        add(r, r, 1.0 / dt + 4.0 * nu / h**2)
+        for dj, di in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+            add(r, off + _shift(grid, dj, di).ravel(), -nu / h**2)
+        for axis, (dj, di) in enumerate(((0, 1), (1, 0))):  # wind component x, y
+            k = (2 * block + axis) * m + idx  # parameter of a⁺; a⁻ is 4m later
+            fwd = off + _shift(grid, dj, di).ravel()
+            bwd = off + _shift(grid, -dj, -di).ravel()
+            add(r, r, 0.0, k, 1.0 / h)  # a⁺ (u_i − u_{i−1})/h
+            add(r, bwd, 0.0, k, -1.0 / h)
+            add(r, r, 0.0, 4 * m + k, -1.0 / h)  # a⁻ (u_{i+1} − u_i)/h
+            add(r, fwd, 0.0, 4 * m + k, 1.0 / h)
+        # pressure gradient, forward difference: (p[j, i+1] − p[j, i])/h for u
+        dj, di = ((0, 1), (1, 0))[block]
+        add(r, 2 * m + idx, -1.0 / h)
+        add(r, 2 * m + _shift(grid, dj, di).ravel(), 1.0 / h)
+    # divergence, backward difference
+    r = 2 * m + idx
+    add(r, idx, 1.0 / h)
+    add(r, _shift(grid, 0, -1).ravel(), -1.0 / h)
+    add(r, m + idx, 1.0 / h)
+    add(r, m + _shift(grid, -1, 0).ravel(), -1.0 / h)
+
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    vals, params, coefs = map(np.concatenate, (vals, params, coefs))
+    shape = (3 * m, 3 * m)
+    indptr, indices, position = csr_pattern(rows, cols, shape)
+    a0 = np.bincount(position, weights=vals, minlength=len(indices))
+    has = params >= 0
+    G = sp.csr_matrix((coefs[has], (position[has], params[has])), shape=(len(indices), 8 * m))
+    return ParametricMatrix(indptr, indices, shape, a0, G, symmetric=False)
+
+
+def winds(state: torch.Tensor, n: int) -> torch.Tensor:
+    """θ = [a⁺; a⁻] of `ns_operator` from states (B, 3n²) (only u and v are read)."""
+    s = state.reshape(-1, 3, n, n)
+    u, v = s[:, 0], s[:, 1]
+    # v at a u-face (right face of cell (j, i)): v[j, i], v[j, i+1], v[j−1, i], v[j−1, i+1]
+    v_at_u = (v + v.roll(-1, -1) + v.roll(1, -2) + v.roll((1, -1), (-2, -1))) / 4
+    # u at a v-face (top face of cell (j, i)): u[j, i], u[j, i−1], u[j+1, i], u[j+1, i−1]
+    u_at_v = (u + u.roll(1, -1) + u.roll(-1, -2) + u.roll((-1, 1), (-2, -1))) / 4
+    a = torch.stack([u, v_at_u, u_at_v, v], dim=1).reshape(len(s), -1)
+    return torch.cat([a.clamp(min=0), a.clamp(max=0)], dim=1)
+
+
+def rhs(state: torch.Tensor, n: int, dt: float) -> torch.Tensor:
+    """Right-hand side ``[uⁿ/Δt, vⁿ/Δt, 0]`` for states (B, 3n²)."""
+    b = state.reshape(-1, 3, n * n)
+    return torch.cat([b[:, :2] / dt, torch.zeros_like(b[:, 2:])], dim=1).reshape(len(b), -1)
+
+
+def nullspace(n: int) -> np.ndarray:
+    """The constant-pressure null vector (1, 3n²) of the operator and of its transpose."""
+    vec = np.zeros((1, 3 * n * n))
+    vec[0, 2 * n * n :] = 1.0
+    return vec
+
+
+def divergence(state: np.ndarray, n: int) -> np.ndarray:
+    """Discrete divergence (…, n, n) of states (…, 3n²) (cell-centred, backward differences)."""
+    s = np.asarray(state).reshape(*np.shape(state)[:-1], 3, n, n)
+    u, v = s[..., 0, :, :], s[..., 1, :, :]
+    return (u - np.roll(u, 1, -1) + v - np.roll(v, 1, -2)) * n
+
+
+def from_streamfunction(psi: np.ndarray) -> np.ndarray:
+    """Discretely divergence-free states (…, 3n²) from ψ at the cell corners (…, n, n).
+
+    ψ[j, i] sits at the top-right corner of cell (j, i); u = ∂ψ/∂y, v = −∂ψ/∂x,
+    pressure zero.
+    """
+    n = psi.shape[-1]
+    u = (psi - np.roll(psi, 1, -2)) * n
+    v = -(psi - np.roll(psi, 1, -1)) * n
+    out = np.stack([u, v, np.zeros_like(psi)], axis=-3)
+    return out.reshape(*psi.shape[:-2], 3 * n * n)
+
+
+def restrict(state: np.ndarray, n_fine: int) -> np.ndarray:
+    """Fine states (…, 3n_f²) on a grid twice as coarse (n_f even): face averages.
+
+    A coarse face value is the mean of the two fine faces that tile it, the coarse
+    pressure the mean of the four fine cells, so the coarse divergence of a cell
+    is the mean of its four fine divergences: divergence-free stays divergence-free.
+    """
+    if n_fine % 2:
+        raise ValueError(f"n_fine must be even, got {n_fine}")
+    s = np.asarray(state).reshape(*np.shape(state)[:-1], 3, n_fine, n_fine)
+    u, v, p = s[..., 0, :, :], s[..., 1, :, :], s[..., 2, :, :]
+    uc = (u[..., 0::2, 1::2] + u[..., 1::2, 1::2]) / 2
+    vc = (v[..., 1::2, 0::2] + v[..., 1::2, 1::2]) / 2
+    pc = (p[..., 0::2, 0::2] + p[..., 0::2, 1::2] + p[..., 1::2, 0::2] + p[..., 1::2, 1::2]) / 4
+    nc = n_fine // 2
+    return np.stack([uc, vc, pc], axis=-3).reshape(*np.shape(state)[:-1], 3 * nc * nc)
+
+
+def solve_direct(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
+    """Direct solve of the singular MAC system: the solution with zero-mean pressure.
+
+    The continuity rows sum to zero, so one of them is redundant for a compatible
+    b (zero-sum continuity right-hand side): it is replaced by ``p₀ = 0``, which makes
+    the matrix nonsingular and keeps it sparse; the mean pressure is then removed,
+    which gives the minimum-norm solution Krylov methods with the null space
+    attached return.  `b` is (n,) or (B, n).
+    """
+    n = A.shape[0]
+    m = n // 3
+    A = sp.csr_matrix(A, copy=True).tolil()
+    A.rows[2 * m] = [2 * m]
+    A.data[2 * m] = [1.0]
+    lu = spla.splu(A.tocsc())
+    b2 = np.array(np.atleast_2d(b), dtype=np.float64)
+    b2[:, 2 * m] = 0.0
+    x = lu.solve(b2.T).T
+    x[:, 2 * m :] -= x[:, 2 * m :].mean(axis=1, keepdims=True)
+    return x.reshape(np.shape(b))

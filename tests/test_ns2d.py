@@ -1,0 +1,195 @@
+"""prdp_petsc.fem.mac and demos/ns2d.py: the periodic MAC Navier–Stokes step and its corrector."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import prdp_petsc as pp
+from prdp_petsc.fem import mac
+from prdp_petsc.training.harness import build_scene, run
+from prdp_petsc.training.networks import ConvResNet
+from prdp_petsc.training.scene import load_scene
+
+SCENE = Path(__file__).resolve().parent.parent / "demos" / "ns2d.py"
+NS2D = load_scene(SCENE)
+DT, NU = 0.1, 1e-4
+#: 5-step x-velocity nMSE of the uncorrected coarse solver on the quick validation set
+UNCORRECTED_QUICK = 0.06114
+
+
+def state(n, count, seed=0):
+    return torch.from_numpy(NS2D.initial_states(n, count, np.random.default_rng(seed)))
+
+
+def converged(n, **kw):
+    return pp.KSPSolver(
+        NS2D.GMRES, prefix="t_ns_", max_it=50_000, rtol=1e-12, nullspace=mac.nullspace(n), **kw
+    )
+
+
+def test_operator_null_space_and_shape():
+    n = 6
+    A = mac.ns_operator(n, DT, NU)
+    assert A.shape == (108, 108) and A.n_params == 8 * 36 and not A.is_symmetric
+    M = A.matrix(mac.winds(state(n, 1), n)[0].numpy())
+    e = mac.nullspace(n)[0]
+    assert np.abs(M @ e).max() < 1e-12 and np.abs(M.T @ e).max() < 1e-12
+    # 7 entries per momentum row (5-point stencil + 2 pressure), 4 per continuity row
+    assert A.nnz == 18 * n * n
+
+
+def test_operator_is_first_order_consistent():
+    """Apply A(θ(w)) to smooth fields: the truncation error falls at rate ≈ 1 (upwind)."""
+    errors, hs = [], []
+    for n in (16, 32, 64):
+        h = 1.0 / n
+        xu, yu = np.meshgrid((np.arange(n) + 1) * h, (np.arange(n) + 0.5) * h)
+        xv, yv = np.meshgrid((np.arange(n) + 0.5) * h, (np.arange(n) + 1) * h)
+        xp, yp = np.meshgrid((np.arange(n) + 0.5) * h, (np.arange(n) + 0.5) * h)
+        s2, c2 = np.sin(2 * np.pi * xu), np.cos(2 * np.pi * yu)
+        u = s2 * c2  # u = sin 2πx cos 2πy, v = −cos 2πx sin 2πy (divergence-free)
+        v = -np.cos(2 * np.pi * xv) * np.sin(2 * np.pi * yv)
+        p = np.cos(2 * np.pi * xp) * np.cos(2 * np.pi * yp)
+        x = np.concatenate([u.ravel(), v.ravel(), p.ravel()])
+        A = mac.ns_operator(n, DT, NU)
+        theta = mac.winds(torch.from_numpy(x)[None], n)[0].numpy()
+        Ax = A.matrix(theta) @ x
+        k = 2 * np.pi
+        # continuous: u/Δt + (u·∇)u − νΔu + ∂p/∂x at the u points
+        ux = k * np.cos(k * xu) * np.cos(k * yu)
+        uy = -k * np.sin(k * xu) * np.sin(k * yu)
+        vu = -np.cos(k * xu) * np.sin(k * yu)
+        exact_u = (
+            u / DT + u * ux + vu * uy + NU * 2 * k**2 * u - k * np.sin(k * xu) * np.cos(k * yu)
+        )
+        errors.append(np.abs(Ax[: n * n] - exact_u.ravel()).max())
+        hs.append(h)
+        assert np.abs(Ax[2 * n * n :]).max() < 1e-9  # discretely divergence-free
+    rate = np.polyfit(np.log(hs), np.log(errors), 1)[0]
+    assert 0.9 < rate < 1.3
+
+
+def test_petsc_gmres_matches_direct_solve_and_is_divergence_free():
+    n = 8
+    s = state(n, 2)
+    A = mac.ns_operator(n, DT, NU)
+    theta, b = mac.winds(s, n), mac.rhs(s, n, DT)
+    with converged(n) as solver:
+        x = pp.solve(A, b, solver, theta=theta).numpy()
+    for i in range(2):
+        direct = mac.solve_direct(A.matrix(theta[i].numpy()), b[i].numpy())
+        assert np.linalg.norm(x[i] - direct) < 1e-9 * np.linalg.norm(direct)
+    velocity = np.abs(x.reshape(2, 3, -1)[:, :2]).max()
+    assert np.abs(mac.divergence(x, n)).max() < 1e-9 * velocity * n
+    assert abs(x.reshape(2, 3, -1)[:, 2].mean()) < 1e-12  # zero-mean pressure
+
+
+def test_energy_decays_and_restriction_keeps_divergence_free():
+    ratios = []
+    fine = state(32, 2).numpy()
+    for n, s0 in ((16, mac.restrict(fine, 32)), (32, fine)):  # the same flow on two grids
+        traj = NS2D.simulate(s0, n, DT, NU, 5)
+        energy = (traj.reshape(6, 2, 3, -1)[:, :, :2] ** 2).mean(axis=(2, 3))
+        assert np.all(np.diff(energy, axis=0) < 0)  # implicit Euler + upwind dissipate
+        ratios.append(energy[-1] / energy[0])
+        assert np.abs(mac.divergence(traj, n)).max() < 1e-9
+        coarse = mac.restrict(traj, n)
+        assert np.abs(mac.divergence(coarse, n // 2)).max() < 1e-9
+    # the dissipation is numerical (upwind, ≈ |u| h / 2 ≫ ν): it falls as h does
+    assert np.all(ratios[1] > 1.3 * ratios[0])
+
+
+def test_gradcheck_of_one_corrected_step_through_the_operator():
+    """float64 gradcheck of s ↦ P(s) + C(P(s)): rhs and Picard operator both depend on s."""
+    n = 4
+    torch.manual_seed(0)
+    net = ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
+    config = {"n": n, "dt": DT, "nu": NU}
+    hybrid = NS2D.Corrector(config, net)
+    s0 = state(n, 2).requires_grad_(True)
+    with converged(n) as solver:
+        assert torch.autograd.gradcheck(lambda s: hybrid(s, solver), (s0,), atol=1e-6)
+
+        # the operator's share of the gradient is not negligible
+        def through(s, operator: bool):
+            theta = mac.winds(s if operator else s.detach(), n)
+            return pp.solve(hybrid.A, mac.rhs(s, n, DT), solver, theta=theta)
+
+        w = torch.randn(2, 3 * n * n, dtype=torch.float64)
+        grads = []
+        for operator in (True, False):
+            (g,) = torch.autograd.grad((through(s0, operator) * w).sum(), s0)
+            grads.append(g)
+        assert (grads[0] - grads[1]).norm() > 0.01 * grads[0].norm()
+
+
+def test_net_gradient_matches_finite_difference_with_capped_adjoint_converged():
+    """With converged forward and adjoint solves the loss gradient is the exact one."""
+    n = 4
+    torch.manual_seed(1)
+    net = ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
+    hybrid = NS2D.Corrector({"n": n, "dt": DT, "nu": NU}, net)
+    s0, target = state(n, 2, seed=3), state(n, 2, seed=4)
+    weight = next(net.parameters())
+    with converged(n) as solver:
+
+        def loss():
+            return ((hybrid(hybrid(s0, solver), solver) - target) ** 2).mean()
+
+        (g,) = torch.autograd.grad(loss(), weight)
+        d = torch.randn_like(weight)
+        eps = 1e-6
+        with torch.no_grad():
+            weight += eps * d
+            up = loss()
+            weight -= 2 * eps * d
+            down = loss()
+            weight += eps * d
+        assert float((up - down) / (2 * eps)) == pytest.approx(float((g * d).sum()), rel=1e-5)
+
+
+@pytest.fixture(scope="module")
+def quick_runs():
+    return {
+        name: run(SCENE, schedule, preset=preset, progress=False)
+        for name, schedule, preset in (
+            ("prdp", "prdp", "quick"),
+            ("full", "fixed:64", "quick"),
+            ("detached", "fixed:64", "quick_detached"),
+            ("noise", "fixed:64", "quick_noise"),
+        )
+    }
+
+
+def test_quick_preset_trains_and_counts_iterations(quick_runs):
+    full = quick_runs["full"]
+    config = NS2D.PRESETS["quick"]
+    errors = [e["val_metric"] for e in full["epochs"]]
+    # the untrained corrector is the zero map: its metric is the plain coarse solver's
+    uncorrected = build_scene(NS2D, "quick", 0).validate()
+    assert uncorrected == pytest.approx(UNCORRECTED_QUICK, rel=1e-3)
+    assert errors[-1] < 0.7 * uncorrected  # the corrector learns
+    assert len(full["rollout"]) == config["rollout_steps"] >= 20
+    # fixed mode: exactly K iterations per solve; 2 forward solves per sample, and an
+    # adjoint only for the second (the first solve's input is data)
+    windows = config["n_train"] * (config["train_steps"] - 1)
+    assert full["info"]["unknowns"] == 3 * 12**2
+    assert all(e["fwd_iterations"] == 64 * 2 * windows for e in full["epochs"])
+    assert all(e["adj_iterations"] == 64 * windows for e in full["epochs"])
+    # without the physics gradient or with one-step noise training: no adjoint solves
+    for name in ("detached", "noise"):
+        assert all(e["adj_iterations"] == 0 for e in quick_runs[name]["epochs"])
+        assert quick_runs[name]["epochs"][-1]["val_metric"] < errors[0]
+    ks = [e["k"] for e in quick_runs["prdp"]["epochs"]]
+    assert ks[0] == 8 and all(b - a in (0, 8) for a, b in zip(ks, ks[1:], strict=False))
+
+
+def test_adjoint_with_own_tolerance_runs_to_its_rtol():
+    scene = NS2D.build({**NS2D.PRESETS["quick"], "adjoint_rtol": 1e-8}, 0)
+    solver = scene.solvers[0]
+    solver.max_it = 8
+    scene.loss(torch.arange(3)).backward()
+    assert solver.stats.forward_iterations == 8 * 6  # two capped solves of 3 samples
+    assert solver.last.reason == "CONVERGED_RTOL" and solver.stats.adjoint_iterations > 8 * 3
