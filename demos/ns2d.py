@@ -144,11 +144,10 @@ def initial_states(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
 
 def simulate(state: np.ndarray, n: int, dt: float, nu: float, steps: int) -> np.ndarray:
     """Trajectories (steps + 1, count, 3n²) of the scheme with a direct solve."""
-    A = mac.ns_operator(n, dt, nu)
+    A, W, scale = mac.ns_operator(n, dt, nu), mac.wind_matrix(n), mac.rhs_scale(n, dt)
     traj = [state]
     for _ in range(steps):
-        s = torch.from_numpy(traj[-1])
-        theta, b = mac.winds(s, n).numpy(), mac.rhs(s, n, dt).numpy()
+        theta, b = mac.picard_parameters(traj[-1], W), traj[-1] * scale
         traj.append(
             np.stack([mac.solve_direct(A.matrix(t), r) for t, r in zip(theta, b, strict=True)])
         )
@@ -169,11 +168,22 @@ class Corrector:
     def __init__(self, config: dict, net: torch.nn.Module):
         self.n, self.dt = config["n"], config["dt"]
         self.A = mac.ns_operator(self.n, self.dt, config["nu"])
+        W = mac.wind_matrix(self.n).tocoo()
+        index = torch.from_numpy(np.vstack([W.row, W.col]).astype(np.int64))
+        self.W = torch.sparse_coo_tensor(
+            index, torch.from_numpy(W.data), W.shape, check_invariants=True
+        ).coalesce()
+        self.scale = torch.from_numpy(mac.rhs_scale(self.n, self.dt))
         self.net = net
 
+    def theta(self, state: torch.Tensor) -> torch.Tensor:
+        """Picard parameters θ = [a⁺; a⁻], a = W s, of states (B, 3n²) (differentiable)."""
+        a = torch.sparse.mm(self.W, state.T).T
+        return torch.cat([a.clamp(min=0), a.clamp(max=0)], dim=1)
+
     def solve(self, state: torch.Tensor, solver: pp.KSPSolver) -> torch.Tensor:
-        theta, b = mac.winds(state, self.n), mac.rhs(state, self.n, self.dt)
-        return pp.solve(self.A, b, solver, theta=theta)
+        """The capped solve P_K(s): operator and right-hand side both from s."""
+        return pp.solve(self.A, state * self.scale, solver, theta=self.theta(state))
 
     def correct(self, coarse: torch.Tensor) -> torch.Tensor:
         n = self.n
@@ -246,9 +256,9 @@ def build(config: dict, seed: int) -> pp.Scene:
         return ((pred - ref).norm(dim=-1) / ref.norm(dim=-1)).mean(-1).numpy()
 
     def probe():
-        s = val[1, :1]
-        theta, b = mac.winds(s, n)[0].numpy(), mac.rhs(s, n, dt)[0].numpy()
-        return hybrid.A.matrix(theta), b
+        s = val[1, 0].numpy()
+        theta = mac.picard_parameters(s, mac.wind_matrix(n))
+        return hybrid.A.matrix(theta), s * hybrid.scale.numpy()
 
     return pp.Scene(
         solvers=[solver],

@@ -33,7 +33,7 @@ def test_operator_null_space_and_shape():
     n = 6
     A = mac.ns_operator(n, DT, NU)
     assert A.shape == (108, 108) and A.n_params == 8 * 36 and not A.is_symmetric
-    M = A.matrix(mac.winds(state(n, 1), n)[0].numpy())
+    M = A.matrix(mac.picard_parameters(state(n, 1)[0].numpy(), mac.wind_matrix(n)))
     e = mac.nullspace(n)[0]
     assert np.abs(M @ e).max() < 1e-12 and np.abs(M.T @ e).max() < 1e-12
     # 7 entries per momentum row (5-point stencil + 2 pressure), 4 per continuity row
@@ -54,7 +54,7 @@ def test_operator_is_first_order_consistent():
         p = np.cos(2 * np.pi * xp) * np.cos(2 * np.pi * yp)
         x = np.concatenate([u.ravel(), v.ravel(), p.ravel()])
         A = mac.ns_operator(n, DT, NU)
-        theta = mac.winds(torch.from_numpy(x)[None], n)[0].numpy()
+        theta = mac.picard_parameters(x, mac.wind_matrix(n))
         Ax = A.matrix(theta) @ x
         k = 2 * np.pi
         # continuous: u/Δt + (u·∇)u − νΔu + ∂p/∂x at the u points
@@ -75,7 +75,9 @@ def test_petsc_gmres_matches_direct_solve_and_is_divergence_free():
     n = 8
     s = state(n, 2)
     A = mac.ns_operator(n, DT, NU)
-    theta, b = mac.winds(s, n), mac.rhs(s, n, DT)
+    hybrid = NS2D.Corrector({"n": n, "dt": DT, "nu": NU}, net=None)
+    theta, b = hybrid.theta(s), s * hybrid.scale
+    assert np.allclose(theta.numpy(), mac.picard_parameters(s.numpy(), mac.wind_matrix(n)))
     with converged(n) as solver:
         x = pp.solve(A, b, solver, theta=theta).numpy()
     for i in range(2):
@@ -114,8 +116,8 @@ def test_gradcheck_of_one_corrected_step_through_the_operator():
 
         # the operator's share of the gradient is not negligible
         def through(s, operator: bool):
-            theta = mac.winds(s if operator else s.detach(), n)
-            return pp.solve(hybrid.A, mac.rhs(s, n, DT), solver, theta=theta)
+            theta = hybrid.theta(s if operator else s.detach())
+            return pp.solve(hybrid.A, s * hybrid.scale, solver, theta=theta)
 
         w = torch.randn(2, 3 * n * n, dtype=torch.float64)
         grads = []

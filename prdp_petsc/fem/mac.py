@@ -16,10 +16,12 @@ the null space of the operator and of its transpose.  The unknowns are ordered
 
 Upwind advection makes every entry linear in a⁺ = max(a, 0) and a⁻ = min(a, 0)
 of the wind at the face, so the operator is a `ParametricMatrix`
-``A(θ) = A₀ + G θ`` with θ = [a⁺; a⁻] (`winds` computes θ from the state in
-torch, so gradients flow into the previous velocity through the operator).
-The wind at a u-face is (u, v̄) with v̄ the mean of the four surrounding v's;
-at a v-face (ū, v) likewise.
+``A(θ) = A₀ + G θ`` with θ = [a⁺; a⁻].  The wind itself is linear in the state,
+a = W s (`wind_matrix`): the wind at a u-face is (u, v̄) with v̄ the mean of the
+four surrounding v's, at a v-face (ū, v) likewise.  A torch caller computes
+θ = [relu(W s); −relu(−W s)] under autograd, so gradients flow into the previous
+velocity through the operator; `picard_parameters` is the numpy version.
+Like the rest of this layer, nothing here imports torch or PETSc.
 """
 
 from __future__ import annotations
@@ -27,7 +29,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-import torch
 
 from .parametric import ParametricMatrix, csr_pattern
 
@@ -36,10 +37,11 @@ __all__ = [
     "from_streamfunction",
     "ns_operator",
     "nullspace",
+    "picard_parameters",
     "restrict",
-    "rhs",
+    "rhs_scale",
     "solve_direct",
-    "winds",
+    "wind_matrix",
 ]
 
 
@@ -66,7 +68,7 @@ def ns_operator(n: int, dt: float, nu: float) -> ParametricMatrix:
     -------
     ParametricMatrix
         Shape (3n², 3n²), 8n² parameters θ = [a⁺; a⁻], each half ordered
-        [a_x at u, a_y at u, a_x at v, a_y at v] (as `winds` returns them).
+        [a_x at u, a_y at u, a_x at v, a_y at v] (the rows of `wind_matrix`).
     """
     if n < 3 or dt <= 0 or nu < 0:
         raise ValueError(f"need n >= 3, dt > 0, nu >= 0; got n={n}, dt={dt}, nu={nu}")
@@ -119,22 +121,39 @@ def ns_operator(n: int, dt: float, nu: float) -> ParametricMatrix:
     return ParametricMatrix(indptr, indices, shape, a0, G, symmetric=False)
 
 
-def winds(state: torch.Tensor, n: int) -> torch.Tensor:
-    """θ = [a⁺; a⁻] of `ns_operator` from states (B, 3n²) (only u and v are read)."""
-    s = state.reshape(-1, 3, n, n)
-    u, v = s[:, 0], s[:, 1]
-    # v at a u-face (right face of cell (j, i)): v[j, i], v[j, i+1], v[j−1, i], v[j−1, i+1]
-    v_at_u = (v + v.roll(-1, -1) + v.roll(1, -2) + v.roll((1, -1), (-2, -1))) / 4
-    # u at a v-face (top face of cell (j, i)): u[j, i], u[j, i−1], u[j+1, i], u[j+1, i−1]
-    u_at_v = (u + u.roll(1, -1) + u.roll(-1, -2) + u.roll((-1, 1), (-2, -1))) / 4
-    a = torch.stack([u, v_at_u, u_at_v, v], dim=1).reshape(len(s), -1)
-    return torch.cat([a.clamp(min=0), a.clamp(max=0)], dim=1)
+def wind_matrix(n: int) -> sp.csr_matrix:
+    """W (4n² × 3n²) with a = W s the winds [a_x at u, a_y at u, a_x at v, a_y at v]."""
+    m = n * n
+    grid = _index(n)
+    idx = grid.ravel()
+    rows, cols = [idx, 3 * m + idx], [idx, m + idx]  # a_x at u = u, a_y at v = v
+    vals = [np.ones(m), np.ones(m)]
+    # v at the u-face (right face of cell (j, i)): v[j, i], v[j, i+1], v[j−1, i], v[j−1, i+1]
+    for dj, di in ((0, 0), (0, 1), (-1, 0), (-1, 1)):
+        rows.append(m + idx)
+        cols.append(m + _shift(grid, dj, di).ravel())
+        vals.append(np.full(m, 0.25))
+    # u at the v-face (top face of cell (j, i)): u[j, i], u[j, i−1], u[j+1, i], u[j+1, i−1]
+    for dj, di in ((0, 0), (0, -1), (1, 0), (1, -1)):
+        rows.append(2 * m + idx)
+        cols.append(_shift(grid, dj, di).ravel())
+        vals.append(np.full(m, 0.25))
+    W = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(4 * m, 3 * m)
+    )
+    return W
 
 
-def rhs(state: torch.Tensor, n: int, dt: float) -> torch.Tensor:
-    """Right-hand side ``[uⁿ/Δt, vⁿ/Δt, 0]`` for states (B, 3n²)."""
-    b = state.reshape(-1, 3, n * n)
-    return torch.cat([b[:, :2] / dt, torch.zeros_like(b[:, 2:])], dim=1).reshape(len(b), -1)
+def picard_parameters(state: np.ndarray, W: sp.spmatrix) -> np.ndarray:
+    """θ = [max(W s, 0); min(W s, 0)] of `ns_operator` for states (…, 3n²)."""
+    a = np.asarray(W @ np.atleast_2d(state).T).T
+    theta = np.concatenate([np.maximum(a, 0), np.minimum(a, 0)], axis=-1)
+    return theta.reshape(*np.shape(state)[:-1], theta.shape[-1])
+
+
+def rhs_scale(n: int, dt: float) -> np.ndarray:
+    """The right-hand side is ``b = rhs_scale * s`` = [uⁿ/Δt, vⁿ/Δt, 0] (elementwise)."""
+    return np.concatenate([np.full(2 * n * n, 1.0 / dt), np.zeros(n * n)])
 
 
 def nullspace(n: int) -> np.ndarray:
