@@ -193,15 +193,28 @@ class Corrector:
         return self.correct(self.solve(state, solver))
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def unrolled_loss(hybrid, solver, windows, *, unroll: int = 2, solver_grad: bool = True):
+    """Summed MSE of an `unroll`-step corrected rollout from ``windows[0]`` (B, 3n²)
+    against ``windows[1:]``; ``solver_grad=False`` detaches each solve's input."""
+    state, total = windows[0], 0.0
+    for t in range(1, unroll + 1):
+        if not solver_grad:
+            state = state.detach()  # the solve sees a constant: no physics gradient
+        state = hybrid(state, solver)
+        total = total + ((state - windows[t]) ** 2).mean()
+    return total
+
+
+def setup(config: dict, seed: int) -> dict:
+    """Data, solvers and corrector of a preset: ``train`` windows (3, B, 3n²), ``val``
+    trajectories (T + 1, B, 3n²), ``solver`` (capped), ``full`` (to ``rtol_full``),
+    ``hybrid`` (`Corrector`)."""
     n, dt, nu = config["n"], config["dt"], config["nu"]
-    n_train, n_val = config["n_train"], config["n_val"]
     # training windows (s_t, s_t+1, s_t+2) from every start t of the reference trajectories
-    traj = reference_data(n, n_train, config["train_steps"], dt, nu, 1000 + seed)
+    traj = reference_data(n, config["n_train"], config["train_steps"], dt, nu, 1000 + seed)
     train = traj.unfold(0, 3, 1).permute(0, 3, 1, 2).transpose(0, 1).reshape(3, -1, traj.shape[-1])
-    n_train = train.shape[1]
     steps = max(config["val_steps"], config["rollout_steps"])
-    val = reference_data(n, n_val, steps, dt, nu, 2000 + seed)
+    val = reference_data(n, config["n_val"], steps, dt, nu, 2000 + seed)
     adjoint = None
     if config["adjoint_rtol"] is not None:
         adjoint = pp.AdjointSettings(rtol=config["adjoint_rtol"], max_it=100_000)
@@ -211,6 +224,17 @@ def build(config: dict, seed: int) -> pp.Scene:
     full = solver.clone(max_it=100_000, rtol=config["rtol_full"])
     net = ConvResNet(3, 3, hidden=config["hidden"], blocks=config["blocks"])
     hybrid = Corrector(config, net)
+    return {"train": train, "val": val, "solver": solver, "full": full, "hybrid": hybrid}
+
+
+def build(config: dict, seed: int) -> pp.Scene:
+    n = config["n"]
+    parts = setup(config, seed)
+    train, val, solver, full, hybrid = (
+        parts[k] for k in ("train", "val", "solver", "full", "hybrid")
+    )
+    net = hybrid.net
+    n_train, n_val = train.shape[1], val.shape[1]
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
     epochs, ratio = config["epochs"], config["lr_final"] / config["lr"]
 
@@ -228,13 +252,13 @@ def build(config: dict, seed: int) -> pp.Scene:
                 s.view(len(idx), 3, -1)[:, :2] += noise.view(len(idx), 3, -1)[:, :2]
                 losses.append(((hybrid(s, solver) - train[t + 1, idx]) ** 2).mean())
             return sum(losses)
-        state, total = train[0, idx], 0.0
-        for t in range(1, config["unroll"] + 1):
-            if not config["solver_grad"]:
-                state = state.detach()  # the solve sees a constant: no physics gradient
-            state = hybrid(state, solver)
-            total = total + ((state - train[t, idx]) ** 2).mean()
-        return total
+        return unrolled_loss(
+            hybrid,
+            solver,
+            train[:, idx],
+            unroll=config["unroll"],
+            solver_grad=config["solver_grad"],
+        )
 
     def rollout_states(steps: int) -> torch.Tensor:
         with torch.no_grad():
@@ -288,7 +312,99 @@ def build(config: dict, seed: int) -> pp.Scene:
     )
 
 
+def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -> dict:
+    """What the physics gradient costs and changes, on one training batch of `preset`.
+
+    The corrector is first trained for `warmup` batches (K = 64, so that every layer
+    has a gradient: the untrained projection is zero).  Then, on the next batch, the
+    2-step loss is differentiated with the solver at each K of `ks` (forward and
+    adjoint K iterations), converged (forward and adjoint to rtol 1e-8, the adjoint
+    relative to its own right-hand side), and converged but detached (no physics
+    gradient, what the reference effectively trains with).
+
+    Returns
+    -------
+    dict
+        Per case: forward and adjoint iterations and seconds, the adjoint/forward
+        time ratio, and the relative distance of the network gradient from the
+        converged one (``rel_to_converged``) and from the detached one
+        (``rel_to_detached``), and the cosine with the converged one.
+    """
+    torch.manual_seed(seed)
+    config = dict(PRESETS[preset])
+    parts = setup(config, seed)
+    train, solver, hybrid = parts["train"], parts["solver"], parts["hybrid"]
+    params = list(hybrid.net.parameters())
+    optimizer = torch.optim.Adam(params, lr=config["lr"])
+    order = torch.randperm(train.shape[1], generator=torch.Generator().manual_seed(seed))
+    batch = config["batch"]
+    solver.max_it = 64
+    for i in range(warmup):
+        idx = order[(i * batch) % len(order) :][:batch]
+        optimizer.zero_grad()
+        unrolled_loss(hybrid, solver, train[:, idx]).backward()
+        optimizer.step()
+    windows = train[:, order[:batch]]
+    converged = solver.clone(
+        max_it=100_000, rtol=1e-8, adjoint=pp.AdjointSettings(rtol=1e-8, max_it=100_000)
+    )
+    cases = [(f"K={k}", solver, k, True) for k in ks]
+    cases += [("converged", converged, None, True), ("detached", converged, None, False)]
+    grads, rows = {}, {}
+    solver.max_it = ks[0]  # first-call costs (options, transpose set-up) outside the timings
+    torch.autograd.grad(unrolled_loss(hybrid, solver, windows[:, :1]), params)
+    for name, s, k, grad in cases:
+        if k is not None:
+            s.max_it = k
+        s.reset_stats()
+        loss = unrolled_loss(hybrid, s, windows, solver_grad=grad)
+        g = torch.autograd.grad(loss, params)
+        grads[name] = torch.cat([x.flatten() for x in g]).double()
+        st = s.stats
+        rows[name] = {
+            "fwd_iterations": st.forward_iterations,
+            "adj_iterations": st.adjoint_iterations,
+            "fwd_seconds": st.forward_time,
+            "adj_seconds": st.adjoint_time,
+            "adj_over_fwd_time": st.adjoint_time / st.forward_time,
+            "loss": float(loss.detach()),
+        }
+    ref, det = grads["converged"], grads["detached"]
+    for name, g in grads.items():
+        rows[name]["rel_to_converged"] = float((g - ref).norm() / ref.norm())
+        rows[name]["rel_to_detached"] = float((g - det).norm() / det.norm())
+        rows[name]["cosine_to_converged"] = float(g @ ref / (g.norm() * ref.norm()))
+    converged.destroy()
+    return {"preset": preset, "batch": int(windows.shape[1]), "warmup": warmup, "cases": rows}
+
+
+def format_adjoint_report(report: dict) -> str:
+    """The `adjoint_report` as a table."""
+    head = (
+        f"{'case':<10} {'fwd its':>8} {'adj its':>8} {'fwd s':>7} {'adj s':>7} "
+        f"{'adj/fwd':>7} {'|g-g_conv|':>10} {'|g-g_det|':>9} {'cos':>6}"
+    )
+    lines = [f"preset {report['preset']}, batch {report['batch']}", head]
+    for name, r in report["cases"].items():
+        lines.append(
+            f"{name:<10} {r['fwd_iterations']:>8} {r['adj_iterations']:>8} "
+            f"{r['fwd_seconds']:>7.2f} {r['adj_seconds']:>7.2f} {r['adj_over_fwd_time']:>7.2f} "
+            f"{r['rel_to_converged']:>10.3e} {r['rel_to_detached']:>9.3e} "
+            f"{r['cosine_to_converged']:>6.3f}"
+        )
+    return "\n".join(lines)
+
+
 if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:2] == ["adjoint"]:  # python demos/ns2d.py adjoint PRESET [K ...]
+        torch.set_num_threads(1)
+        preset = sys.argv[2] if len(sys.argv) > 2 else "quick"
+        ks = tuple(int(k) for k in sys.argv[3:]) or (8, 64)
+        print(format_adjoint_report(adjoint_report(preset, ks)))
+        raise SystemExit(0)
+
     from prdp_petsc.cli import scene_main
 
     raise SystemExit(scene_main(__file__))
