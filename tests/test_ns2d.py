@@ -195,3 +195,14 @@ def test_adjoint_with_own_tolerance_runs_to_its_rtol():
     scene.loss(torch.arange(3)).backward()
     assert solver.stats.forward_iterations == 8 * 6  # two capped solves of 3 samples
     assert solver.last.reason == "CONVERGED_RTOL" and solver.stats.adjoint_iterations > 8 * 3
+
+
+def test_adjoint_report_physics_gradient_matters():
+    report = NS2D.adjoint_report("quick", ks=(8, 64), warmup=2)["cases"]
+    assert report["detached"]["adj_iterations"] == 0
+    assert report["converged"]["adj_iterations"] > 0
+    assert report["K=64"]["adj_iterations"] == 64 * 8  # fixed K, one adjoint per sample
+    # a K = 64 solve is converged on 12²: its gradient is the converged one ...
+    assert report["K=64"]["rel_to_converged"] < 1e-2
+    # ... and dropping the solver's share of the gradient changes it by far more
+    assert report["detached"]["rel_to_converged"] > 0.1
