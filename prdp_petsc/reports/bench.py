@@ -264,7 +264,7 @@ def machine_info() -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench", description=__doc__.split("\n")[0])
-    p.add_argument("which", choices=["bridge"], help="benchmark to run")
+    p.add_argument("which", choices=["bridge", "mpi"], help="benchmark to run (mpi: bench_mpi)")
     p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     p.add_argument(
@@ -289,6 +289,10 @@ def _positive(text: str) -> int:
 
 def main(argv: list[str]) -> int:
     """Run ``bench bridge``; write ``<out>/bench_bridge.json``; return an exit code."""
+    if argv and argv[0] == "mpi":
+        from .bench_mpi import main as bench_mpi
+
+        return bench_mpi(argv[1:])
     args = _parser().parse_args(argv)
     import torch
 

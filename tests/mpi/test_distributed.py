@@ -145,3 +145,15 @@ def test_owned_layout_with_a_callers_distributed_mat():
     x = np.concatenate(COMM.allgather(x_local))
     expected = np.linalg.solve(full.toarray(), b)
     assert all_ranks(_rel(x, expected) <= 1e-10)
+
+
+def test_bench_mpi_solve_worker_records_the_split():
+    """``bench mpi``'s 3D solve on the unrefined box: rows split, K iterations, memory."""
+    from types import SimpleNamespace
+
+    from prdp_petsc.reports.bench_mpi import _solve_worker
+
+    record = _solve_worker(SimpleNamespace(refine=0, k=15, repeats=1))
+    rows = COMM.allgather(record["rows_per_rank"])
+    assert all_ranks(sum(rows) == record["unknowns"] and record["iterations"] == 15)
+    assert all_ranks(0 < record["petsc_mat_mb_per_rank"] < record["peak_rss_mb_per_rank"])
