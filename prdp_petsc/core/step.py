@@ -135,6 +135,11 @@ class SolveStep:
             if self.kind == "adjoint"
             else ""
         )
+        if getattr(err, "ierr", None) == 92 and self.mat.getComm().getSize() > 1:
+            hint = (  # PETSC_ERR_MISSING_FACTOR: e.g. icc/ilu on a distributed matrix
+                " PETSc has no parallel factorization for this PC on a distributed matrix: "
+                "use pc_type bjacobi with sub_pc_type icc (or ilu), or gamg."
+            )
         return SolverError(
             f"{self.kind} KSPSolve failed inside PETSc ({self._types()}): {err}.{hint}",
             reason="PETSC_ERROR",

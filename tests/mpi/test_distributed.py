@@ -157,3 +157,17 @@ def test_bench_mpi_solve_worker_records_the_split():
     rows = COMM.allgather(record["rows_per_rank"])
     assert all_ranks(sum(rows) == record["unknowns"] and record["iterations"] == 15)
     assert all_ranks(0 < record["petsc_mat_mb_per_rank"] < record["peak_rss_mb_per_rank"])
+
+
+def test_sequential_only_pc_names_its_parallel_form():
+    n = 60
+    A = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocsr()
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, comm=COMM, **CONVERGED) as s:
+        s.set_operator(A)
+        with pytest.raises(pp.SolverError, match="sub_pc_type icc"):
+            s.solve(np.ones(n))
+    options = {"ksp_type": "cg", "pc_type": "bjacobi", "sub_pc_type": "icc"}
+    with pp.KSPSolver(options, comm=COMM, **CONVERGED) as s:
+        s.set_operator(A)
+        x = s.solve(np.ones(n))
+    assert all_ranks(_rel(A @ x, np.ones(n)) <= 1e-10)
