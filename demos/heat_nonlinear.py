@@ -47,6 +47,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 import skfem
 import torch
+from petsc4py import PETSc
 
 import prdp_petsc as pp
 from prdp_petsc.training.networks import MeshNet
@@ -127,7 +128,9 @@ def initial_conditions(heat, count: int, rng: np.random.Generator) -> np.ndarray
 def trajectories(heat, u0: np.ndarray, steps: int, alpha: float) -> np.ndarray:
     """Exact implicit-Euler trajectories (steps + 1, count, n) of the unknowns."""
     zero_f, zero_g = np.zeros(heat.basis.N), np.zeros(len(heat.boundary))
-    solver = pp.KSPSolver(EXACT, prefix="heatnl_exact_", max_it=1)
+    # the data come from a serial LU solve on every rank, also under --parallel domain
+    # (PETSc's own LU is sequential; the trained solver is the distributed one)
+    solver = pp.KSPSolver(EXACT, prefix="heatnl_exact_", max_it=1, comm=PETSc.COMM_SELF)
     out = [u0]
     with torch.no_grad():
         for _ in range(steps):

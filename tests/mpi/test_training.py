@@ -57,7 +57,13 @@ def _epochs(result, key):
 
 @pytest.mark.parametrize(
     "scene, mode",
-    [("heat1d.py", "batch"), ("heat2d.py", "domain"), ("poisson_inverse.py", "domain")],
+    [
+        ("heat1d.py", "batch"),
+        ("heat2d.py", "domain"),
+        ("poisson_inverse.py", "domain"),
+        ("heat_nonlinear.py", "domain"),
+        ("poisson_sip.py", "batch"),
+    ],
 )
 def test_run_equals_serial_run(scene, mode, tmp_path):
     """``run(parallel=...)`` on two ranks reproduces the serial run: same K schedule,
