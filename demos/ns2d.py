@@ -46,9 +46,12 @@ times the velocity std) instead of unrolling — presets ``paper_detached`` and
 ``paper_noise`` (``quick_…`` likewise).
 
 Presets: ``quick`` (12², seconds, tests), ``paper`` (48², the reference network
-and batch; 10 trajectories × 5 windows = 50 training samples instead of 200 and 8
-epochs instead of 100, to fit this 2-core machine), ``large`` (64², 12 288
-unknowns per sample, a small network: the solve dominates the training step).
+and batch; 5 trajectories × 5 windows = 25 training samples, one batch per epoch,
+instead of 200 samples, and 24 epochs instead of 100, to fit this 2-core machine),
+``large`` (64², 12 288 unknowns per sample, 4 trajectories × 2 windows, one
+validation sample, a small network: the solve dominates the training step).
+On ``paper`` and ``large`` the reference data take minutes (direct solves on the
+2N grid); they are cached per process, so ``compare`` builds them once.
 
 Run ``python demos/ns2d.py compare --preset paper --out results/ns2d``;
 ``python demos/ns2d.py adjoint PRESET`` prints the adjoint figures (cost per step,
@@ -100,26 +103,26 @@ PRESETS = {
     "paper": {
         **_BASE,
         "n": 48,
-        "n_train": 10,
+        "n_train": 5,
         "train_steps": 6,
         "n_val": 5,
         "batch": 25,
         "hidden": 64,
         "blocks": 3,
-        "epochs": 8,
-        "compare_ks": [8, 64],
+        "epochs": 24,
+        "compare_ks": [8, 64, 128],
     },
     "large": {
         **_BASE,
         "n": 64,
         "n_train": 4,
         "train_steps": 3,
-        "n_val": 2,
+        "n_val": 1,
         "batch": 8,
         "hidden": 8,
         "blocks": 1,
-        "epochs": 8,
-        "compare_ks": [8, 128],
+        "epochs": 16,
+        "compare_ks": [8, 256],
     },
 }
 PRESETS["quick_detached"] = {**PRESETS["quick"], "solver_grad": False}
