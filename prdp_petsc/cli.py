@@ -231,6 +231,11 @@ def _guarded(command, debug: bool, out: str | None = None, args=None) -> int:
         return 130
     except Exception as err:
         if debug:
+            if getattr(args, "parallel", None) is not None:
+                import traceback
+
+                traceback.print_exc()
+                _abort_others(args)  # the other ranks may be waiting in a collective call
             raise
         message = " ".join(str(err).split()) or "(no message)"
         print(

@@ -98,6 +98,7 @@ class RowLayout:
 
     def __init__(self, vec: PETSc.Vec, *, replicated: bool):
         self.start, self.end = vec.getOwnershipRange()
+        self._comm = vec.getComm()
         self.distributed = vec.getComm().getSize() > 1
         self.replicated = replicated and self.distributed
         self.size = vec.getSize() if replicated else vec.getLocalSize()
@@ -115,6 +116,20 @@ class RowLayout:
             return vec.getArray(readonly=True)
         self._scatter.scatter(vec, self._full, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         return self._full.getArray(readonly=True)
+
+    def agree_max(self, values: np.ndarray) -> np.ndarray:
+        """Element-wise maximum of integer `values` over the ranks (collective).
+
+        In the owned layout each rank sees only its rows of a right-hand side, so
+        decisions about the whole vector (its scaling, NaN) are taken together.
+        """
+        values = np.array(values, dtype=np.int64)
+        if not self.distributed:
+            return values
+        from mpi4py import MPI  # needed only by the owned layout on several ranks
+
+        self._comm.tompi4py().Allreduce(MPI.IN_PLACE, values, op=MPI.MAX)
+        return values
 
     def destroy(self) -> None:
         for obj in (self._scatter, self._full):

@@ -246,7 +246,11 @@ class KSPSolver(Configuration):
         logger.debug("KSPs %r, %r built", self.prefix, self.adjoint_prefix)
 
     def setup(self, comm=None) -> None:
-        """Rebuild the KSPs on `comm` if it is larger than theirs (else nothing to do)."""
+        """Rebuild the KSPs on `comm` if its size differs from theirs (else nothing to do).
+
+        Called when an operator on another communicator arrives; `comm` (the
+        attribute) stays the one Mats made from scipy operators live on.
+        """
         self._alive()
         if comm is not None and comm.getSize() != self._ksp.getComm().getSize():
             self._destroy_ksps()
@@ -368,6 +372,8 @@ class KSPSolver(Configuration):
         step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
         out = np.empty_like(batch)
         exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
+        if layout.distributed and not layout.replicated:  # each rank holds a part of b
+            exponents = layout.agree_max(exponents)
         check = self._unchecked[kind]
         t0 = time.perf_counter()
         iterations = 0
@@ -386,7 +392,10 @@ class KSPSolver(Configuration):
             self._unchecked[kind] = False
             self._used |= pushed.used
             self._warn_unused(kind)
-        if not np.isfinite(out.sum()) and not np.all(np.isfinite(out)):  # sum: fast path
+        finite = bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))  # sum: fast path
+        if layout.distributed and not layout.replicated:
+            finite = bool(layout.agree_max(np.array([not finite]))[0] == 0)
+        if not finite:
             raise SolverError(f"{kind} solve returned NaN/Inf", reason="DIVERGED_NANORINF")
         elapsed = time.perf_counter() - t0
         stats = self.stats

@@ -10,7 +10,8 @@
     `prdp_petsc.solve` on a solver living on ``COMM_WORLD``: the median time of
     each, the speed-up over one rank, and the memory per rank: peak resident
     memory, the PETSc Mat's share (this rank's rows) and the replicated arrays
-    (the full CSR operator and the assembly map G that every rank holds).
+    every rank holds (the assembly map G, the CSR operator and the solver's copy
+    of its values, the full vectors).
 ``epoch``
     Training epochs of a scene (default ``demos/heat2d.py``, preset ``paper``, a
     fixed K) under ``--parallel domain`` and ``--parallel batch``; the median
@@ -59,6 +60,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--schedule", default="fixed:100", help="K schedule of the epochs")
     p.add_argument("--epochs", type=int, default=3, help="epochs per run (the first is warm-up)")
     p.add_argument("--mpiexec", default=os.environ.get("MPIEXEC", "mpiexec"))
+    p.add_argument("--timeout", type=float, default=3600, help="seconds per mpiexec (3600)")
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     p.add_argument("--worker", choices=["solve", "epoch"], help=argparse.SUPPRESS)
     p.add_argument("--mode", help=argparse.SUPPRESS)
@@ -78,6 +80,16 @@ def _mat_mb(mat) -> float:
     index = np.dtype(PETSc.IntType).itemsize
     nonzeros = mat.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_allocated"]
     return (nonzeros * (8 + index) + (mat.getLocalSize()[0] + 1) * index) / 2**20
+
+
+def _distinct_nbytes(arrays) -> int:
+    """Bytes of `arrays`, each memory block counted once."""
+    counted, total = [], 0
+    for a in arrays:
+        if a is not None and not any(np.shares_memory(a, c) for c in counted):
+            counted.append(a)
+            total += a.nbytes
+    return total
 
 
 def _solve_worker(args) -> dict:
@@ -116,8 +128,12 @@ def _solve_worker(args) -> dict:
         backward.append(time.perf_counter() - t1)
         theta.grad = None
     mat = solver.mat
-    replicated = A.indptr.nbytes + A.indices.nbytes + A.a0.nbytes
-    replicated += A.G.data.nbytes + A.G.indices.nbytes + A.G.indptr.nbytes
+    op = solver._op  # the solver's own copies: values, pattern, transpose permutation
+    replicated = _distinct_nbytes(
+        [A.indptr, A.indices, A.a0, A.G.data, A.G.indices, A.G.indptr]
+        + [A.values(theta.detach().numpy()), op._values, op._tperm, *op._pattern[:2]]
+        + [b.numpy(), u.detach().numpy()]
+    )
     return {
         "unknowns": int(A.shape[0]),
         "nnz": int(A.nnz),
@@ -186,7 +202,8 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
             cmd += ["--mode", mode]
         logger.info("running %s", " ".join(cmd))
         env = {**os.environ, **MPI_ENV}
-        subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL)
+        # a timeout: a rank that failed alone could leave the others waiting
+        subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, timeout=args.timeout)
         return json.loads(record.read_text())
 
 

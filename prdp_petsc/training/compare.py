@@ -16,7 +16,15 @@ import math
 from pathlib import Path
 
 from ..prdp import savings
-from .harness import build_scene, check_epochs, find_k_full, run, torch_threads, write_json
+from .harness import (
+    build_scene,
+    check_epochs,
+    find_k_full,
+    release,
+    run,
+    torch_threads,
+    write_json,
+)
 from .parallel import Parallel
 from .routes import fastest, parse_route, route_options
 from .scene import load_scene
@@ -93,6 +101,7 @@ def compare(
     with torch_threads(threads), ranks.solvers():
         scene = build_scene(module, preset, seed)
         k_full = find_k_full(scene)
+        release(scene)  # its settings are read below, its solvers are not needed
         # warm-up (imports, PETSc and torch first-call costs) so the first timed run is fair
         run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False,
             threads=threads, module=module, parallel=parallel)  # fmt: skip
@@ -110,7 +119,9 @@ def compare(
             try:
                 with context:
                     if route and route not in k_fulls:  # the route's own K_full
-                        k_fulls[route] = find_k_full(build_scene(module, preset, seed))
+                        probe = build_scene(module, preset, seed)
+                        k_fulls[route] = find_k_full(probe)
+                        release(probe)
                     if schedule == "full":
                         schedule = f"fixed:{k_fulls[route]}"
                     name = schedule if route is None else f"{schedule}@{route}"

@@ -33,6 +33,7 @@ __all__ = [
     "check_epochs",
     "find_k_full",
     "parse_schedule",
+    "release",
     "run",
     "to_json",
     "torch_threads",
@@ -232,6 +233,8 @@ def run(
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
         try:
+            ranks.check_solvers(scene)
+            ranks.synchronize(scene)
             scene.prdp = {**scene.prdp, **(prdp or {})}
             result["prdp"] = scene.prdp if fixed_k is None else None
             _train(
@@ -254,7 +257,23 @@ def run(
             result["totals"] = _totals(result["epochs"])
             if out is not None:
                 write_json(out / "results.json", result)
+            release(scene)
     return result
+
+
+def release(scene) -> None:
+    """Free the PETSc objects of a scene's solvers now.
+
+    On one rank Python's garbage collector would; distributed PETSc objects are
+    only queued for a collective clean-up, so a long ``compare`` would keep every
+    run's matrices and KSPs until exit.
+    """
+    for solver in scene.solvers:
+        solver.destroy()
+    from petsc4py import PETSc
+
+    if PETSc.COMM_WORLD.getSize() > 1:
+        PETSc.garbage_cleanup(PETSc.COMM_WORLD)
 
 
 def _train(

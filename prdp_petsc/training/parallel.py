@@ -97,7 +97,7 @@ class Parallel:
                 value = scene.loss(share) * weight
                 value.backward()
                 loss = float(value.detach())
-            except (SolverError, ValueError) as err:
+            except Exception as err:  # every rank must learn of it, or they wait forever
                 error = err
         loss = self._sum_gradients(scene.optimizer, loss, error)
         scene.optimizer.step()
@@ -124,11 +124,9 @@ class Parallel:
         has = np.array([p.grad is not None for p in params] + [error is not None], dtype=np.int8)
         self.comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)
         if has[-1]:
-            messages = self.comm.allgather(None if error is None else (str(error), _reason(error)))
-            rank, (message, reason) = next((r, m) for r, m in enumerate(messages) if m)
-            if error is None:
-                error = SolverError(f"rank {rank}: {message}", reason=reason)
-            raise error
+            failures = self.comm.allgather(_describe(error))
+            rank, failure = next((r, f) for r, f in enumerate(failures) if f)
+            raise error if error is not None else _remote_error(rank, failure)
         live = [p for p, h in zip(params, has[:-1], strict=True) if h]
         flat = np.empty(sum(p.numel() for p in live) + 1)
         offset = 0
@@ -151,16 +149,47 @@ class Parallel:
     # -- agreement across ranks ----------------------------------------------------------
     def validate(self, scene) -> float:
         """The validation metric: every rank (``domain``: collective solves) or rank 0."""
-        if self.mode != "batch":
-            return float(scene.validate())
-        metric = float(scene.validate()) if self.root else None
-        return self.comm.bcast(metric, root=0)
+        return self._on_root(lambda: float(scene.validate()))
 
     def rollout(self, scene) -> list[float]:
+        return self._on_root(lambda: [float(e) for e in scene.rollout()])
+
+    def _on_root(self, compute):
+        """``compute()`` on rank 0 in ``batch`` mode (on every rank otherwise), its value
+        broadcast; an error there is raised on every rank."""
         if self.mode != "batch":
-            return [float(e) for e in scene.rollout()]
-        errors = [float(e) for e in scene.rollout()] if self.root else None
-        return self.comm.bcast(errors, root=0)
+            return compute()
+        value = error = None
+        if self.root:
+            try:
+                value = compute()
+            except Exception as err:
+                error = err
+        outcome = self.comm.bcast((value, _describe(error)), root=0)
+        if error is not None:
+            raise error
+        if outcome[1] is not None:
+            raise _remote_error(0, outcome[1])
+        return outcome[0]
+
+    def synchronize(self, scene) -> None:
+        """Start every rank from rank 0's parameters (replicas must not drift apart)."""
+        if self.comm is None:
+            return
+        for group in scene.optimizer.param_groups:
+            for p in group["params"]:
+                with torch.no_grad():
+                    p.copy_(torch.from_numpy(self.comm.bcast(p.detach().numpy(), root=0)))
+
+    def check_solvers(self, scene) -> None:
+        """``batch`` mode needs serial solvers: rank 0 validates alone."""
+        if self.mode == "batch":
+            shared = [s.prefix for s in scene.solvers if s.comm.getSize() > 1]
+            if shared:
+                raise ValueError(
+                    f"--parallel batch needs serial solvers, but {shared} live on a larger "
+                    "communicator; build them without comm= (or use --parallel domain)"
+                )
 
     def agree(self, value):
         """Rank 0's `value` on every rank (PRDP's next K)."""
@@ -179,5 +208,20 @@ class Parallel:
         return fwd, adj, float(total[2] / self.size)
 
 
-def _reason(error) -> str:
-    return getattr(error, "reason", None) or "INVALID_INPUT"
+def _describe(error) -> tuple | None:
+    """What other ranks need to raise `error` again: (type name, message, reason)."""
+    if error is None:
+        return None
+    return type(error).__name__, str(error), getattr(error, "reason", None)
+
+
+def _remote_error(rank: int, failure: tuple) -> Exception:
+    """The error a rank raises when another rank failed: the same kind where it is
+    one the harness records (`SolverError`, ``ValueError``), else ``RuntimeError``."""
+    kind, message, reason = failure
+    message = f"rank {rank}: {message}"
+    if reason is not None:
+        return SolverError(message, reason=reason)
+    if kind == "ValueError":
+        return ValueError(message)
+    return RuntimeError(f"{kind} on {message}")

@@ -171,3 +171,26 @@ def test_sequential_only_pc_names_its_parallel_form():
         s.set_operator(A)
         x = s.solve(np.ones(n))
     assert all_ranks(_rel(A @ x, np.ones(n)) <= 1e-10)
+
+
+@pytest.mark.parametrize("atol", [0.0, 1e-3])
+def test_owned_layout_scales_the_right_hand_side_together(atol):
+    """An entry beyond 2^100 on one rank's rows: every rank scales b by the same power
+    of two (a per-rank choice solved another problem, or hung on diverging tests)."""
+    n = 40
+    full = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocsr()
+    start, end = ownership_range(n, PETSc.COMM_WORLD)
+    local = full[start:end]
+    mat = PETSc.Mat().createAIJ(
+        size=((end - start, n), (end - start, n)),
+        csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType), local.data),
+        comm=PETSc.COMM_WORLD,
+    )
+    mat.assemble()
+    b = np.random.default_rng(5).standard_normal(n)
+    b[0] = 1e40
+    with pp.KSPSolver({"ksp_type": "cg"}, max_it=500, rtol=1e-12, atol=atol) as solver:
+        solver.set_operator(mat)
+        x = np.concatenate(COMM.allgather(solver.solve(b[start:end])))
+    mat.destroy()
+    assert all_ranks(_rel(x, np.linalg.solve(full.toarray(), b)) <= 1e-9)

@@ -110,3 +110,35 @@ def test_a_failed_solve_on_one_rank_stops_every_rank():
 def test_batch_mode_refuses_batches_that_are_not_sample_indices():
     with pytest.raises(TypeError, match="--parallel domain"):
         Parallel("batch").step(_Failing(), None)
+
+
+class _ValidationFails:
+    """A batch scene whose validation (rank 0 only) fails: every rank must stop."""
+
+    def __init__(self):
+        self.weight = torch.nn.Parameter(torch.ones(2, dtype=torch.float64))
+        self.optimizer = torch.optim.SGD([self.weight], lr=0.1)
+
+    def validate(self):
+        raise SolverError(
+            "validation solve diverged: DIVERGED_NANORINF", reason="DIVERGED_NANORINF"
+        )
+
+    def rollout(self):
+        raise RuntimeError("no rollout")
+
+
+def test_a_failed_validation_on_rank_0_stops_every_rank():
+    ranks = Parallel("batch")
+    with pytest.raises(SolverError, match="DIVERGED_NANORINF"):
+        ranks.validate(_ValidationFails())
+    with pytest.raises(RuntimeError, match="no rollout"):
+        ranks.rollout(_ValidationFails())
+
+
+def test_synchronize_starts_every_rank_from_rank_0():
+    scene = _Failing()
+    with torch.no_grad():
+        scene.weight.fill_(float(COMM.Get_rank()))
+    Parallel("batch").synchronize(scene)
+    assert all_ranks(torch.equal(scene.weight.detach(), torch.zeros(2, dtype=torch.float64)))
