@@ -77,7 +77,7 @@ PRESETS = {
         "lr": 2e-2,
         "gamma": 0.9,
         "k_init": 10,
-        "k_step": 10,
+        "k_step": 20,
     },
 }
 
