@@ -18,6 +18,10 @@ built the operator.  The adjoint (transpose) solve is a real one: by default it
 runs the same K iterations as the forward solve; ``adjoint_rtol`` gives it its own
 tolerance relative to its own right-hand side (the reference's JAX GMRES instead
 reuses the forward's absolute tolerance and runs zero adjoint iterations).
+Any PETSc solver is one option away: ``-ns2d_pc_type fieldsplit
+-ns2d_pc_fieldsplit_detect_saddle_point -ns2d_pc_fieldsplit_type schur ...`` (a Schur
+complement PC on the velocity/pressure blocks; point PCs such as ILU or SOR fail on the
+zero pressure block) cuts K_full from ≈ 440 to ≈ 70 on 48².
 
 Learning problem (solver-in-the-loop correction, as the reference): a
 `~prdp_petsc.training.networks.ConvResNet` C (3 → 3 channels u, v, p; circular
