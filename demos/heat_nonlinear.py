@@ -20,18 +20,18 @@ one transpose GMRES solve with J(u*) per sample.  Two Newton steps with K = 1, 2
 leave about 60, 35, 12 and 1 % of the exact step's increment; K_full (rtol 1e-6 on
 the first Newton system of a held-out step) is 36.
 
-Learning problem (the paper's mixed chain, as heat1d and heat2d): a network N maps
-uⁿ to ûⁿ⁺¹, and the loss compares the capped Newton step ``Newton_K(ûⁿ⁺¹)`` with the
-exact uⁿ⁺²; with small K the step falls short and N learns a biased map.  N is the
-heat2d network, `prdp_petsc.training.networks.MeshNet` (message passing over the
-mesh's edges, 3 layers, 8 channels, node coordinates as extra inputs), here with
-GELU, since the step is nonlinear.  Validation metric: the mean normalised error
-``mean_t ‖ûₜ − uₜ‖/‖uₜ‖`` of a 10-step autoregressive rollout of N against the exact
-trajectories of held-out initial conditions (the harness also records a 20-step
-curve); the exact steps are Newton with a PETSc LU solve to ‖R‖ ≤ 1e-10 ‖R₀‖.
-This small local network cannot emulate the implicit step closely (its rollout
-error stays near 0.4, that of the identity map is about 1), but K still shows: at
-K = 1 the error settles near 0.48, from K ≈ 4 on near 0.39.
+Learning problem (the paper's mixed chain, as heat1d and heat2d): a network N maps uⁿ
+to ûⁿ⁺¹, and the loss compares the capped Newton step ``Newton_K(ûⁿ⁺¹)`` with the
+exact uⁿ⁺²; with small K the step falls short and N learns a biased map.  N is
+`prdp_petsc.training.networks.MeshNet` (message passing over the mesh's edges, 3
+layers, 8 channels, node coordinates as extra inputs; heat2d's network before it moved
+to `ModalNet`), here with GELU, since the step is nonlinear.  Validation metric: the
+mean normalised error ``mean_t ‖ûₜ − uₜ‖/‖uₜ‖`` of a 10-step autoregressive rollout of
+N against the exact trajectories of held-out initial conditions (the harness also
+records a 20-step curve); the exact steps are Newton with a PETSc LU solve to ‖R‖ ≤
+1e-10 ‖R₀‖.  This small local network cannot emulate the implicit step closely (its
+rollout error stays near 0.4, that of the identity map is about 1), but K still shows:
+at K = 1 the error settles near 0.48, from K ≈ 4 on near 0.39.
 
 Presets: ``quick`` (tests; seconds) and ``paper`` (about a minute per run on this
 project's 2-core machine).  Assembling R and J with scikit-fem costs far more than
