@@ -32,7 +32,7 @@ test: $(STAMP)
 	$(MPI_ENV) timeout 900 $(MPIEXEC) -n 2 $(PY) -m pytest -q -p no:cacheprovider tests/mpi
 
 demo: $(STAMP)
-	$(PY) -m prdp_petsc.cli compare demos/heat1d.py --preset paper --out $(OUT)/heat1d
+	$(PY) -m prdp_petsc.cli compare demos/heat2d.py --preset paper --routes cg/icc --out $(OUT)/heat2d
 
 bench: $(STAMP)
 	$(PY) -m prdp_petsc.cli bench bridge --out $(OUT)
