@@ -13,8 +13,8 @@
     every rank holds (the assembly map G, the CSR operator and the solver's copy
     of its values, the full vectors).
 ``epoch``
-    Training epochs of a scene (default ``demos/heat2d.py``, preset ``paper``, a
-    fixed K) under ``--parallel domain`` and ``--parallel batch``; the median
+    Training epochs of a scene (default ``demos/heat3d.py``, preset ``paper``, at
+    its K_full = 96) under ``--parallel domain`` and ``--parallel batch``; the median
     epoch wall time after the first (warm-up) epoch, and the speed-up.
 
 Timings are only meaningful on an otherwise idle machine, with one torch thread
@@ -55,9 +55,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--refine", type=int, default=2, help="refinements of box3d (2: 58 575 nodes)")
     p.add_argument("--k", type=int, default=200, help="K of the capped 3D solve (200)")
     p.add_argument("--repeats", type=int, default=5, help="timed solves after one warm-up (5)")
-    p.add_argument("--scene", default="demos/heat2d.py", help="scene of the epoch benchmark")
+    p.add_argument("--scene", default="demos/heat3d.py", help="scene of the epoch benchmark")
     p.add_argument("--preset", default="paper")
-    p.add_argument("--schedule", default="fixed:100", help="K schedule of the epochs")
+    p.add_argument("--schedule", default="fixed:96", help="K schedule of the epochs (K_full)")
     p.add_argument("--epochs", type=int, default=3, help="epochs per run (the first is warm-up)")
     p.add_argument("--mpiexec", default=os.environ.get("MPIEXEC", "mpiexec"))
     p.add_argument("--timeout", type=float, default=3600, help="seconds per mpiexec (3600)")
