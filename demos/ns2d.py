@@ -47,7 +47,8 @@ Variants (config keys): ``solver_grad: False`` detaches the solver from the grap
 (the second step's solve sees a constant input: the reference's effective
 gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
 times the velocity std) instead of unrolling — presets ``paper_detached`` and
-``paper_noise`` (``quick_…`` likewise).
+``paper_noise`` (``quick_…`` likewise).  ``paper_k64`` and ``large_k64`` start PRDP at
+K = 64 (8 restart cycles; ``large_k64`` also refines by 64) instead of one cycle.
 
 Presets: ``quick`` (12², seconds, tests), ``paper`` (48², the reference network
 and batch; 5 trajectories × 5 windows = 25 training samples, one batch per epoch,
@@ -129,6 +130,9 @@ PRESETS = {
         "compare_ks": [8, 256],
     },
 }
+# PRDP from 8 restart cycles, refining by 8 (the reference starts at 1 and steps by 1)
+PRESETS["paper_k64"] = {**PRESETS["paper"], "k_init": 64}
+PRESETS["large_k64"] = {**PRESETS["large"], "k_init": 64, "k_step": 64}
 PRESETS["quick_detached"] = {**PRESETS["quick"], "solver_grad": False}
 PRESETS["quick_noise"] = {**PRESETS["quick"], "unroll": 1, "noise": 0.05}
 PRESETS["paper_detached"] = {**PRESETS["paper"], "solver_grad": False}
