@@ -141,35 +141,11 @@ PRESETS["paper_noise"] = {**PRESETS["paper"], "unroll": 1, "noise": 0.05}
 GMRES = {"ksp_type": "gmres", "ksp_gmres_restart": 8, "pc_type": "none"}
 
 
-def initial_states(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` smooth random divergence-free states (count, 3n²), velocity std 1."""
-    k = np.fft.fftfreq(n, 1.0 / n)
-    k2 = k[:, None] ** 2 + k[None, :] ** 2
-    amplitude = np.where(k2 > 0, np.exp(-0.12 * k2) / np.sqrt(np.maximum(k2, 1)), 0.0)
-    noise = rng.standard_normal((count, n, n)) + 1j * rng.standard_normal((count, n, n))
-    psi = np.fft.ifft2(noise * amplitude).real
-    states = mac.from_streamfunction(psi)
-    velocity = states.reshape(count, 3, -1)[:, :2]
-    return states / velocity.std(axis=(1, 2))[:, None]
-
-
-def simulate(state: np.ndarray, n: int, dt: float, nu: float, steps: int) -> np.ndarray:
-    """Trajectories (steps + 1, count, 3n²) of the scheme with a direct solve."""
-    A, W, scale = mac.ns_operator(n, dt, nu), mac.wind_matrix(n), mac.rhs_scale(n, dt)
-    traj = [state]
-    for _ in range(steps):
-        theta, b = mac.picard_parameters(traj[-1], W), traj[-1] * scale
-        traj.append(
-            np.stack([mac.solve_direct(A.matrix(t), r) for t, r in zip(theta, b, strict=True)])
-        )
-    return np.stack(traj)
-
-
 @functools.lru_cache(maxsize=4)
 def reference_data(n: int, count: int, steps: int, dt: float, nu: float, seed: int):
     """Reference trajectories (steps + 1, count, 3n²): the 2n² simulation restricted."""
     rng = np.random.default_rng(seed)
-    fine = simulate(initial_states(2 * n, count, rng), 2 * n, dt, nu, steps)
+    fine = mac.simulate(mac.random_states(2 * n, count, rng), 2 * n, dt, nu, steps)
     return torch.from_numpy(mac.restrict(fine, 2 * n))
 
 

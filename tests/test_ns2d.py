@@ -20,7 +20,7 @@ UNCORRECTED_QUICK = 0.06114
 
 
 def state(n, count, seed=0):
-    return torch.from_numpy(NS2D.initial_states(n, count, np.random.default_rng(seed)))
+    return torch.from_numpy(mac.random_states(n, count, np.random.default_rng(seed)))
 
 
 def converged(n, **kw):
@@ -92,7 +92,7 @@ def test_energy_decays_and_restriction_keeps_divergence_free():
     ratios = []
     fine = state(32, 2).numpy()
     for n, s0 in ((16, mac.restrict(fine, 32)), (32, fine)):  # the same flow on two grids
-        traj = NS2D.simulate(s0, n, DT, NU, 5)
+        traj = mac.simulate(s0, n, DT, NU, 5)
         energy = (traj.reshape(6, 2, 3, -1)[:, :, :2] ** 2).mean(axis=(2, 3))
         assert np.all(np.diff(energy, axis=0) < 0)  # implicit Euler + upwind dissipate
         ratios.append(energy[-1] / energy[0])

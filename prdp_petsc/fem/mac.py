@@ -38,8 +38,10 @@ __all__ = [
     "ns_operator",
     "nullspace",
     "picard_parameters",
+    "random_states",
     "restrict",
     "rhs_scale",
+    "simulate",
     "solve_direct",
     "wind_matrix",
 ]
@@ -221,3 +223,29 @@ def solve_direct(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
     x = lu.solve(b2.T).T
     x[:, 2 * m :] -= x[:, 2 * m :].mean(axis=1, keepdims=True)
     return x.reshape(np.shape(b))
+
+
+def simulate(state: np.ndarray, n: int, dt: float, nu: float, steps: int) -> np.ndarray:
+    """Trajectories (steps + 1, count, 3n²) from states (count, 3n²), direct solves."""
+    A, W, scale = ns_operator(n, dt, nu), wind_matrix(n), rhs_scale(n, dt)
+    traj = [state]
+    for _ in range(steps):
+        theta, b = picard_parameters(traj[-1], W), traj[-1] * scale
+        traj.append(np.stack([solve_direct(A.matrix(t), r) for t, r in zip(theta, b, strict=True)]))
+    return np.stack(traj)
+
+
+def random_states(n: int, count: int, rng: np.random.Generator, decay: float = 0.12):
+    """``count`` smooth random divergence-free states (count, 3n²), velocity std 1.
+
+    The stream function has random Fourier coefficients with amplitude
+    ``exp(−decay |k|²)/|k|`` (k the integer wavenumber), so the velocity spectrum
+    falls like ``exp(−decay |k|²)``; the pressure is zero.
+    """
+    k = np.fft.fftfreq(n, 1.0 / n)
+    k2 = k[:, None] ** 2 + k[None, :] ** 2
+    amplitude = np.where(k2 > 0, np.exp(-decay * k2) / np.sqrt(np.maximum(k2, 1)), 0.0)
+    noise = rng.standard_normal((count, n, n)) + 1j * rng.standard_normal((count, n, n))
+    states = from_streamfunction(np.fft.ifft2(noise * amplitude).real)
+    velocity = states.reshape(count, 3, -1)[:, :2]
+    return states / velocity.std(axis=(1, 2))[:, None]
