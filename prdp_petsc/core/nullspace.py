@@ -13,7 +13,13 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["check_nullspace", "normalize_nullspace", "petsc_nullspace"]
+__all__ = [
+    "attach_nullspaces",
+    "check_nullspace",
+    "check_nullspaces",
+    "normalize_nullspace",
+    "petsc_nullspace",
+]
 
 #: ``‖A v‖ / (‖A‖_∞ ‖v‖)`` above which v is rejected as a null vector of A
 NULL_TOLERANCE = 1e-8
@@ -97,3 +103,16 @@ def check_nullspace(mat: PETSc.Mat, ns: PETSc.NullSpace, *, transpose: bool, nam
                 "and solve another problem. Pass the right vectors (or transpose_nullspace= "
                 "for a non-symmetric operator) or none."
             )
+
+
+def attach_nullspaces(mat: PETSc.Mat, nullspace, transpose_nullspace) -> None:
+    """``MatSetNullSpace`` / ``MatSetTransposeNullSpace`` from normalised specs, checked."""
+    mat.setNullSpace(petsc_nullspace(nullspace, mat))
+    mat.setTransposeNullSpace(petsc_nullspace(transpose_nullspace, mat))
+    check_nullspaces(mat)
+
+
+def check_nullspaces(mat: PETSc.Mat) -> None:
+    """`check_nullspace` for both null spaces attached to `mat` (after new values)."""
+    check_nullspace(mat, mat.getNullSpace(), transpose=False, name="nullspace")
+    check_nullspace(mat, mat.getTransposeNullSpace(), transpose=True, name="transpose_nullspace")

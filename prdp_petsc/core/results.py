@@ -62,5 +62,11 @@ class SolverStats:
     adjoint_time: float = 0.0
     operator_updates: int = 0
 
+    def record(self, kind: str, solves: int, iterations: int, seconds: float) -> None:
+        """Add one call's work to the ``forward`` or ``adjoint`` counters."""
+        setattr(self, f"{kind}_solves", getattr(self, f"{kind}_solves") + solves)
+        setattr(self, f"{kind}_iterations", getattr(self, f"{kind}_iterations") + iterations)
+        setattr(self, f"{kind}_time", getattr(self, f"{kind}_time") + seconds)
+
     def as_dict(self) -> dict:
         return dict(self.__dict__)

@@ -30,11 +30,14 @@ import logging
 import numpy as np
 from petsc4py import PETSc
 
+from .results import SolverError
+
 __all__ = [
     "FAR_BEYOND",
     "LATE_BREAKDOWNS",
     "LATE_REASONS",
     "NO_TRANSPOSE_KSP",
+    "check_transpose_ksp",
     "ROUNDING_LEVEL",
     "SAFE_RANGE",
     "backward_error",
@@ -67,6 +70,17 @@ LATE_BREAKDOWNS = frozenset(
 LATE_REASONS = frozenset(getattr(PETSc.KSP.ConvergedReason, name) for name in LATE_BREAKDOWNS)
 #: KSP types whose transpose solve silently runs another iteration (PETSc 3.26)
 NO_TRANSPOSE_KSP = frozenset({"cgls"})
+
+
+def check_transpose_ksp(ksp) -> None:
+    """Raise `SolverError` if the adjoint's KSP type has no correct transpose solve."""
+    if ksp.getType() in NO_TRANSPOSE_KSP:
+        raise SolverError(
+            f"adjoint ksp_type {ksp.getType()!r} has no correct transpose solve in PETSc (it "
+            "would return a wrong gradient); choose another adjoint ksp_type, e.g. "
+            "AdjointSettings(options={'ksp_type': 'gmres'})",
+            reason="NO_TRANSPOSE",
+        )
 
 
 def rhs_exponents(batch: np.ndarray) -> np.ndarray:

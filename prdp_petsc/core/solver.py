@@ -24,7 +24,7 @@ from .configuration import (
     refuse_tolerance_options,
     rejected_options_message,
 )
-from .nullspace import check_nullspace, normalize_nullspace, petsc_nullspace
+from .nullspace import attach_nullspaces, check_nullspaces, normalize_nullspace
 from .operator import OperatorMat
 from .options import (
     PushedOptions,
@@ -305,15 +305,14 @@ class KSPSolver(Configuration):
             self._attach(self._op.mat)
         elif change == "values":
             self.stats.operator_updates += 1
-            self._check_nullspaces()
+            if self.nullspace is not None:
+                check_nullspaces(self._op.mat)
 
     def _attach(self, mat: PETSc.Mat) -> None:
         if mat.getComm().getSize() != self._ksp.getComm().getSize():
             self.setup(mat.getComm())
         if self.nullspace is not None:
-            mat.setNullSpace(petsc_nullspace(self.nullspace, mat))
-            mat.setTransposeNullSpace(petsc_nullspace(self.transpose_nullspace, mat))
-            self._check_nullspaces()
+            attach_nullspaces(mat, self.nullspace, self.transpose_nullspace)
         if self._x is not None and self._x.getSizes() != mat.getSizes()[1]:
             for ksp in (self._ksp, self._adj):  # another size: KSPReset, options stay
                 ksp.reset()
@@ -323,14 +322,6 @@ class KSPSolver(Configuration):
         self._x, self._b = mat.createVecs()
         self._layout = RowLayout(self._b, replicated=self._op.replicated)
         self.stats.operator_updates += 1
-
-    def _check_nullspaces(self) -> None:
-        if self.nullspace is not None:
-            mat = self._op.mat
-            check_nullspace(mat, mat.getNullSpace(), transpose=False, name="nullspace")
-            check_nullspace(
-                mat, mat.getTransposeNullSpace(), transpose=True, name="transpose_nullspace"
-            )
 
     def _adjoint_is_forward(self) -> bool:
         """True when ``Aᵀλ = g`` can run as a forward solve of the adjoint KSP."""
@@ -346,13 +337,7 @@ class KSPSolver(Configuration):
 
     def solve_transpose(self, g: np.ndarray) -> np.ndarray:
         """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``."""
-        if self.adjoint_ksp.getType() in safeguards.NO_TRANSPOSE_KSP:
-            raise SolverError(
-                f"adjoint ksp_type {self._adj.getType()!r} has no correct transpose solve in "
-                "PETSc (it would return a wrong gradient); choose another adjoint ksp_type, "
-                "e.g. AdjointSettings(options={'ksp_type': 'gmres'})",
-                reason="NO_TRANSPOSE",
-            )
+        safeguards.check_transpose_ksp(self.adjoint_ksp)
         return self._run(g, transpose=True)
 
     def _run(self, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
@@ -398,15 +383,7 @@ class KSPSolver(Configuration):
         if not finite:
             raise SolverError(f"{kind} solve returned NaN/Inf", reason="DIVERGED_NANORINF")
         elapsed = time.perf_counter() - t0
-        stats = self.stats
-        if transpose:
-            stats.adjoint_solves += len(batch)
-            stats.adjoint_iterations += iterations
-            stats.adjoint_time += elapsed
-        else:
-            stats.forward_solves += len(batch)
-            stats.forward_iterations += iterations
-            stats.forward_time += elapsed
+        self.stats.record(kind, len(batch), iterations, elapsed)
         return out.reshape(rhs.shape)
 
     def reset_stats(self) -> None:

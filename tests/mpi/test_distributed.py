@@ -123,10 +123,9 @@ def test_use_comm_makes_distributed_solvers_and_clone_keeps_it():
         assert serial.describe()["ranks"] == 1
 
 
-def test_owned_layout_with_a_callers_distributed_mat():
-    """A caller's MPIAIJ Mat: vectors hold the rank's own rows, nothing is gathered."""
-    n = 40
-    full = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocsr()
+def _owned_mat(full):
+    """A caller's MPIAIJ Mat holding this rank's rows of `full`, and those rows."""
+    n = full.shape[0]
     start, end = ownership_range(n, PETSc.COMM_WORLD)
     local = full[start:end]
     mat = PETSc.Mat().createAIJ(
@@ -135,6 +134,14 @@ def test_owned_layout_with_a_callers_distributed_mat():
         comm=PETSc.COMM_WORLD,
     )
     mat.assemble()
+    return mat, (start, end)
+
+
+def test_owned_layout_with_a_callers_distributed_mat():
+    """A caller's MPIAIJ Mat: vectors hold the rank's own rows, nothing is gathered."""
+    n = 40
+    full = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocsr()
+    mat, (start, end) = _owned_mat(full)
     b = np.random.default_rng(4).standard_normal(n)
     with pp.KSPSolver({"ksp_type": "cg"}, **CONVERGED) as solver:
         solver.set_operator(mat)
@@ -179,14 +186,7 @@ def test_owned_layout_scales_the_right_hand_side_together(atol):
     of two (a per-rank choice solved another problem, or hung on diverging tests)."""
     n = 40
     full = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n)).tocsr()
-    start, end = ownership_range(n, PETSc.COMM_WORLD)
-    local = full[start:end]
-    mat = PETSc.Mat().createAIJ(
-        size=((end - start, n), (end - start, n)),
-        csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType), local.data),
-        comm=PETSc.COMM_WORLD,
-    )
-    mat.assemble()
+    mat, (start, end) = _owned_mat(full)
     b = np.random.default_rng(5).standard_normal(n)
     b[0] = 1e40
     with pp.KSPSolver({"ksp_type": "cg"}, max_it=500, rtol=1e-12, atol=atol) as solver:
