@@ -25,8 +25,9 @@ basis), the ``modes`` lowest.  The message-passing `MeshNet` that heat2d used
 before does not emulate this step: trained through the solve, its rollouts
 drifted or diverged (the solve damps the high-frequency part of N's error, so the
 loss barely constrains a local network there).  Modal weights are fitted each by
-its own mode, and the modes N drops are those the step damps most, so rollouts
-stay bounded.  Validation metric: the mean normalised error of
+its own mode, and the modes N drops are those the step damps most and cannot be
+amplified; a kept mode's weight above 1 still grows in a rollout (as at K = 1).
+Validation metric: the mean normalised error of
 a 10-step autoregressive rollout on held-out initial conditions; the harness also
 records a 20-step curve.
 

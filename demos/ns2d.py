@@ -166,7 +166,10 @@ class Corrector:
     def theta(self, state: torch.Tensor) -> torch.Tensor:
         """Picard parameters θ = [a⁺; a⁻], a = W s, of states (B, 3n²) (differentiable)."""
         a = torch.sparse.mm(self.W, state.T).T
-        return torch.cat([a.clamp(min=0), a.clamp(max=0)], dim=1)
+        # a⁺ + a⁻ = a with derivatives summing to 1 also at a = 0 (one upwind side);
+        # clamp(min=0) and clamp(max=0) both pass 1 there, counting both sides
+        positive = torch.relu(a)
+        return torch.cat([positive, a - positive], dim=1)
 
     def solve(self, state: torch.Tensor, solver: pp.KSPSolver) -> torch.Tensor:
         """The capped solve P_K(s): operator and right-hand side both from s."""
@@ -303,9 +306,9 @@ def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -
     """What the physics gradient costs and changes, on one training batch of `preset`.
 
     The corrector is first trained for `warmup` batches (K = 64, so that every layer
-    has a gradient: the untrained projection is zero).  Then, on the next batch, the
-    2-step loss is differentiated with the solver at each K of `ks` (forward and
-    adjoint K iterations), converged (forward and adjoint to rtol 1e-8, the adjoint
+    has a gradient: the untrained projection is zero).  Then, on the first of those
+    batches again, the 2-step loss is differentiated with the solver at each K of
+    `ks` (forward and adjoint K iterations), converged (forward and adjoint to rtol 1e-8, the adjoint
     relative to its own right-hand side), and converged but detached (no physics
     gradient, what the reference effectively trains with).
 

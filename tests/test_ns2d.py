@@ -42,7 +42,7 @@ def test_operator_null_space_and_shape():
 
 def test_operator_is_first_order_consistent():
     """Apply A(θ(w)) to smooth fields: the truncation error falls at rate ≈ 1 (upwind)."""
-    errors, hs = [], []
+    errors, errors_v, hs = [], [], []
     for n in (16, 32, 64):
         h = 1.0 / n
         xu, yu = np.meshgrid((np.arange(n) + 1) * h, (np.arange(n) + 0.5) * h)
@@ -64,11 +64,20 @@ def test_operator_is_first_order_consistent():
         exact_u = (
             u / DT + u * ux + vu * uy + NU * 2 * k**2 * u - k * np.sin(k * xu) * np.cos(k * yu)
         )
+        # and v/Δt + (u·∇)v − νΔv + ∂p/∂y at the v points
+        vx = k * np.sin(k * xv) * np.sin(k * yv)
+        vy = -k * np.cos(k * xv) * np.cos(k * yv)
+        uv = np.sin(k * xv) * np.cos(k * yv)
+        exact_v = (
+            v / DT + uv * vx + v * vy + NU * 2 * k**2 * v - k * np.cos(k * xv) * np.sin(k * yv)
+        )
         errors.append(np.abs(Ax[: n * n] - exact_u.ravel()).max())
+        errors_v.append(np.abs(Ax[n * n : 2 * n * n] - exact_v.ravel()).max())
         hs.append(h)
         assert np.abs(Ax[2 * n * n :]).max() < 1e-9  # discretely divergence-free
-    rate = np.polyfit(np.log(hs), np.log(errors), 1)[0]
-    assert 0.9 < rate < 1.3
+    for errs in (errors, errors_v):
+        rate = np.polyfit(np.log(hs), np.log(errs), 1)[0]
+        assert 0.9 < rate < 1.3
 
 
 def test_petsc_gmres_matches_direct_solve_and_is_divergence_free():
@@ -86,6 +95,23 @@ def test_petsc_gmres_matches_direct_solve_and_is_divergence_free():
     velocity = np.abs(x.reshape(2, 3, -1)[:, :2]).max()
     assert np.abs(mac.divergence(x, n)).max() < 1e-9 * velocity * n
     assert abs(x.reshape(2, 3, -1)[:, 2].mean()) < 1e-12  # zero-mean pressure
+
+
+def test_picard_parameters_take_one_upwind_side_at_zero_wind():
+    """θ = [a⁺; a⁻]: ∂a⁺/∂a + ∂a⁻/∂a = 1 everywhere, also where the wind is exactly 0
+    (a shear flow with v ≡ 0), so the gradient sees one upwind side, not both."""
+    n = 8
+    hybrid = NS2D.Corrector({"n": n, "dt": DT, "nu": NU}, net=None)
+    y = (np.arange(n) + 0.5) / n
+    u = np.tile(np.sin(2 * np.pi * y)[:, None], (1, n))
+    s = torch.from_numpy(np.concatenate([u.ravel(), np.zeros(2 * n * n)])).requires_grad_()
+    theta = hybrid.theta(s[None])[0]
+    half = theta.numel() // 2
+    a = torch.sparse.mm(hybrid.W, s[:, None].detach())[:, 0]
+    assert (a == 0).any()  # the case in question is present
+    (jac,) = torch.autograd.grad((theta[:half] + theta[half:]) @ torch.ones(half).double(), s)
+    (expected,) = torch.autograd.grad(torch.sparse.mm(hybrid.W, s[:, None])[:, 0].sum(), s)
+    assert torch.allclose(jac, expected)
 
 
 def test_energy_decays_and_restriction_keeps_divergence_free():
