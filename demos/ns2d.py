@@ -308,9 +308,9 @@ def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -
     The corrector is first trained for `warmup` batches (K = 64, so that every layer
     has a gradient: the untrained projection is zero).  Then, on the first of those
     batches again, the 2-step loss is differentiated with the solver at each K of
-    `ks` (forward and adjoint K iterations), converged (forward and adjoint to rtol 1e-8, the adjoint
-    relative to its own right-hand side), and converged but detached (no physics
-    gradient, what the reference effectively trains with).
+    `ks` (forward and adjoint K iterations), converged (forward and adjoint to rtol
+    1e-8, the adjoint relative to its own right-hand side), and converged but
+    detached (no physics gradient, what the reference effectively trains with).
 
     Returns
     -------
