@@ -9,7 +9,8 @@ random Gaussian bumps times the bubble (−Δd = 1), so they vanish smoothly on 
 boundary.
 
 Solver in the loop: damped Jacobi (``richardson`` + ``jacobi``, scale 0.8) in fixed
-mode, K = ``max_it`` iterations from zero, implicit (adjoint) gradients; the same
+mode, K = ``max_it`` iterations from the input ûⁿ⁺¹ as initial guess (see heat2d),
+implicit (adjoint) gradients; the same
 scene as ``heat2d`` (built by its `build_emulator`), so
 ``-heat3d_ksp_type cg -heat3d_pc_type icc`` and ``compare --routes cg/icc`` work
 the same way.  The mesh is sized so that the solve dominates training: at K_full

@@ -140,6 +140,7 @@ def solve(
     *,
     theta: torch.Tensor | None = None,
     mode: str = "implicit",
+    x0: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Differentiable capped solve ``x = A(θ)⁻¹ b`` with a PETSc KSP.
 
@@ -160,6 +161,14 @@ def solve(
         ``"implicit"``: PETSc forward solve, PETSc transpose solve in backward.
         ``"unrolled"``: the same K-step iteration in torch under autograd (exact
         derivative of the truncated solver); see `prdp_petsc.autograd.unrolled`.
+    x0 : torch.Tensor, shape of `b`, optional
+        Initial guess (PETSc's ``KSPSetInitialGuessNonzero``), e.g. the previous
+        time step's state.  Solved in correction form, ``x = x0 + P_K(b − A(θ) x0)``:
+        Richardson/Jacobi and Krylov iterates from x0 are x0 plus those of the
+        correction from zero, so the K iterations are PETSc's from x0; a converged
+        solve's tolerance is then relative to the initial residual, not to ``‖b‖``.
+        Differentiable in x0 too: ``∂L/∂x0 = g − Aᵀλ``, zero for an exact adjoint
+        λ, and for a capped stationary iteration the exact derivative of its K steps.
 
     Returns
     -------
@@ -194,11 +203,35 @@ def solve(
     _check_vector(_as_numpy(b, "b"), csr[3][0], "b")
     if P is not None:
         _check_pairing(P, csr[2], b.shape, "b")
+    if x0 is not None:
+        if x0.shape != b.shape:
+            raise ValueError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
+        _as_numpy(x0, "x0")  # finite
+        if P is not None:
+            residual = b - matvec(A, x0, theta=theta)
+        else:
+            residual = b - ConstMatVec.apply(x0, A)
+        return x0 + solve(A, residual, solver, theta=theta, mode=mode)
     if mode == "unrolled":
         from .unrolled import unrolled_solve
 
         return unrolled_solve(A, b, solver, theta=theta)
     return _ImplicitSolve.apply(b, theta, P, csr, solver)
+
+
+class ConstMatVec(torch.autograd.Function):
+    """``M v`` for a constant scipy matrix M, rows of v (B, n) as samples; backward ``Mᵀ g``."""
+
+    @staticmethod
+    def forward(ctx, v, M):
+        ctx.M = M
+        return torch.from_numpy(np.asarray((M @ v.detach().cpu().numpy().T).T)).to(v.device)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        g = np.asarray((ctx.M.T @ grad.detach().cpu().numpy().T).T)
+        return torch.from_numpy(g).to(grad.device), None
 
 
 def _product(P: ParametricMatrix, values: np.ndarray, v: np.ndarray, transpose: bool):

@@ -20,8 +20,7 @@ import torch
 
 from ..core.solver import KSPSolver
 from ..fem.parametric import ParametricMatrix
-from .bridge import _as_numpy, _check_vector, matvec, solve
-from .once import once_differentiable
+from .bridge import ConstMatVec, _as_numpy, _check_vector, matvec, solve
 
 __all__ = ["Dirichlet"]
 
@@ -64,7 +63,7 @@ class Dirichlet:
         _check_vector(_as_numpy(g, "g"), len(self.boundary), "g")
         f_i = f[..., torch.from_numpy(self.interior).to(f.device)]
         if not isinstance(self.A_IB, ParametricMatrix):
-            return f_i - _ConstMatVec.apply(g, self.A_IB).to(f.device)
+            return f_i - ConstMatVec.apply(g, self.A_IB).to(f.device)
         if isinstance(theta, torch.Tensor) and theta.ndim == 2:  # one operator per sample
             batch = len(theta)
             for name, t in (("f", f), ("g", g)):
@@ -112,16 +111,3 @@ class Dirichlet:
 def _scatter(u: torch.Tensor, idx: np.ndarray, values: torch.Tensor) -> torch.Tensor:
     index = torch.from_numpy(idx).to(u.device).expand(*values.shape[:-1], -1)
     return u.scatter(-1, index, values)
-
-
-class _ConstMatVec(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, v, M):
-        ctx.M = M
-        return torch.from_numpy(np.asarray((M @ v.detach().cpu().numpy().T).T))
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad):
-        g = np.asarray((ctx.M.T @ grad.detach().cpu().numpy().T).T)
-        return torch.from_numpy(g).to(grad.device), None

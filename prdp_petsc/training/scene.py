@@ -47,9 +47,11 @@ class Scene:
         Scalar training loss of one batch (through the solvers).
     validate : callable ``() -> float``
         Validation metric, lower is better; this is what PRDP watches.
-    probe : callable ``() -> (A, b)``
+    probe : callable ``() -> (A, b)`` or ``() -> (A, b, x0)``
         A representative operator and right-hand side (numpy); the harness solves
-        it to tolerance `rtol_full` to find K_full.
+        it to tolerance `rtol_full` to find K_full.  A scene whose solves start
+        from a guess (``solve(..., x0=)``) returns it as ``x0``: K_full then counts
+        the iterations from x0 to PETSc's default test, ``‖r‖ ≤ rtol_full ‖b‖``.
     rtol_full : float
         Relative tolerance that defines a "converged" solve for this scene.
     epochs : int
