@@ -52,6 +52,25 @@ def _gradients(A, solver, theta, b, weights):
     return x.detach().numpy(), b.grad.numpy(), theta.grad.numpy()
 
 
+def test_capped_solve_from_a_guess_equals_serial():
+    """``solve(..., x0=)`` distributed: iterates from the guess and ∂L/∂x0 as in serial."""
+    A = _problem(False)
+    rng = np.random.default_rng(2)
+    theta = torch.from_numpy(1.0 + rng.random(A.n_params))
+    b, x0, weights = (torch.from_numpy(rng.standard_normal((2, A.shape[0]))) for _ in range(3))
+    options = {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale": 0.7}
+    results = []
+    for comm, prefix in ((PETSc.COMM_SELF, "ser0_"), (PETSc.COMM_WORLD, "dist0_")):
+        guess = x0.clone().requires_grad_()
+        with pp.KSPSolver(options, prefix=prefix, comm=comm, max_it=9) as solver:
+            x = pp.solve(A, b, solver, theta=theta, x0=guess)
+            (x * weights).sum().backward()
+        results.append((x.detach().numpy(), guess.grad.numpy()))
+    errors = [_rel(g, e) for g, e in zip(results[1], results[0], strict=True)]
+    assert all_ranks(max(errors) <= 1e-10), errors
+    assert all(same_on_all_ranks(g) for g in results[1])
+
+
 @pytest.mark.parametrize(
     "advect, options, settings",
     [
