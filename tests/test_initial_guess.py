@@ -20,9 +20,8 @@ JACOBI = {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale":
 CG = {"ksp_type": "cg", "pc_type": "jacobi"}
 
 
-def petsc_from_x0(A, b, x0, options, k):
-    """K iterations of a raw petsc4py KSP from the nonzero initial guess x0."""
-    mat = PETSc.Mat().createAIJ(A.shape, csr=(A.indptr, A.indices, A.data), comm=PETSc.COMM_SELF)
+def raw_ksp(mat, options):
+    """A plain petsc4py KSP on `mat` with `options` (through a private prefix)."""
     ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
     ksp.setOperators(mat)
     db = PETSc.Options("rawx0_")
@@ -32,6 +31,13 @@ def petsc_from_x0(A, b, x0, options, k):
     ksp.setFromOptions()
     for key in options:
         db.delValue(key)
+    return ksp
+
+
+def petsc_from_x0(A, b, x0, options, k):
+    """K iterations of a raw petsc4py KSP from the nonzero initial guess x0."""
+    mat = PETSc.Mat().createAIJ(A.shape, csr=(A.indptr, A.indices, A.data), comm=PETSc.COMM_SELF)
+    ksp = raw_ksp(mat, options)
     ksp.setTolerances(rtol=0.0, atol=0.0, max_it=k)
     ksp.setConvergenceTest(lambda ksp, its, rnorm: its >= k and 1 or 0)  # exactly K
     ksp.setInitialGuessNonzero(True)
@@ -129,15 +135,7 @@ def test_k_full_from_a_guess_is_petscs_count_to_rtol_times_norm_b(options):
     mat = PETSc.Mat().createAIJ(A.shape, csr=(A.indptr, A.indices, A.data), comm=PETSc.COMM_SELF)
     counts = []
     for guess in (np.zeros(100), x0):
-        ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-        ksp.setOperators(mat)
-        db = PETSc.Options("rawk_")
-        for key, value in options.items():
-            db[key] = value
-        ksp.setOptionsPrefix("rawk_")
-        ksp.setFromOptions()
-        for key in options:
-            db.delValue(key)
+        ksp = raw_ksp(mat, options)
         ksp.setTolerances(rtol=rtol, atol=0.0, max_it=10_000)
         ksp.setInitialGuessNonzero(True)
         x, rhs = mat.createVecs()
