@@ -37,7 +37,11 @@ conditions; the harness also records a 30-step rollout curve.
 
 Presets: ``quick`` (tests), ``paper`` (5 457 unknowns, Δt κ/h² ≈ 1.2) and
 ``stiff`` (Δt κ/h² ≈ 6e3: damped Jacobi needs thousands of iterations, CG +
-ICC about 70 — there the PC choice decides).
+ICC about 70 — there the PC choice decides).  ``paper_mlp`` is ``paper`` with the
+reference's emulator class instead of ModalNet (``net: "mlp"``: a
+`~prdp_petsc.training.networks.ResidualMLP` over the nodal values) and 64 training
+trajectories: the control experiment of the README, where the network barely
+beats the identity map, so its own error hides the solver's.
 
 Run ``python demos/heat2d.py compare --preset paper --routes cg/icc --out results/heat2d``.
 """
@@ -53,6 +57,7 @@ from skfem.models.poisson import laplace, mass
 
 import prdp_petsc as pp
 from prdp_petsc.training.modal import ModalNet
+from prdp_petsc.training.networks import ResidualMLP
 from prdp_petsc.training.rollout import rollout_errors
 from prdp_petsc.training.scene import shuffled_batches
 
@@ -110,6 +115,10 @@ PRESETS = {
     },
 }
 
+# the paper's emulator class: a residual MLP over the nodal values (see the docstring)
+_MLP = {"net": "mlp", "width": 128, "depth": 2, "lr": 1e-3, "gamma": 0.95, "k_init": 4, "k_step": 4}
+PRESETS["paper_mlp"] = {**PRESETS["paper"], **_MLP, "n_train": 64}
+
 JACOBI = {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale": 0.8}
 
 
@@ -161,7 +170,7 @@ def build_emulator(config: dict, seed: int, *, prefix: str) -> pp.Scene:
     B_t = _torch_csr(B)
     warm = config.get("warm_start", True)
     solver = pp.KSPSolver(JACOBI, prefix=prefix, max_it=1)
-    net = ModalNet((A - B) / config["dt"], B, config["modes"])
+    net = emulator_net(config, A, B)
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
     n_train = len(train_in)
 
@@ -197,6 +206,13 @@ def build_emulator(config: dict, seed: int, *, prefix: str) -> pp.Scene:
         scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=config["gamma"]),
         info={"n": n, "nnz": int(A.nnz), "network_parameters": _count(net), **config},
     )
+
+
+def emulator_net(config: dict, A, B) -> torch.nn.Module:
+    """The network N: `ModalNet` (``net: "modal"``) or a residual MLP over nodal values."""
+    if config.get("net", "modal") == "modal":
+        return ModalNet((A - B) / config["dt"], B, config["modes"])
+    return ResidualMLP(A.shape[0], config["width"], config["depth"])
 
 
 def probe(A, B, states: np.ndarray, warm: bool) -> tuple:
