@@ -210,9 +210,12 @@ def build_emulator(config: dict, seed: int, *, prefix: str) -> pp.Scene:
 
 def emulator_net(config: dict, A, B) -> torch.nn.Module:
     """The network N: `ModalNet` (``net: "modal"``) or a residual MLP over nodal values."""
-    if config.get("net", "modal") == "modal":
+    kind = config.get("net", "modal")
+    if kind == "modal":
         return ModalNet((A - B) / config["dt"], B, config["modes"])
-    return ResidualMLP(A.shape[0], config["width"], config["depth"])
+    if kind == "mlp":
+        return ResidualMLP(A.shape[0], config["width"], config["depth"])
+    raise ValueError(f'net must be "modal" or "mlp", got {kind!r}')
 
 
 def probe(A, B, states: np.ndarray, warm: bool) -> tuple:
