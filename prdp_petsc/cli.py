@@ -3,8 +3,8 @@
 Sub-commands::
 
     prdp-petsc run SCENE_FILE [--schedule prdp|fixed:K] [--preset quick|paper]
-                   [--epochs N] [--seed S] [--threads T] [--parallel domain|batch]
-                   --out DIR [PETSc options]
+                   [--k-max full|none|K] [--epochs N] [--seed S] [--threads T]
+                   [--parallel domain|batch] --out DIR [PETSc options]
     prdp-petsc compare SCENE_FILE [--preset ...] [--epochs N] [--seed S]
                    [--threads T] [--routes cg/icc,cg/gamg] [--parallel domain|batch]
                    --out DIR [PETSc options]
@@ -86,6 +86,13 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
         p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
         if name == "run":
             p.add_argument("--schedule", default="prdp", help="prdp | fixed:K")
+            p.add_argument(
+                "--k-max",
+                type=_k_max,
+                default="full",
+                help="PRDP's cap on K: full (K_full of the scene's probe, the default), "
+                "none, or a number",
+            )
         else:
             p.add_argument(
                 "--routes",
@@ -95,6 +102,19 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
                 "ksp_type/pc_type (e.g. cg/icc,cg/gamg); the summary names the fastest",
             )
     return parser
+
+
+def _k_max(text: str) -> str | int | None:
+    if text in ("full", "none"):
+        return None if text == "none" else text
+    try:
+        value = int(text)
+    except ValueError:
+        message = f"--k-max: full, none or an integer, got {text!r}"
+        raise argparse.ArgumentTypeError(message) from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"--k-max must be >= 1, got {value}")
+    return value
 
 
 def _routes(text: str) -> tuple[str, ...]:
@@ -169,6 +189,7 @@ def _run_scene_command(args, scene_file: str) -> int:
             progress=not args.no_progress,
             threads=args.threads,
             parallel=args.parallel,
+            prdp=None if args.k_max == "full" else {"k_max": args.k_max},
         )
         if not _is_root(args):
             return 1 if result["stopped"] else 0

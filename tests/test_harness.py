@@ -10,7 +10,8 @@ from petsc4py import PETSc
 
 from prdp_petsc.cli import main
 from prdp_petsc.training.compare import compare, format_table, summarize
-from prdp_petsc.training.harness import parse_schedule, run, to_json
+from prdp_petsc.training.harness import build_scene, find_k_full, parse_schedule, run, to_json
+from prdp_petsc.training.scene import load_scene
 
 HEAT1D = Path(__file__).resolve().parent.parent / "demos" / "heat1d.py"
 
@@ -161,6 +162,7 @@ PRESETS = {
     "interrupt": {"interrupt_at": 1},
     "invalid": {"invalid_at": 2},
     "odd_info": {"odd_info": True},
+    "rising": {"rising": True},
 }
 
 def build(config, seed):
@@ -180,6 +182,14 @@ def build(config, seed):
             raise ValueError("b contains NaN or Inf")
         return [None]
 
+    calls = []
+
+    def validate():
+        calls.append(None)
+        if config.get("rising"):  # a metric that only gets worse: PRDP refines every epoch
+            return float(len(calls))
+        return float(theta.detach().square().sum())
+
     info = {"threads_seen": torch.get_num_threads()}
     if config.get("odd_info"):
         info.update(mesh=Path("meshes") / "lshape.msh", h=np.float64(0.5), n=np.int64(3),
@@ -188,7 +198,7 @@ def build(config, seed):
     return pp.Scene(
         solvers=solvers, optimizer=opt, batches=batches,
         loss=lambda _: sum(pp.solve(A, theta, s).square().sum() for s in solvers),
-        validate=lambda: float(theta.detach().square().sum()),
+        validate=validate,
         probe=lambda: (A, np.ones(10)), epochs=4,
         prdp={"window": 1, "ema_window": 1, "k_step": 2}, info=info,
     )
@@ -375,3 +385,30 @@ def test_table_shows_stopped_runs_and_why_savings_are_missing():
         "PRDP vs K_full: no savings: prdp stopped at epoch 2 (DIVERGED_DTOL); "
         "savings need prdp and fixed:10 over the same epochs"
     )
+
+
+def test_prdp_run_caps_k_at_k_full(tiny, tmp_path):
+    """A rising metric refines every epoch; `run` stops K at K_full unless told not to."""
+    k_full = find_k_full(build_scene(load_scene(tiny), "rising", 0))
+    capped = run(tiny, "prdp", preset="rising", epochs=30, progress=False)
+    ks = [e["k"] for e in capped["epochs"]]
+    assert capped["prdp"]["k_max"] == k_full and max(ks) == k_full and ks[-1] == k_full
+    free = run(tiny, "prdp", preset="rising", epochs=30, progress=False, prdp={"k_max": None})
+    assert free["prdp"]["k_max"] is None and free["epochs"][-1]["k"] > k_full
+    own = run(tiny, "prdp", preset="rising", epochs=30, progress=False, prdp={"k_max": 5})
+    assert max(e["k"] for e in own["epochs"]) == 5
+
+
+@pytest.mark.parametrize(("flag", "expected"), [("none", None), ("7", 7)])
+def test_cli_k_max(tiny, tmp_path, flag, expected):
+    args = ["run", str(tiny), "--preset", "rising", "--epochs", "30", "--no-progress"]
+    assert main([*args, "--k-max", flag, "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "results.json").read_text())
+    assert result["prdp"]["k_max"] == expected
+
+
+@pytest.mark.parametrize("bad", ["0", "-1", "many"])
+def test_cli_refuses_a_bad_k_max(tiny, tmp_path, capsys, bad):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", str(tiny), "--k-max", bad, "--out", str(tmp_path)])
+    assert exit_info.value.code == 2 and "--k-max" in capsys.readouterr().err

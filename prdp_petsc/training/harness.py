@@ -206,8 +206,13 @@ def run(
         torch threads for the run (``torch.set_num_threads``; restored afterwards).
         The default 1 keeps wall times honest on a shared machine.
     prdp : dict, optional
-        Settings of `prdp_petsc.PRDP` that replace the scene's (``compare`` caps K
-        at K_full with ``{"k_max": K_full}``); recorded in results.
+        Settings of `prdp_petsc.PRDP` that replace the scene's; recorded in results.
+        Unless they (or the scene) set ``k_max``, a PRDP run caps K at K_full
+        (`find_k_full`, one converged solve of the scene's probe): refining past
+        full fidelity buys nothing, and a validation error that rises for another
+        reason (overfitting, drift) would otherwise ratchet K up without bound.
+        ``{"k_max": None}`` lifts the cap; so does a probe that does not converge
+        (with a warning).
     parallel : {None, "domain", "batch"}
         Use the ranks of ``MPI.COMM_WORLD`` (start under ``mpiexec``): distributed
         solves, or a split of every mini-batch (`prdp_petsc.training.parallel`).
@@ -236,6 +241,9 @@ def run(
     with torch_threads(threads):
         with ranks.solvers():
             scene = build_scene(module, preset, seed)
+            scene.prdp = {**scene.prdp, **(prdp or {})}
+            if fixed_k is None and "k_max" not in scene.prdp:  # past K_full buys nothing
+                scene.prdp["k_max"] = _k_cap(scene)
         result = {
             "scene": Path(scene_file).stem,
             "schedule": schedule,
@@ -254,7 +262,6 @@ def run(
         try:
             ranks.check_solvers(scene)
             ranks.synchronize(scene)
-            scene.prdp = {**scene.prdp, **(prdp or {})}
             result["prdp"] = scene.prdp if fixed_k is None else None
             _train(
                 scene, result, fixed_k, epochs or scene.epochs, seed, out,
@@ -278,6 +285,15 @@ def run(
                 write_json(out / "results.json", result)
             release(scene)
     return result
+
+
+def _k_cap(scene) -> int | None:
+    """K_full (at least K₀) as PRDP's cap, or None where the probe does not converge."""
+    try:
+        return max(find_k_full(scene), scene.prdp.get("k_init", 1))
+    except SolverError as err:
+        logger.warning("PRDP runs without a cap on K: %s", err)
+        return None
 
 
 def release(scene) -> None:
