@@ -40,8 +40,9 @@ Presets: ``quick`` (tests), ``paper`` (5 457 unknowns, Δt κ/h² ≈ 1.2) and
 ICC about 70 — there the PC choice decides).  ``paper_mlp`` is ``paper`` with the
 reference's emulator class instead of ModalNet (``net: "mlp"``: a
 `~prdp_petsc.training.networks.ResidualMLP` over the nodal values) and 64 training
-trajectories: the control experiment of the README, where the network barely
-beats the identity map, so its own error hides the solver's.
+trajectories: the control experiment of the README, where the network does about
+as well as the identity map (better on seed 0, worse on seed 1), so its own error
+hides the solver's.
 
 Run ``python demos/heat2d.py compare --preset paper --routes cg/icc --out results/heat2d``.
 """

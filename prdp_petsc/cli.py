@@ -90,8 +90,8 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
                 "--k-max",
                 type=_k_max,
                 default="full",
-                help="PRDP's cap on K: full (K_full of the scene's probe, the default), "
-                "none, or a number",
+                help="PRDP's cap on K: full (the default: the scene's own k_max, else "
+                "K_full of its probe), none, or a number >= the scene's k_init",
             )
         else:
             p.add_argument(

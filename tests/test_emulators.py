@@ -121,9 +121,19 @@ def test_residual_mlp_starts_as_identity():
 
 def test_heat2d_mlp_emulator_learns_through_a_capped_solve(tmp_path):
     """paper_mlp for 3 epochs at K = 8: the rollout error falls below the identity map's."""
-    scene = build_scene(load_scene(HEAT2D), "paper_mlp", 0)
+    module = load_scene(HEAT2D)
+    scene = build_scene(module, "paper_mlp", 0)
+    n, width = scene.info["n"], module.PRESETS["paper_mlp"]["width"]  # a ResidualMLP's count
+    assert scene.info["network_parameters"] == n * width + width + width**2 + width + width * n + n
     identity = scene.validate()  # the network starts as the identity
     result = run(HEAT2D, "fixed:8", preset="paper_mlp", epochs=3, out=tmp_path, progress=False)
     errors = [e["val_metric"] for e in result["epochs"]]
     assert errors[-1] < 0.9 * identity and errors[-1] < 0.8 * errors[0]
     assert all(e["fwd_iterations"] == 8 * 64 * 6 for e in result["epochs"])  # K × samples
+
+
+def test_heat2d_refuses_an_unknown_network():
+    module = load_scene(HEAT2D)
+    module.PRESETS["bad"] = {**module.PRESETS["quick"], "net": "transformer"}
+    with pytest.raises(ValueError, match="net must be"):
+        build_scene(module, "bad", 0)

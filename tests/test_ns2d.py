@@ -250,3 +250,10 @@ def test_schur_validation_solver_gives_the_converged_step():
     with torch.no_grad():
         hybrid.solve(s, plain)
     assert 3 * full.stats.forward_iterations < plain.stats.forward_iterations
+
+
+def test_large_presets_validate_with_schur_and_a_typo_is_refused():
+    assert NS2D.PRESETS["large"]["val_solver"] == NS2D.PRESETS["large_k64"]["val_solver"]
+    assert NS2D.PRESETS["large"]["val_solver"] == "schur"
+    with pytest.raises(ValueError, match="val_solver must be"):
+        NS2D.setup({**NS2D.PRESETS["quick"], "val_solver": "shur"}, 0)

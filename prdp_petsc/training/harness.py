@@ -241,9 +241,7 @@ def run(
     with torch_threads(threads):
         with ranks.solvers():
             scene = build_scene(module, preset, seed)
-            scene.prdp = {**scene.prdp, **(prdp or {})}
-            if fixed_k is None and "k_max" not in scene.prdp:  # past K_full buys nothing
-                scene.prdp["k_max"] = _k_cap(scene)
+        scene.prdp = {**scene.prdp, **(prdp or {})}
         result = {
             "scene": Path(scene_file).stem,
             "schedule": schedule,
@@ -260,6 +258,9 @@ def run(
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
         try:
+            if fixed_k is None and "k_max" not in scene.prdp:  # past K_full buys nothing
+                with ranks.solvers():
+                    scene.prdp["k_max"] = _k_cap(scene)
             ranks.check_solvers(scene)
             ranks.synchronize(scene)
             result["prdp"] = scene.prdp if fixed_k is None else None

@@ -142,3 +142,16 @@ def test_synchronize_starts_every_rank_from_rank_0():
         scene.weight.fill_(float(COMM.Get_rank()))
     Parallel("batch").synchronize(scene)
     assert all_ranks(torch.equal(scene.weight.detach(), torch.zeros(2, dtype=torch.float64)))
+
+
+def test_ns2d_schur_validation_runs_distributed():
+    """``val_solver: "schur"`` (the large presets) validates under ``--parallel domain``."""
+    module = load_scene(DEMOS / "ns2d.py")
+    module.PRESETS["quick_schur"] = {**module.PRESETS["quick"], "val_solver": "schur"}
+    serial = build_scene(module, "quick_schur", 0).validate()
+    ranks = Parallel("domain")
+    with ranks.solvers():
+        scene = build_scene(module, "quick_schur", 0)
+    got = ranks.validate(scene)
+    # both solve to rtol_full = 1e-5 with another PC (ILU per rank): equal to that order
+    assert all_ranks(np.isclose(got, serial, rtol=1e-4, atol=0)), (got, serial)
