@@ -405,6 +405,8 @@ def test_cli_k_max(tiny, tmp_path, flag, expected):
     assert main([*args, "--k-max", flag, "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "results.json").read_text())
     assert result["prdp"]["k_max"] == expected
+    ks = [e["k"] for e in result["epochs"]]
+    assert max(ks) == 7 if expected == 7 else max(ks) > 7  # the cap held, or none was set
 
 
 @pytest.mark.parametrize("bad", ["0", "-1", "many"])
