@@ -67,7 +67,17 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
         p.add_argument(
             "--epochs", type=_positive_int, default=None, help="override the preset's epochs"
         )
-        p.add_argument("--seed", type=int, default=0)
+        seed = p.add_mutually_exclusive_group()
+        seed.add_argument("--seed", type=int, default=0)
+        if name == "compare":
+            seed.add_argument(
+                "--seeds",
+                type=_seeds,
+                default=None,
+                help="compare on each of these seeds (e.g. 0-3 or 0,2,5), each with a "
+                "second full-fidelity run from other initial weights (the run-to-run "
+                "noise), and summarise the error ratios over the seeds",
+            )
         p.add_argument(
             "--threads",
             type=_positive_int,
@@ -115,6 +125,15 @@ def _k_max(text: str) -> str | int | None:
     if value < 1:
         raise argparse.ArgumentTypeError(f"--k-max must be >= 1, got {value}")
     return value
+
+
+def _seeds(text: str) -> list[int]:
+    from .training.seeds import parse_seeds
+
+    try:
+        return parse_seeds(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _routes(text: str) -> tuple[str, ...]:
@@ -199,6 +218,8 @@ def _run_scene_command(args, scene_file: str) -> int:
             print(f"stopped at epoch {stop['epoch']}: {stop['reason']}: {stop['message']}")
             return 1
         return 0
+    if args.seeds is not None:
+        return _compare_seeds(args, scene_file)
     summary = compare(
         scene_file,
         preset=args.preset,
@@ -219,6 +240,29 @@ def _run_scene_command(args, scene_file: str) -> int:
         print(f"runs that stopped early: {', '.join(stopped)} (see their results.json)")
         return 1
     return 0
+
+
+def _compare_seeds(args, scene_file: str) -> int:
+    from .training.seeds import compare_seeds, format_seeds
+
+    result = compare_seeds(
+        scene_file,
+        args.seeds,
+        preset=args.preset,
+        epochs=args.epochs,
+        out=args.out,
+        progress=not args.no_progress,
+        threads=args.threads,
+        routes=args.routes,
+        parallel=args.parallel,
+    )
+    if not _is_root(args):
+        return 0
+    print("\n\n".join(result["tables"]))
+    print()
+    print(format_seeds(result))
+    print(f"results in {args.out}/ (seeds.json, seed_*/summary.json)")
+    return 1 if any("savings_unavailable" in r for r in result["per_seed"]) else 0
 
 
 def _is_root(args) -> bool:

@@ -34,6 +34,9 @@ __all__ = ["ACCURACY_RATIO", "compare", "format_table", "stopped_runs", "summari
 #: Largest PRDP / K_full ratio of final validation errors that still counts as equal accuracy.
 ACCURACY_RATIO = 1.05
 
+#: The ``twin`` run seeds torch (initial weights, batch order) with ``seed + TWIN_SEED_OFFSET``.
+TWIN_SEED_OFFSET = 1000
+
 
 def compare(
     scene_file,
@@ -47,6 +50,7 @@ def compare(
     threads: int = 1,
     routes: tuple[str, ...] | list[str] = (),
     parallel: str | None = None,
+    twin: bool = False,
 ) -> dict:
     """PRDP against constant K_full and constant coarse Ks; write ``summary.json``.
 
@@ -147,7 +151,13 @@ def compare(
                 interrupted = summarize(scene_name, k_fulls, logs, threads=threads)
                 write(out / "summary.json", interrupted)
                 raise
-    summary = summarize(scene_name, k_fulls, logs, threads=threads)
+        twin_log = None
+        if twin:
+            twin_log = run(scene_file, f"fixed:{k_full}", preset=preset, epochs=epochs,
+                           seed=seed, out=out / f"twin_{k_full}", progress=progress,
+                           threads=threads, module=module, parallel=parallel,
+                           torch_seed=seed + TWIN_SEED_OFFSET)  # fmt: skip
+    summary = summarize(scene_name, k_fulls, logs, threads=threads, twin=twin_log)
     summary["parallel"] = ranks.describe()
     write(out / "summary.json", summary)
     if plots and ranks.root:
@@ -168,16 +178,22 @@ def _prdp_for(settings: dict, k_full: int, k_route: int) -> dict:
     return out
 
 
-def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None) -> dict:
+def summarize(
+    scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None, twin=None
+) -> dict:
     """Summary of a comparison: runs, PRDP savings against K_full, error ratio.
 
     `k_full` is an int, or ``{route: K_full}`` with ``""`` for the scene's own
     solver; routes add ``routes`` (their K_full and PRDP savings) and ``fastest``.
+    `twin`, the log of a second full-fidelity run (torch seeded differently), adds
+    the run ``twin:K`` and ``noise_ratio``, its final validation error over K_full's.
     """
     k_fulls = k_full if isinstance(k_full, dict) else {"": k_full}
     k_full = k_fulls[""]
+    full_name = f"fixed:{k_full}"
+    twin_name = f"twin:{k_full}"
     runs = {}
-    for schedule, log in logs.items():
+    for schedule, log in {**logs, **({twin_name: twin} if twin else {})}.items():
         t = log["totals"]
         runs[schedule] = {
             "final_val_error": t.get("final_val_error"),
@@ -191,7 +207,10 @@ def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None
             "stopped": log["stopped"],
         }
     summary = {"scene": scene, "k_full": k_full, "threads": threads, "runs": runs}
-    full_name = f"fixed:{k_full}"
+    if twin and full_name in logs and not (twin["stopped"] or logs[full_name]["stopped"]):
+        summary["noise_ratio"] = _ratio(
+            twin["totals"]["final_val_error"], logs[full_name]["totals"]["final_val_error"]
+        )
     if len(k_fulls) > 1:
         summary["routes"] = {
             route: {"k_full": k, **_savings(logs, f"prdp@{route}", f"fixed:{k}@{route}")}
@@ -304,6 +323,12 @@ def format_table(summary: dict) -> str:
         )
         if "accuracy_warning" in summary:
             lines.append(f"  !! {summary['accuracy_warning']}")
+        if "noise_ratio" in summary:
+            lines.append(
+                f"full fidelity twice (twin:{summary['k_full']}: other initial weights "
+                "and batch order): "
+                f"val error ratio {summary['noise_ratio']:.3f}, the run-to-run noise"
+            )
     else:
         lines.append(f"PRDP vs K_full: {summary['savings_unavailable']}")
     for route, r in summary.get("routes", {}).items():

@@ -95,10 +95,12 @@ def _seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def build_scene(module, preset: str, seed: int):
+def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
+    """``module.build(config, seed)``, Python and torch seeded with `torch_seed` (default
+    `seed`): initial weights from torch, data from the scene's numpy Generator."""
     if preset not in module.PRESETS:
         raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {preset!r}")
-    _seed_everything(seed)
+    _seed_everything(seed if torch_seed is None else torch_seed)
     return module.build(dict(module.PRESETS[preset]), seed)
 
 
@@ -187,6 +189,7 @@ def run(
     module=None,
     prdp: dict | None = None,
     parallel: str | None = None,
+    torch_seed: int | None = None,
 ) -> dict:
     """Train a scene once; return (and write to ``out/results.json``) the per-epoch log.
 
@@ -196,8 +199,10 @@ def run(
         Scene file (see `prdp_petsc.training.scene`).
     schedule : str
         ``"prdp"`` or ``"fixed:K"``.
-    preset, epochs, seed
-        Preset name; number of epochs (>= 1; default: the scene's); random seed.
+    preset, epochs, seed, torch_seed
+        Preset name; number of epochs (>= 1; default: the scene's); random seed (of
+        the data and, unless `torch_seed` is given, of torch: initial weights, batch
+        order, training noise; `compare`'s ``twin`` changes only `torch_seed`).
     out : str or Path, optional
         Output folder for ``results.json``.
     progress : bool
@@ -240,13 +245,14 @@ def run(
     ranks = Parallel(parallel)
     with torch_threads(threads):
         with ranks.solvers():
-            scene = build_scene(module, preset, seed)
+            scene = build_scene(module, preset, seed, torch_seed)
         scene.prdp = {**scene.prdp, **(prdp or {})}
         result = {
             "scene": Path(scene_file).stem,
             "schedule": schedule,
             "preset": preset,
             "seed": seed,
+            "torch_seed": seed if torch_seed is None else torch_seed,
             "threads": threads,
             "parallel": ranks.describe(),
             "info": scene.info,
@@ -265,8 +271,8 @@ def run(
             ranks.synchronize(scene)
             result["prdp"] = scene.prdp if fixed_k is None else None
             _train(
-                scene, result, fixed_k, epochs or scene.epochs, seed, out,
-                progress and ranks.root, ranks,
+                scene, result, fixed_k, epochs or scene.epochs,
+                seed if torch_seed is None else torch_seed, out, progress and ranks.root, ranks,
             )  # fmt: skip
             if scene.rollout is not None and not result["stopped"]:
                 result["rollout"] = ranks.rollout(scene)
@@ -313,12 +319,12 @@ def release(scene) -> None:
 
 
 def _train(
-    scene, result: dict, fixed_k, epochs: int, seed: int, out, progress: bool, ranks: Parallel
+    scene, result: dict, fixed_k, epochs: int, torch_seed: int, out, progress: bool, ranks: Parallel
 ) -> None:
     """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place."""
     from tqdm.auto import tqdm
 
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator().manual_seed(torch_seed)
     controller = PRDP(**scene.prdp) if fixed_k is None else None
     k = fixed_k if fixed_k is not None else controller.k
     bar = tqdm(

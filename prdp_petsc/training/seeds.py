@@ -1,0 +1,203 @@
+"""``compare`` over several seeds: is PRDP's error ratio more than training's noise?
+
+One seed's PRDP / K_full error ratio is one draw: two full-fidelity runs on the same
+data that differ only in the network's initial weights and mini-batch order
+(`compare`'s ``twin``) can end far apart.  `compare_seeds` runs `compare` (with its twin) for
+each seed and summarises the ratios on a log scale, where "PRDP is 10 % worse" and
+"10 % better" weigh the same:
+
+* the geometric mean of PRDP's ratios and a 95 % Student-t interval for it
+  (treating the seeds as independent draws);
+* the same for the twin's ratios: the spread two equally valid runs show;
+* the mean, smallest and largest saving in inner iterations and wall time, and on
+  how many seeds PRDP met the per-seed test (`ACCURACY_RATIO`).
+
+Decision, written down: the per-seed test stays the verdict of each `compare`; this
+summary adds the evidence a single seed cannot give, and says so when the interval
+is too wide to decide a 5 % question either way.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from .compare import ACCURACY_RATIO, compare, format_table
+from .harness import write_json
+
+__all__ = ["compare_seeds", "format_seeds", "parse_seeds", "ratio_statistics"]
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0,1,2"``, ``"0-3"`` or a mix (``"0-2,7"``) as a list of distinct seeds."""
+    seeds: list[int] = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        first, dash, last = part.partition("-")
+        try:
+            lo, hi = int(first), int(last) if dash else int(first)
+        except ValueError:
+            raise ValueError(f"seeds: expected e.g. 0,1,2 or 0-3, got {text!r}") from None
+        if hi < lo:
+            raise ValueError(f"seeds: empty range {part!r}")
+        seeds += [s for s in range(lo, hi + 1) if s not in seeds]
+    if not seeds:
+        raise ValueError(f"seeds: none given in {text!r}")
+    return seeds
+
+
+def ratio_statistics(ratios: list[float]) -> dict:
+    """Geometric mean of positive ratios and its 95 % Student-t interval.
+
+    ``interval`` is None for fewer than two finite ratios; a ratio that is not
+    finite and positive (a diverged run) makes ``geometric_mean`` inf.
+    """
+    finite = [r for r in ratios if math.isfinite(r) and r > 0]
+    if len(finite) < len(ratios):
+        return {"geometric_mean": math.inf, "interval": None, "n": len(ratios)}
+    logs = [math.log(r) for r in finite]
+    n = len(logs)
+    mean = sum(logs) / n
+    out = {"geometric_mean": math.exp(mean), "interval": None, "n": n}
+    if n >= 2:
+        from scipy.stats import t
+
+        sd = math.sqrt(sum((x - mean) ** 2 for x in logs) / (n - 1))
+        half = t.ppf(0.975, n - 1) * sd / math.sqrt(n)
+        out["interval"] = [math.exp(mean - half), math.exp(mean + half)]
+        out["log_sd"] = sd
+    return out
+
+
+def _spread(values: list[float]) -> dict:
+    return {"mean": sum(values) / len(values), "min": min(values), "max": max(values)}
+
+
+def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> dict:
+    """`compare` (with ``twin=True``) for each seed into ``out/seed_S``; summarise.
+
+    Keyword arguments go to `compare`.  Writes ``out/seeds.json`` after every seed
+    (so an interrupted study keeps what it measured) and returns it: ``scene``,
+    ``seeds``, ``per_seed`` (K_full, final errors, PRDP ratio, twin ratio,
+    savings, per-seed verdict) and, over the seeds whose PRDP and K_full runs
+    both finished, ``prdp_ratio`` and ``twin_ratio`` (`ratio_statistics`),
+    ``savings`` (`iterations`, `wall_time`: mean, min, max) and ``equal_accuracy``
+    (count of seeds that met the per-seed test).
+    """
+    if not seeds:
+        raise ValueError("compare_seeds needs at least one seed")
+    out = Path(out)
+    per_seed, tables = [], []
+    for seed in seeds:
+        summary = compare(scene_file, seed=seed, out=out / f"seed_{seed}", twin=True, **kwargs)
+        tables.append(f"seed {seed}\n{format_table(summary)}")
+        runs = summary["runs"]
+        k = summary["k_full"]
+        row = {
+            "seed": seed,
+            "k_full": k,
+            "prdp_val_error": runs.get("prdp", {}).get("final_val_error"),
+            "full_val_error": runs.get(f"fixed:{k}", {}).get("final_val_error"),
+            "twin_val_error": runs.get(f"twin:{k}", {}).get("final_val_error"),
+            "prdp_k_final": runs.get("prdp", {}).get("k_final"),
+        }
+        if "savings" in summary:
+            row.update(
+                prdp_ratio=summary["val_error_ratio"],
+                twin_ratio=summary.get("noise_ratio"),
+                iterations_saved=summary["savings"]["iterations"],
+                wall_time_saved=summary["savings"]["wall_time"],
+                equal_accuracy=summary["equal_accuracy"],
+            )
+        else:
+            row["savings_unavailable"] = summary["savings_unavailable"]
+        per_seed.append(row)
+        result = _aggregate(Path(scene_file).stem, seeds, per_seed)
+        if kwargs.get("parallel") is None or _root():
+            write_json(out / "seeds.json", result)
+    result["tables"] = tables
+    return result
+
+
+def _root() -> bool:
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD.Get_rank() == 0
+
+
+def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
+    done = [r for r in per_seed if "prdp_ratio" in r]
+    result = {"scene": scene, "seeds": seeds, "per_seed": per_seed, "accuracy": ACCURACY_RATIO}
+    if not done:
+        return result
+    result["prdp_ratio"] = ratio_statistics([r["prdp_ratio"] for r in done])
+    twins = [r["twin_ratio"] for r in done if r.get("twin_ratio") is not None]
+    if twins:
+        result["twin_ratio"] = ratio_statistics(twins)
+    result["savings"] = {
+        key: _spread([r[key] for r in done]) for key in ("iterations_saved", "wall_time_saved")
+    }
+    result["equal_accuracy"] = sum(r["equal_accuracy"] for r in done)
+    result["compared"] = len(done)
+    return result
+
+
+def format_seeds(result: dict) -> str:
+    """Plain-text table of `compare_seeds`: one row per seed, then the summary lines."""
+    lines = [
+        f"scene {result['scene']}   seeds {', '.join(map(str, result['seeds']))}",
+        f"{'seed':>4}{'K_full':>8}{'PRDP err':>12}{'full err':>12}{'twin err':>12}"
+        f"{'PRDP/full':>11}{'twin/full':>11}{'its saved':>11}{'wall saved':>12}{'K final':>9}",
+    ]
+    for r in result["per_seed"]:
+        if "prdp_ratio" not in r:
+            lines.append(f"{r['seed']:>4}{r['k_full']:>8}  {r['savings_unavailable']}")
+            continue
+        twin = r.get("twin_ratio")
+        lines.append(
+            f"{r['seed']:>4}{r['k_full']:>8}{r['prdp_val_error']:>12.4e}"
+            f"{r['full_val_error']:>12.4e}{_num(r['twin_val_error'], 12, '.4e')}"
+            f"{r['prdp_ratio']:>11.3f}{_num(twin, 11, '.3f')}"
+            f"{100 * r['iterations_saved']:>10.1f}%{100 * r['wall_time_saved']:>11.1f}%"
+            f"{_num(r['prdp_k_final'], 9, '')}"
+        )
+    if "prdp_ratio" not in result:
+        return "\n".join(lines + ["no seed gave PRDP and K_full over the same epochs"])
+    s = result["savings"]
+    lines.append(
+        f"savings over {result['compared']} seeds: inner iterations "
+        f"{_pct(s['iterations_saved'])}, wall time {_pct(s['wall_time_saved'])}"
+    )
+    lines.append(_ratio_line("PRDP / full", result["prdp_ratio"]))
+    if "twin_ratio" in result:
+        lines.append(_ratio_line("twin / full", result["twin_ratio"]))
+    lines.append(
+        f"per-seed test (ratio <= {result['accuracy']}): met on "
+        f"{result['equal_accuracy']} of {result['compared']} seeds"
+    )
+    interval = result["prdp_ratio"].get("interval")
+    if interval and interval[0] < 1 / result["accuracy"] and interval[1] > result["accuracy"]:
+        lines.append(
+            "  the PRDP interval reaches past ±5 % on both sides: these seeds cannot "
+            "decide a 5 % question either way"
+        )
+    return "\n".join(lines)
+
+
+def _num(value, width: int, spec: str) -> str:
+    return ("—" if value is None else format(value, spec)).rjust(width)
+
+
+def _pct(spread: dict) -> str:
+    return (
+        f"{100 * spread['mean']:.1f} % mean ({100 * spread['min']:.1f}–{100 * spread['max']:.1f} %)"
+    )
+
+
+def _ratio_line(name: str, stats: dict) -> str:
+    line = f"{name}: geometric mean {stats['geometric_mean']:.3f}"
+    if stats.get("interval"):
+        lo, hi = stats["interval"]
+        line += f", 95 % interval {lo:.3f}–{hi:.3f} (n = {stats['n']})"
+    return line

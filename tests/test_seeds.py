@@ -1,0 +1,123 @@
+"""Run-to-run noise: the torch seed, compare's twin, compare over seeds."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prdp_petsc.cli import main
+from prdp_petsc.training.compare import TWIN_SEED_OFFSET, compare
+from prdp_petsc.training.harness import build_scene, run
+from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.seeds import (
+    compare_seeds,
+    format_seeds,
+    parse_seeds,
+    ratio_statistics,
+)
+
+HEAT1D = Path(__file__).resolve().parent.parent / "demos" / "heat1d.py"
+
+
+def test_parse_seeds():
+    assert parse_seeds("3") == [3]
+    assert parse_seeds("0-2,7") == [0, 1, 2, 7]
+    assert parse_seeds("1,1,0-1") == [1, 0]
+    for bad in ("", "a", "3-1", "1-x", ","):
+        with pytest.raises(ValueError, match="seeds"):
+            parse_seeds(bad)
+
+
+def test_ratio_statistics_on_a_log_scale():
+    # 2 and 1/2 are equally far from 1: the geometric mean is 1
+    s = ratio_statistics([2.0, 0.5])
+    assert s["geometric_mean"] == pytest.approx(1.0)
+    lo, hi = s["interval"]
+    assert lo == pytest.approx(1 / hi)  # symmetric on the log scale
+    # t(0.975, 1) = 12.706; sd of log(2), -log(2) is sqrt(2) log 2; / sqrt(2)
+    assert math.log(hi) == pytest.approx(12.7062 * math.log(2), rel=1e-4)
+    same = ratio_statistics([1.1, 1.1, 1.1])
+    assert same["geometric_mean"] == pytest.approx(1.1)
+    assert same["interval"] == pytest.approx([1.1, 1.1])
+    assert ratio_statistics([1.2])["interval"] is None
+    assert ratio_statistics([1.0, math.inf])["geometric_mean"] == math.inf
+
+
+def test_torch_seed_changes_the_network_not_the_data(tmp_path):
+    kwargs = dict(epochs=3, seed=1, progress=False)
+    module = load_scene(HEAT1D)
+    base = run(HEAT1D, "fixed:5", **kwargs)
+    same = run(HEAT1D, "fixed:5", torch_seed=1, **kwargs)
+    other = run(HEAT1D, "fixed:5", torch_seed=7, out=tmp_path, **kwargs)
+    val = [e["val_metric"] for e in base["epochs"]]
+    assert val == [e["val_metric"] for e in same["epochs"]]
+    assert val != [e["val_metric"] for e in other["epochs"]]
+    assert json.loads((tmp_path / "results.json").read_text())["torch_seed"] == 7
+    assert base["torch_seed"] == 1
+    a, b = build_scene(module, "quick", 1), build_scene(module, "quick", 1, torch_seed=7)
+    assert np.array_equal(a.probe()[1], b.probe()[1])  # the same data
+    first = [p.detach().clone() for p in a.optimizer.param_groups[0]["params"]]
+    assert not all(torch.equal(p, q) for p, q in zip(first, b.optimizer.param_groups[0]["params"]))
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("seeds")
+    return out, compare_seeds(HEAT1D, [0, 1], preset="quick", out=out, progress=False, plots=False)
+
+
+def test_compare_twin_is_full_fidelity_in_another_order(study):
+    out, result = study
+    summary = json.loads((out / "seed_1" / "summary.json").read_text())
+    k = summary["k_full"]
+    twin = json.loads((out / "seed_1" / f"twin_{k}" / "results.json").read_text())
+    full = json.loads((out / "seed_1" / f"fixed_{k}" / "results.json").read_text())
+    assert twin["schedule"] == full["schedule"] == f"fixed:{k}"
+    assert twin["seed"] == full["seed"] == 1
+    assert twin["torch_seed"] == 1 + TWIN_SEED_OFFSET and full["torch_seed"] == 1
+    assert summary["noise_ratio"] == pytest.approx(
+        twin["totals"]["final_val_error"] / full["totals"]["final_val_error"]
+    )
+    assert summary["noise_ratio"] != 1.0  # other initial weights do change training
+    assert f"twin:{k}" in summary["runs"]
+
+
+def test_compare_seeds_aggregates_what_each_seed_measured(study):
+    out, result = study
+    assert json.loads((out / "seeds.json").read_text())["per_seed"] == result["per_seed"]
+    rows = result["per_seed"]
+    assert [r["seed"] for r in rows] == [0, 1]
+    for r in rows:
+        summary = json.loads((out / f"seed_{r['seed']}" / "summary.json").read_text())
+        assert r["prdp_ratio"] == summary["val_error_ratio"]
+        assert r["twin_ratio"] == summary["noise_ratio"]
+        assert r["wall_time_saved"] == summary["savings"]["wall_time"]
+    gm = math.sqrt(rows[0]["prdp_ratio"] * rows[1]["prdp_ratio"])
+    assert result["prdp_ratio"]["geometric_mean"] == pytest.approx(gm)
+    assert result["savings"]["iterations_saved"]["min"] == min(r["iterations_saved"] for r in rows)
+    assert result["equal_accuracy"] == sum(r["prdp_ratio"] <= 1.05 for r in rows)
+    table = format_seeds(result)
+    assert "PRDP / full: geometric mean" in table and "twin / full" in table
+    assert f"met on {result['equal_accuracy']} of 2 seeds" in table
+
+
+def test_cli_compare_seeds(tmp_path, capsys):
+    out = tmp_path / "cli"
+    rc = main(
+        ["compare", str(HEAT1D), "--seeds", "0-1", "--epochs", "2", "--out", str(out),
+         "--no-progress"]
+    )  # fmt: skip
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "seed 0\n" in text and "seed 1\n" in text and "PRDP / full" in text
+    assert (out / "seeds.json").is_file() and (out / "seed_1" / "summary.json").is_file()
+    with pytest.raises(SystemExit):  # one seed or several, not both
+        main(["compare", str(HEAT1D), "--seed", "1", "--seeds", "0-1", "--out", str(out)])
+
+
+def test_single_compare_without_twin_has_no_noise_ratio(tmp_path):
+    s = compare(HEAT1D, preset="quick", epochs=1, out=tmp_path, progress=False, plots=False)
+    assert "noise_ratio" not in s and not any(n.startswith("twin") for n in s["runs"])
