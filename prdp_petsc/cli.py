@@ -65,6 +65,14 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
             p.add_argument("scene", help="scene file, e.g. demos/heat1d.py")
         p.add_argument("--preset", default="quick", help="preset name (quick | paper)")
         p.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            type=_setting,
+            metavar="KEY=VALUE",
+            help="change one of the preset's settings (repeatable), e.g. --set modes=32",
+        )
+        p.add_argument(
             "--epochs", type=_positive_int, default=None, help="override the preset's epochs"
         )
         seed = p.add_mutually_exclusive_group()
@@ -125,6 +133,13 @@ def _k_max(text: str) -> str | int | None:
     if value < 1:
         raise argparse.ArgumentTypeError(f"--k-max must be >= 1, got {value}")
     return value
+
+
+def _setting(text: str) -> str:
+    key, eq, value = text.partition("=")
+    if not (eq and key.isidentifier() and value) or any(c.isspace() for c in text):
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE without spaces, got {text!r}")
+    return text
 
 
 def _seeds(text: str) -> list[int]:
@@ -201,7 +216,7 @@ def _run_scene_command(args, scene_file: str) -> int:
         result = run(
             scene_file,
             args.schedule,
-            preset=args.preset,
+            preset=_preset(args),
             epochs=args.epochs,
             seed=args.seed,
             out=args.out,
@@ -222,7 +237,7 @@ def _run_scene_command(args, scene_file: str) -> int:
         return _compare_seeds(args, scene_file)
     summary = compare(
         scene_file,
-        preset=args.preset,
+        preset=_preset(args),
         epochs=args.epochs,
         seed=args.seed,
         out=args.out,
@@ -242,13 +257,18 @@ def _run_scene_command(args, scene_file: str) -> int:
     return 0
 
 
+def _preset(args) -> str:
+    """The preset with the ``--set`` changes: ``"paper modes=32"``."""
+    return " ".join([args.preset, *args.set])
+
+
 def _compare_seeds(args, scene_file: str) -> int:
     from .training.seeds import compare_seeds, format_seeds
 
     result = compare_seeds(
         scene_file,
         args.seeds,
-        preset=args.preset,
+        preset=_preset(args),
         epochs=args.epochs,
         out=args.out,
         progress=not args.no_progress,

@@ -11,7 +11,7 @@ import torch
 from prdp_petsc.cli import main
 from prdp_petsc.training.compare import TWIN_SEED_OFFSET, compare
 from prdp_petsc.training.harness import build_scene, run
-from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.scene import load_scene, preset_config
 from prdp_petsc.training.seeds import (
     compare_seeds,
     format_seeds,
@@ -121,3 +121,30 @@ def test_cli_compare_seeds(tmp_path, capsys):
 def test_single_compare_without_twin_has_no_noise_ratio(tmp_path):
     s = compare(HEAT1D, preset="quick", epochs=1, out=tmp_path, progress=False, plots=False)
     assert "noise_ratio" not in s and not any(n.startswith("twin") for n in s["runs"])
+
+
+def test_preset_with_changed_settings(caplog):
+    module = load_scene(HEAT1D)
+    config = preset_config(module, "quick epochs=2 lr=5e-3 name=abc")
+    assert config["epochs"] == 2 and config["lr"] == 5e-3
+    assert {k: v for k, v in config.items() if k not in ("epochs", "lr", "name")} == {
+        k: v for k, v in module.PRESETS["quick"].items() if k not in ("epochs", "lr")
+    }
+    assert config["name"] == "abc" and "'name' is in no preset" in caplog.text
+    assert preset_config(module, "quick") == module.PRESETS["quick"]
+    with pytest.raises(ValueError, match="preset must be one of"):
+        preset_config(module, "nope epochs=2")
+    for bad in ("quick epochs", "quick =2", "quick epochs="):
+        with pytest.raises(ValueError, match="key=value"):
+            preset_config(module, bad)
+
+
+def test_cli_set_changes_the_run(tmp_path, capsys):
+    rc = main(["run", str(HEAT1D), "--schedule", "fixed:3", "--set", "epochs=2", "--set",
+               "lr=1e-3", "--out", str(tmp_path), "--no-progress"])  # fmt: skip
+    assert rc == 0
+    result = json.loads((tmp_path / "results.json").read_text())
+    assert result["preset"] == "quick epochs=2 lr=1e-3" and len(result["epochs"]) == 2
+    with pytest.raises(SystemExit):
+        main(["run", str(HEAT1D), "--set", "epochs", "--out", str(tmp_path)])
+    assert "KEY=VALUE" in capsys.readouterr().err

@@ -26,7 +26,7 @@ from ..core.results import SolverError
 from ..core.solver import KSPSolver
 from ..prdp import PRDP
 from .parallel import Parallel
-from .scene import load_scene
+from .scene import load_scene, preset_config
 
 __all__ = [
     "build_scene",
@@ -98,10 +98,9 @@ def _seed_everything(seed: int) -> None:
 def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
     """``module.build(config, seed)``, Python and torch seeded with `torch_seed` (default
     `seed`): initial weights from torch, data from the scene's numpy Generator."""
-    if preset not in module.PRESETS:
-        raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {preset!r}")
+    config = preset_config(module, preset)  # "paper modes=32": a preset, changed
     _seed_everything(seed if torch_seed is None else torch_seed)
-    return module.build(dict(module.PRESETS[preset]), seed)
+    return module.build(config, seed)
 
 
 def find_k_full(scene, max_it: int = 100_000) -> int:

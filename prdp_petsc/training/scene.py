@@ -10,13 +10,20 @@ A scene file (the shipped ones live in ``demos/``) defines
     builds the physics, data, network, loss and validation metric for one preset,
     and nothing the scene does not need.
 
+A preset name may carry changed settings, ``"paper modes=32 k_step=10"``
+(`preset_config`; the command line's ``--set modes=32``): each value is read as a
+Python literal (a number, ``[8, 16]`` without spaces, ``True``) and otherwise kept
+as a string (``net=mlp``).
+
 The harness (`prdp_petsc.training.harness`) does the rest: training loop, K schedule
 (PRDP or fixed), finding K_full, cost accounting, results, plots, command line.
 """
 
 from __future__ import annotations
 
+import ast
 import importlib.util
+import logging
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -27,7 +34,9 @@ import torch
 
 from ..core.solver import KSPSolver
 
-__all__ = ["Scene", "load_scene", "shuffled_batches"]
+__all__ = ["Scene", "load_scene", "preset_config", "shuffled_batches"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -122,3 +131,29 @@ def load_scene(path: str | Path) -> ModuleType:
                 f"scene {path.name} must define {attr} (see prdp_petsc.training.scene)"
             )
     return module
+
+
+def preset_config(module: ModuleType, preset: str) -> dict:
+    """The settings of ``"name [key=value ...]"``: the scene's preset ``name``, changed.
+
+    A key that no preset of the scene names is still set (a scene may read optional
+    settings with ``config.get``), with a warning, since a misspelt key would
+    otherwise change nothing silently.
+    """
+    name, *pairs = str(preset).split()
+    if name not in module.PRESETS:
+        raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {name!r}")
+    config = dict(module.PRESETS[name])
+    known = set().union(*module.PRESETS.values())
+    for pair in pairs:
+        key, eq, text = pair.partition("=")
+        if not (eq and key.isidentifier() and text):
+            raise ValueError(f"preset {preset!r}: expected key=value after the name, got {pair!r}")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text
+        if key not in known:
+            logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
+        config[key] = value
+    return config
