@@ -235,17 +235,7 @@ def _run_scene_command(args, scene_file: str) -> int:
         return 0
     if args.seeds is not None:
         return _compare_seeds(args, scene_file)
-    summary = compare(
-        scene_file,
-        preset=_preset(args),
-        epochs=args.epochs,
-        seed=args.seed,
-        out=args.out,
-        progress=not args.no_progress,
-        threads=args.threads,
-        routes=args.routes,
-        parallel=args.parallel,
-    )
+    summary = compare(scene_file, seed=args.seed, **_compare_options(args))
     if not _is_root(args):
         return 1 if stopped_runs(summary) else 0
     print(format_table(summary))
@@ -262,20 +252,23 @@ def _preset(args) -> str:
     return " ".join([args.preset, *args.set])
 
 
+def _compare_options(args) -> dict:
+    """Keyword arguments of `compare` (and `compare_seeds`) from the command line."""
+    return {
+        "preset": _preset(args),
+        "epochs": args.epochs,
+        "out": args.out,
+        "progress": not args.no_progress,
+        "threads": args.threads,
+        "routes": args.routes,
+        "parallel": args.parallel,
+    }
+
+
 def _compare_seeds(args, scene_file: str) -> int:
     from .training.seeds import compare_seeds, format_seeds
 
-    result = compare_seeds(
-        scene_file,
-        args.seeds,
-        preset=_preset(args),
-        epochs=args.epochs,
-        out=args.out,
-        progress=not args.no_progress,
-        threads=args.threads,
-        routes=args.routes,
-        parallel=args.parallel,
-    )
+    result = compare_seeds(scene_file, args.seeds, **_compare_options(args))
     if not _is_root(args):
         return 0
     print("\n\n".join(result["tables"]))
