@@ -3,11 +3,11 @@
 Sub-commands::
 
     prdp-petsc run SCENE_FILE [--schedule prdp|fixed:K] [--preset quick|paper]
-                   [--k-max full|none|K] [--epochs N] [--seed S] [--threads T]
+                   [--set KEY=VALUE ...] [--k-max full|none|K] [--epochs N] [--seed S]
+                   [--threads T] [--parallel domain|batch] --out DIR [PETSc options]
+    prdp-petsc compare SCENE_FILE [--preset ...] [--set KEY=VALUE ...] [--epochs N]
+                   [--seed S | --seeds 0-3] [--threads T] [--routes cg/icc,cg/gamg]
                    [--parallel domain|batch] --out DIR [PETSc options]
-    prdp-petsc compare SCENE_FILE [--preset ...] [--epochs N] [--seed S]
-                   [--threads T] [--routes cg/icc,cg/gamg] [--parallel domain|batch]
-                   --out DIR [PETSc options]
     prdp-petsc bench bridge --out DIR
     prdp-petsc work-precision PROBLEM --out DIR
     prdp-petsc stability --out DIR
@@ -269,13 +269,16 @@ def _compare_seeds(args, scene_file: str) -> int:
     from .training.seeds import compare_seeds, format_seeds
 
     result = compare_seeds(scene_file, args.seeds, **_compare_options(args))
+    stopped = [f"seed {r['seed']}: {name}" for r in result["per_seed"] for name in r["stopped"]]
     if not _is_root(args):
-        return 0
+        return 1 if stopped else 0
     print("\n\n".join(result["tables"]))
     print()
     print(format_seeds(result))
     print(f"results in {args.out}/ (seeds.json, seed_*/summary.json)")
-    return 1 if any("savings_unavailable" in r for r in result["per_seed"]) else 0
+    if stopped:
+        print(f"runs that stopped early: {', '.join(stopped)} (see their results.json)")
+    return 1 if stopped else 0
 
 
 def _is_root(args) -> bool:

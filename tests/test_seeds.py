@@ -13,6 +13,7 @@ from prdp_petsc.training.compare import TWIN_SEED_OFFSET, compare
 from prdp_petsc.training.harness import build_scene, run
 from prdp_petsc.training.scene import load_scene, preset_config
 from prdp_petsc.training.seeds import (
+    _aggregate,
     compare_seeds,
     format_seeds,
     parse_seeds,
@@ -148,3 +149,91 @@ def test_cli_set_changes_the_run(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["run", str(HEAT1D), "--set", "epochs", "--out", str(tmp_path)])
     assert "KEY=VALUE" in capsys.readouterr().err
+
+
+def test_settings_take_the_presets_types():
+    module = load_scene(Path(__file__).resolve().parent.parent / "demos" / "ns2d.py")
+    config = preset_config(module, "quick solver_grad=false lr=1 adjoint_rtol=1e-6 val_solver=x")
+    assert config["solver_grad"] is False
+    assert config["lr"] == 1.0 and isinstance(config["lr"], float)
+    assert config["adjoint_rtol"] == 1e-6 and config["val_solver"] == "x"
+    assert preset_config(module, "quick solver_grad=True")["solver_grad"] is True
+    for bad, why in (("epochs=2.0", "integer"), ("solver_grad=yes", "true or false"),
+                     ("lr=abc", "cannot read"), ("lr=True", "number")):  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            preset_config(module, f"quick {bad}")
+    with pytest.raises(ValueError, match="preset must be one of"):
+        preset_config(module, "")
+
+
+def _row(seed, prdp, twin=1.0, stopped=()):
+    if prdp is None:
+        return {"seed": seed, "k_full": 9, "savings_unavailable": "no savings: prdp stopped",
+                "stopped": list(stopped)}  # fmt: skip
+    return {"seed": seed, "k_full": 9, "prdp_val_error": prdp, "full_val_error": 1.0,
+            "twin_val_error": twin, "prdp_k_final": 3, "stopped": list(stopped),
+            "prdp_ratio": prdp, "twin_ratio": twin, "iterations_saved": 0.5,
+            "wall_time_saved": 0.4, "equal_accuracy": prdp <= 1.05}  # fmt: skip
+
+
+def test_a_seed_without_comparison_counts_against_the_test():
+    rows = [_row(0, 1.0), _row(1, 1.02), _row(2, None, stopped=["prdp"])]
+    result = _aggregate("s", [0, 1, 2], rows)
+    assert result["compared"] == 2 and result["prdp_ratio"]["n"] == 2
+    table = format_seeds(result)
+    assert "met on 2 of 3 seeds (1 without a comparison" in table
+    assert "no savings: prdp stopped" in table
+
+
+@pytest.mark.parametrize(
+    "ratios, verdict",
+    [
+        ((1.0, 1.01, 1.02), "within 5 %"),
+        ((1.3, 1.32, 1.31), "behind"),
+        ((0.99, 1.12, 1.05), "cannot decide"),
+    ],  # fmt: skip
+)
+def test_the_interval_is_read_against_the_5_percent_test(ratios, verdict):
+    rows = [_row(i, r) for i, r in enumerate(ratios)]
+    table = format_seeds(_aggregate("s", list(range(len(rows))), rows))
+    assert verdict in table and "(n = 3)" in table
+
+
+def test_ratio_statistics_edge_cases():
+    with pytest.raises(ValueError):
+        ratio_statistics([])
+    assert ratio_statistics([0.0, 1.0])["geometric_mean"] == 0.0
+    assert ratio_statistics([1.0, math.nan])["geometric_mean"] == math.inf
+
+
+def test_an_interrupted_twin_keeps_the_summary(tmp_path, monkeypatch):
+    import prdp_petsc.training.compare as compare_module
+
+    real = compare_module.run
+
+    def run(*args, torch_seed=None, **kwargs):
+        if torch_seed is not None:
+            raise KeyboardInterrupt
+        return real(*args, torch_seed=torch_seed, **kwargs)
+
+    monkeypatch.setattr(compare_module, "run", run)
+    with pytest.raises(KeyboardInterrupt):
+        compare(HEAT1D, epochs=1, out=tmp_path, progress=False, plots=False, twin=True)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert "prdp" in summary["runs"] and "savings" in summary
+    assert not any(name.startswith("twin") for name in summary["runs"])
+
+
+def test_compare_seeds_runs_each_seed_once(tmp_path, monkeypatch):
+    import prdp_petsc.training.seeds as seeds_module
+
+    calls = []
+
+    def fake(scene, *, seed, out, twin, **kwargs):
+        calls.append(seed)
+        return {"k_full": 9, "runs": {}, "savings_unavailable": "no savings: none ran"}
+
+    monkeypatch.setattr(seeds_module, "compare", fake)
+    monkeypatch.setattr(seeds_module, "format_table", lambda summary: "")
+    result = compare_seeds(HEAT1D, [0, 0, 1], out=tmp_path)
+    assert calls == [0, 1] and result["seeds"] == [0, 1]

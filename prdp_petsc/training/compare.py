@@ -36,6 +36,7 @@ ACCURACY_RATIO = 1.05
 
 #: The ``twin`` run seeds torch (initial weights, batch order) with ``seed + TWIN_SEED_OFFSET``.
 TWIN_SEED_OFFSET = 1000
+TWIN = "twin"  # compare's schedule name for that run
 
 
 def compare(
@@ -81,7 +82,8 @@ def compare(
     dict
         ``scene``, ``k_full``, ``threads``, ``runs`` (per schedule:
         ``final_val_error``, ``wall_time``, ``fwd_iterations``, ``adj_iterations``,
-        ``k_final``, ``stopped``), ``savings`` of PRDP against K_full
+        ``k_final``, ``stopped``; with `twin`, also ``twin:K``), ``noise_ratio`` (with
+        `twin`: its final validation error over K_full's), ``savings`` of PRDP against K_full
         (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
         adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
         ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why.
@@ -117,6 +119,8 @@ def compare(
         ]
         logs = {}
         k_fulls = {"": k_full}
+        if twin:  # full fidelity again, torch seeded differently: the run-to-run noise
+            runs.append((TWIN, None))
         for schedule, route in runs:
             context = route_options(prefixes, route) if route else contextlib.nullcontext()
             name = folder = None
@@ -126,13 +130,17 @@ def compare(
                         probe = build_scene(module, preset, seed)
                         k_fulls[route] = find_k_full(probe)
                         release(probe)
-                    if schedule == "full":
-                        schedule = f"fixed:{k_fulls[route]}"
-                    name = schedule if route is None else f"{schedule}@{route}"
+                    torch_seed = seed + TWIN_SEED_OFFSET if schedule == TWIN else None
+                    if schedule == TWIN:
+                        schedule, name = f"fixed:{k_full}", f"twin:{k_full}"
+                    else:
+                        schedule = f"fixed:{k_fulls[route]}" if schedule == "full" else schedule
+                        name = schedule if route is None else f"{schedule}@{route}"
                     folder = out / name.replace(":", "_").replace("@", "_on_").replace("/", "-")
                     logs[name] = run(
                         scene_file,
                         schedule,
+                        torch_seed=torch_seed,
                         preset=preset,
                         epochs=epochs,
                         seed=seed,
@@ -148,15 +156,11 @@ def compare(
                 results = folder / "results.json" if folder else None
                 if results is not None and results.is_file():
                     logs[name] = json.loads(results.read_text())
-                interrupted = summarize(scene_name, k_fulls, logs, threads=threads)
+                twin_log = logs.pop(f"twin:{k_full}", None)
+                interrupted = summarize(scene_name, k_fulls, logs, threads=threads, twin=twin_log)
                 write(out / "summary.json", interrupted)
                 raise
-        twin_log = None
-        if twin:
-            twin_log = run(scene_file, f"fixed:{k_full}", preset=preset, epochs=epochs,
-                           seed=seed, out=out / f"twin_{k_full}", progress=progress,
-                           threads=threads, module=module, parallel=parallel,
-                           torch_seed=seed + TWIN_SEED_OFFSET)  # fmt: skip
+    twin_log = logs.pop(f"twin:{k_full}", None)
     summary = summarize(scene_name, k_fulls, logs, threads=threads, twin=twin_log)
     summary["parallel"] = ranks.describe()
     write(out / "summary.json", summary)
@@ -323,14 +327,13 @@ def format_table(summary: dict) -> str:
         )
         if "accuracy_warning" in summary:
             lines.append(f"  !! {summary['accuracy_warning']}")
-        if "noise_ratio" in summary:
-            lines.append(
-                f"full fidelity twice (twin:{summary['k_full']}: other initial weights "
-                "and batch order): "
-                f"val error ratio {summary['noise_ratio']:.3f}, the run-to-run noise"
-            )
     else:
         lines.append(f"PRDP vs K_full: {summary['savings_unavailable']}")
+    if "noise_ratio" in summary:
+        lines.append(
+            f"full fidelity twice (twin:{summary['k_full']}: other initial weights "
+            f"and batch order): val error ratio {summary['noise_ratio']:.3f}, the run-to-run noise"
+        )
     for route, r in summary.get("routes", {}).items():
         if "savings" in r:
             lines.append(

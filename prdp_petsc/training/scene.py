@@ -136,24 +136,57 @@ def load_scene(path: str | Path) -> ModuleType:
 def preset_config(module: ModuleType, preset: str) -> dict:
     """The settings of ``"name [key=value ...]"``: the scene's preset ``name``, changed.
 
-    A key that no preset of the scene names is still set (a scene may read optional
-    settings with ``config.get``), with a warning, since a misspelt key would
-    otherwise change nothing silently.
+    A value takes the type the scene's presets give that key (``true``/``false`` for
+    a bool, an integer for an int, a number for a float; anything else refused), so
+    that ``solver_grad=false`` means False, not the string ``"false"``.  A key that
+    no preset names is still set (a scene may read optional settings with
+    ``config.get``), as a Python literal or else a string, with a warning (once per
+    key), since a misspelt key would otherwise change nothing silently.
     """
-    name, *pairs = str(preset).split()
+    name, *pairs = str(preset).split() or [""]
     if name not in module.PRESETS:
         raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {name!r}")
     config = dict(module.PRESETS[name])
-    known = set().union(*module.PRESETS.values())
+    known = {}
+    for settings in module.PRESETS.values():
+        for key, value in settings.items():
+            known.setdefault(key, value)
     for pair in pairs:
         key, eq, text = pair.partition("=")
         if not (eq and key.isidentifier() and text):
             raise ValueError(f"preset {preset!r}: expected key=value after the name, got {pair!r}")
-        try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text
-        if key not in known:
+        if key in known:
+            config[key] = _typed(key, text, config.get(key, known[key]))
+            continue
+        if (module.__name__, key) not in _WARNED:
+            _WARNED.add((module.__name__, key))
             logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
-        config[key] = value
+        config[key] = _typed(key, text, None)
     return config
+
+
+_WARNED: set = set()
+
+
+def _typed(key: str, text: str, like):
+    """`text` as a value of the type of `like` (any literal, else a string, for None)."""
+    if isinstance(like, bool) or text in ("true", "false"):
+        words = {"true": True, "True": True, "1": True, "false": False, "False": False, "0": False}
+        if text in words:
+            return words[text]
+        raise ValueError(f"setting {key}: expected true or false, got {text!r}")
+    if isinstance(like, str):
+        return text
+    try:
+        value = ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        if like is None:
+            return text
+        raise ValueError(f"setting {key}: cannot read {text!r}") from None
+    if isinstance(like, int) and not (isinstance(value, int) and not isinstance(value, bool)):
+        raise ValueError(f"setting {key}: expected an integer, got {text!r}")
+    if isinstance(like, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"setting {key}: expected a number, got {text!r}")
+        return float(value)
+    return value

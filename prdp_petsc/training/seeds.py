@@ -12,9 +12,15 @@ each seed and summarises the ratios on a log scale, where "PRDP is 10 % worse" a
 * the mean, smallest and largest saving in inner iterations and wall time, and on
   how many seeds PRDP met the per-seed test (`ACCURACY_RATIO`).
 
-Decision, written down: the per-seed test stays the verdict of each `compare`; this
-summary adds the evidence a single seed cannot give, and says so when the interval
-is too wide to decide a 5 % question either way.
+Decisions, written down: the per-seed test stays the verdict of each `compare`; this
+summary adds the evidence a single seed cannot give.  Its reading of the interval:
+entirely at or below 1.05, PRDP is within 5 %; entirely above, it is behind; across
+1.05, these seeds cannot decide.  PRDP and K_full share initial weights and batch
+order, so their ratio is a paired comparison; the twin changes both and so bounds
+the noise from above.  A seed whose PRDP or K_full run stopped (diverged, invalid
+input) has no ratio: it counts as a seed that did not meet the test and stays out of
+the statistics, which say how many seeds they rest on.  With ``routes``, each seed's
+table reports them; the summary covers the scene's own solver only.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from .compare import ACCURACY_RATIO, compare, format_table
+from .compare import ACCURACY_RATIO, compare, format_table, stopped_runs
 from .harness import write_json
 
 __all__ = ["compare_seeds", "format_seeds", "parse_seeds", "ratio_statistics"]
@@ -50,12 +56,16 @@ def parse_seeds(text: str) -> list[int]:
 def ratio_statistics(ratios: list[float]) -> dict:
     """Geometric mean of positive ratios and its 95 % Student-t interval.
 
-    ``interval`` is None for fewer than two finite ratios; a ratio that is not
-    finite and positive (a diverged run) makes ``geometric_mean`` inf.
+    ``interval`` is None for fewer than two ratios; a ratio that is not finite (a
+    diverged run) makes ``geometric_mean`` inf, a zero one makes it 0.
     """
-    finite = [r for r in ratios if math.isfinite(r) and r > 0]
-    if len(finite) < len(ratios):
+    if not ratios:
+        raise ValueError("ratio_statistics needs at least one ratio")
+    if any(not (math.isfinite(r) and r >= 0) for r in ratios):  # a diverged run, NaN
         return {"geometric_mean": math.inf, "interval": None, "n": len(ratios)}
+    finite = [r for r in ratios if r > 0]
+    if len(finite) < len(ratios):  # an error of exactly zero: no log scale
+        return {"geometric_mean": 0.0, "interval": None, "n": len(ratios)}
     logs = [math.log(r) for r in finite]
     n = len(logs)
     mean = sum(logs) / n
@@ -87,6 +97,7 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
     """
     if not seeds:
         raise ValueError("compare_seeds needs at least one seed")
+    seeds = list(dict.fromkeys(seeds))  # a seed twice would count twice
     out = Path(out)
     per_seed, tables = [], []
     for seed in seeds:
@@ -101,6 +112,7 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             "full_val_error": runs.get(f"fixed:{k}", {}).get("final_val_error"),
             "twin_val_error": runs.get(f"twin:{k}", {}).get("final_val_error"),
             "prdp_k_final": runs.get("prdp", {}).get("k_final"),
+            "stopped": stopped_runs(summary),
         }
         if "savings" in summary:
             row.update(
@@ -143,6 +155,18 @@ def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
     return result
 
 
+def _verdict(interval: list[float] | None, accuracy: float) -> str | None:
+    """What a 95 % interval of the PRDP / full ratio says about ``ratio <= accuracy``."""
+    if not interval:
+        return None
+    lo, hi = interval
+    if hi <= accuracy:
+        return f"  the PRDP interval lies at or below {accuracy}: within 5 % of full fidelity"
+    if lo > accuracy:
+        return f"  the PRDP interval lies above {accuracy}: PRDP is behind full fidelity"
+    return f"  the PRDP interval reaches past {accuracy}: these seeds cannot decide a 5 % question"
+
+
 def format_seeds(result: dict) -> str:
     """Plain-text table of `compare_seeds`: one row per seed, then the summary lines."""
     lines = [
@@ -172,16 +196,15 @@ def format_seeds(result: dict) -> str:
     lines.append(_ratio_line("PRDP / full", result["prdp_ratio"]))
     if "twin_ratio" in result:
         lines.append(_ratio_line("twin / full", result["twin_ratio"]))
+    missing = len(result["per_seed"]) - result["compared"]
     lines.append(
         f"per-seed test (ratio <= {result['accuracy']}): met on "
-        f"{result['equal_accuracy']} of {result['compared']} seeds"
+        f"{result['equal_accuracy']} of {len(result['per_seed'])} seeds"
+        + (f" ({missing} without a comparison: a run stopped)" if missing else "")
     )
-    interval = result["prdp_ratio"].get("interval")
-    if interval and interval[0] < 1 / result["accuracy"] and interval[1] > result["accuracy"]:
-        lines.append(
-            "  the PRDP interval reaches past ±5 % on both sides: these seeds cannot "
-            "decide a 5 % question either way"
-        )
+    verdict = _verdict(result["prdp_ratio"].get("interval"), result["accuracy"])
+    if verdict:
+        lines.append(verdict)
     return "\n".join(lines)
 
 
@@ -199,5 +222,5 @@ def _ratio_line(name: str, stats: dict) -> str:
     line = f"{name}: geometric mean {stats['geometric_mean']:.3f}"
     if stats.get("interval"):
         lo, hi = stats["interval"]
-        line += f", 95 % interval {lo:.3f}–{hi:.3f} (n = {stats['n']})"
-    return line
+        line += f", 95 % interval {lo:.3f}–{hi:.3f}"
+    return line + f" (n = {stats['n']})"

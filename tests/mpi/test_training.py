@@ -155,3 +155,16 @@ def test_ns2d_schur_validation_runs_distributed():
     got = ranks.validate(scene)
     # both solve to rtol_full = 1e-5 with another PC (ILU per rank): equal to that order
     assert all_ranks(np.isclose(got, serial, rtol=1e-4, atol=0)), (got, serial)
+
+
+def test_compare_seeds_with_twin_runs_distributed(tmp_path):
+    """``compare_seeds`` under ``--parallel batch``: every rank runs every seed and
+    twin, rank 0 alone writes ``seeds.json``, all ranks agree on the statistics."""
+    from prdp_petsc.training.seeds import compare_seeds
+
+    out = Path(COMM.bcast(str(tmp_path), root=0))
+    result = compare_seeds(DEMOS / "heat1d.py", [0, 1], preset="quick", epochs=2, out=out,
+                           progress=False, plots=False, parallel="batch")  # fmt: skip
+    assert all_ranks(result["compared"] == 2 and (out / "seeds.json").is_file())
+    assert all_ranks(all(r["twin_ratio"] is not None for r in result["per_seed"]))
+    assert same_on_all_ranks([r["prdp_ratio"] for r in result["per_seed"]])
