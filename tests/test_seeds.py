@@ -237,3 +237,12 @@ def test_compare_seeds_runs_each_seed_once(tmp_path, monkeypatch):
     monkeypatch.setattr(seeds_module, "format_table", lambda summary: "")
     result = compare_seeds(HEAT1D, [0, 0, 1], out=tmp_path)
     assert calls == [0, 1] and result["seeds"] == [0, 1]
+
+
+def test_the_twin_is_not_a_route_to_the_target(tmp_path):
+    s = compare(HEAT1D, epochs=2, out=tmp_path, progress=False, twin=True, routes=("cg/jacobi",))
+    twin = f"twin:{s['k_full']}"
+    assert twin in s["runs"] and "noise_ratio" in s
+    assert twin not in s["fastest"]["seconds_to_target"]
+    assert "prdp@cg/jacobi" in s["fastest"]["seconds_to_target"]
+    assert (tmp_path / f"twin_{s['k_full']}" / "results.json").is_file()

@@ -156,18 +156,17 @@ def compare(
                 results = folder / "results.json" if folder else None
                 if results is not None and results.is_file():
                     logs[name] = json.loads(results.read_text())
-                twin_log = logs.pop(f"twin:{k_full}", None)
-                interrupted = summarize(scene_name, k_fulls, logs, threads=threads, twin=twin_log)
+                interrupted = summarize(scene_name, k_fulls, logs, threads=threads)
                 write(out / "summary.json", interrupted)
                 raise
-    twin_log = logs.pop(f"twin:{k_full}", None)
-    summary = summarize(scene_name, k_fulls, logs, threads=threads, twin=twin_log)
+    summary = summarize(scene_name, k_fulls, logs, threads=threads)
     summary["parallel"] = ranks.describe()
     write(out / "summary.json", summary)
     if plots and ranks.root:
         from .plots import plot_compare
 
-        summary["plots"] = plot_compare(logs, k_fulls, out)
+        drawn = {name: log for name, log in logs.items() if not name.startswith("twin:")}
+        summary["plots"] = plot_compare(drawn, k_fulls, out)
         write_json(out / "summary.json", summary)
     return summary
 
@@ -182,22 +181,21 @@ def _prdp_for(settings: dict, k_full: int, k_route: int) -> dict:
     return out
 
 
-def summarize(
-    scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None, twin=None
-) -> dict:
+def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None) -> dict:
     """Summary of a comparison: runs, PRDP savings against K_full, error ratio.
 
     `k_full` is an int, or ``{route: K_full}`` with ``""`` for the scene's own
     solver; routes add ``routes`` (their K_full and PRDP savings) and ``fastest``.
-    `twin`, the log of a second full-fidelity run (torch seeded differently), adds
-    the run ``twin:K`` and ``noise_ratio``, its final validation error over K_full's.
+    A run ``twin:K`` (full fidelity again, torch seeded differently) adds
+    ``noise_ratio``, its final validation error over K_full's; it is not a
+    candidate for ``fastest``.
     """
     k_fulls = k_full if isinstance(k_full, dict) else {"": k_full}
     k_full = k_fulls[""]
     full_name = f"fixed:{k_full}"
     twin_name = f"twin:{k_full}"
     runs = {}
-    for schedule, log in {**logs, **({twin_name: twin} if twin else {})}.items():
+    for schedule, log in logs.items():
         t = log["totals"]
         runs[schedule] = {
             "final_val_error": t.get("final_val_error"),
@@ -211,9 +209,10 @@ def summarize(
             "stopped": log["stopped"],
         }
     summary = {"scene": scene, "k_full": k_full, "threads": threads, "runs": runs}
-    if twin and full_name in logs and not (twin["stopped"] or logs[full_name]["stopped"]):
+    twin, full = logs.get(twin_name), logs.get(full_name)
+    if twin and full and not (twin["stopped"] or full["stopped"]):
         summary["noise_ratio"] = _ratio(
-            twin["totals"]["final_val_error"], logs[full_name]["totals"]["final_val_error"]
+            twin["totals"]["final_val_error"], full["totals"]["final_val_error"]
         )
     if len(k_fulls) > 1:
         summary["routes"] = {
@@ -221,7 +220,8 @@ def summarize(
             for route, k in k_fulls.items()
             if route
         }
-        summary["fastest"] = fastest(logs, full_name)
+        candidates = {name: log for name, log in logs.items() if name != twin_name}
+        summary["fastest"] = fastest(candidates, full_name)
     summary.update(_savings(logs, "prdp", full_name))
     return summary
 
