@@ -115,6 +115,8 @@ def test_cli_compare_seeds(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "seed 0\n" in text and "seed 1\n" in text and "PRDP / full" in text
     assert (out / "seeds.json").is_file() and (out / "seed_1" / "summary.json").is_file()
+    assert json.loads((out / "seeds.json").read_text())["plot"] == "seeds.png"
+    assert (out / "seeds.png").stat().st_size > 1000
     with pytest.raises(SystemExit):  # one seed or several, not both
         main(["compare", str(HEAT1D), "--seed", "1", "--seeds", "0-1", "--out", str(out)])
 

@@ -31,7 +31,7 @@ from pathlib import Path
 from .compare import ACCURACY_RATIO, compare, format_table, stopped_runs
 from .harness import write_json
 
-__all__ = ["compare_seeds", "format_seeds", "parse_seeds", "ratio_statistics"]
+__all__ = ["compare_seeds", "format_seeds", "parse_seeds", "plot_seeds", "ratio_statistics"]
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -128,8 +128,47 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
         result = _aggregate(Path(scene_file).stem, seeds, per_seed)
         if kwargs.get("parallel") is None or _root():
             write_json(out / "seeds.json", result)
+    if kwargs.get("plots", True) and (kwargs.get("parallel") is None or _root()):
+        result["plot"] = plot_seeds(result, out)
+        write_json(out / "seeds.json", result)
     result["tables"] = tables
     return result
+
+
+def plot_seeds(result: dict, out) -> str | None:
+    """``seeds.png``: per seed, the PRDP / full and twin / full error ratios (log
+    scale, the 5 % line) beside the wall-time saving; None without any ratio."""
+    rows = [r for r in result["per_seed"] if "prdp_ratio" in r]
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = list(range(len(rows)))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))
+    left.axhline(1.0, color="0.6", lw=0.8)
+    left.axhline(result["accuracy"], color="C3", lw=0.8, ls="--", label="5 % test")
+    left.plot(x, [r["prdp_ratio"] for r in rows], "o", color="C3", label="PRDP / full")
+    twins = [i for i in x if rows[i].get("twin_ratio")]
+    if twins:
+        ratios = [rows[i]["twin_ratio"] for i in twins]
+        left.plot(twins, ratios, "s", mfc="none", color="C0", label="twin / full")
+    left.set_yscale("log")
+    left.set_ylabel("final validation error ratio")
+    right.bar(x, [100 * r["wall_time_saved"] for r in rows], color="C2", width=0.6)
+    right.set_ylabel("wall time saved by PRDP [%]")
+    for ax in (left, right):
+        ax.set_xticks(x, [str(r["seed"]) for r in rows])
+        ax.set_xlabel("seed")
+        ax.grid(alpha=0.3)
+    left.legend(fontsize=8)
+    fig.suptitle(f"{result['scene']}: PRDP against full fidelity, seed by seed")
+    fig.tight_layout()
+    fig.savefig(Path(out) / "seeds.png", dpi=120)
+    plt.close(fig)
+    return "seeds.png"
 
 
 def _root() -> bool:
