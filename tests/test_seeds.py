@@ -248,3 +248,16 @@ def test_the_twin_is_not_a_route_to_the_target(tmp_path):
     assert twin not in s["fastest"]["seconds_to_target"]
     assert "prdp@cg/jacobi" in s["fastest"]["seconds_to_target"]
     assert (tmp_path / f"twin_{s['k_full']}" / "results.json").is_file()
+
+
+def test_set_changes_prdp_settings_in_every_scene(caplog):
+    # heat1d writes its PRDP settings into the scene, not from its config
+    module = load_scene(HEAT1D)
+    scene = build_scene(module, "quick k_step=3 tau_stop=0.95 k_max=None", 0)
+    assert scene.prdp["k_step"] == 3 and scene.prdp["tau_stop"] == 0.95
+    assert scene.prdp["k_max"] is None and "no preset" not in caplog.text
+    assert build_scene(module, "quick", 0).prdp["k_step"] == 1
+    with pytest.raises(ValueError, match="integer"):
+        build_scene(module, "quick k_step=2.5", 0)
+    result = run(HEAT1D, "prdp", preset="quick k_init=2", epochs=1, progress=False)
+    assert result["prdp"]["k_init"] == 2 and result["epochs"][0]["k"] == 2

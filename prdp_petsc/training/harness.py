@@ -26,7 +26,7 @@ from ..core.results import SolverError
 from ..core.solver import KSPSolver
 from ..prdp import PRDP
 from .parallel import Parallel
-from .scene import load_scene, preset_config
+from .scene import load_scene, preset_config, with_prdp_settings
 
 __all__ = [
     "build_scene",
@@ -100,7 +100,7 @@ def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
     `seed`): initial weights from torch, data from the scene's numpy Generator."""
     config = preset_config(module, preset)  # "paper modes=32": a preset, changed
     _seed_everything(seed if torch_seed is None else torch_seed)
-    return module.build(config, seed)
+    return with_prdp_settings(module.build(config, seed), preset, config)
 
 
 def find_k_full(scene, max_it: int = 100_000) -> int:

@@ -13,7 +13,9 @@ A scene file (the shipped ones live in ``demos/``) defines
 A preset name may carry changed settings, ``"paper modes=32 k_step=10"``
 (`preset_config`; the command line's ``--set modes=32``): each value is read as a
 Python literal (a number, ``[8, 16]`` without spaces, ``True``) and otherwise kept
-as a string (``net=mlp``).
+as a string (``net=mlp``).  A key that names a setting of `prdp_petsc.PRDP`
+(``k_init``, ``k_step``, ``tau_stop``, ...) also goes into ``Scene.prdp``
+(`with_prdp_settings`), so it changes the controller in every scene.
 
 The harness (`prdp_petsc.training.harness`) does the rest: training loop, K schedule
 (PRDP or fixed), finding K_full, cost accounting, results, plots, command line.
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import inspect
 import logging
 import sys
 from collections.abc import Callable, Iterable, Sequence
@@ -33,8 +36,16 @@ from types import ModuleType
 import torch
 
 from ..core.solver import KSPSolver
+from ..prdp import PRDP
 
-__all__ = ["Scene", "load_scene", "preset_config", "shuffled_batches"]
+__all__ = [
+    "PRDP_SETTINGS",
+    "Scene",
+    "load_scene",
+    "preset_config",
+    "shuffled_batches",
+    "with_prdp_settings",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -158,6 +169,9 @@ def preset_config(module: ModuleType, preset: str) -> dict:
         if key in known:
             config[key] = _typed(key, text, config.get(key, known[key]))
             continue
+        if key in PRDP_SETTINGS:  # a setting of the controller: `with_prdp_settings`
+            config[key] = _typed(key, text, PRDP_SETTINGS[key])
+            continue
         if (module.__name__, key) not in _WARNED:
             _WARNED.add((module.__name__, key))
             logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
@@ -166,6 +180,23 @@ def preset_config(module: ModuleType, preset: str) -> dict:
 
 
 _WARNED: set = set()
+
+#: The keyword arguments of `prdp_petsc.PRDP` and their defaults.
+PRDP_SETTINGS = {
+    name: p.default
+    for name, p in inspect.signature(PRDP.__init__).parameters.items()
+    if name != "self"
+}
+
+
+def with_prdp_settings(scene: Scene, preset: str, config: dict) -> Scene:
+    """`scene` with the PRDP settings that `preset` changes (``"paper k_step=4"``)
+    put into ``scene.prdp``, whether or not the scene reads them from its config."""
+    for pair in str(preset).split()[1:]:
+        key = pair.partition("=")[0]
+        if key in PRDP_SETTINGS:
+            scene.prdp = {**scene.prdp, key: config[key]}
+    return scene
 
 
 def _typed(key: str, text: str, like):
