@@ -93,6 +93,8 @@ def test_compare_seeds_aggregates_what_each_seed_measured(study):
     assert [r["seed"] for r in rows] == [0, 1]
     for r in rows:
         summary = json.loads((out / f"seed_{r['seed']}" / "summary.json").read_text())
+        assert r["prdp_ratio"] == pytest.approx(r["prdp_val_error"] / r["full_val_error"])
+        assert r["twin_ratio"] == pytest.approx(r["twin_val_error"] / r["full_val_error"])
         assert r["prdp_ratio"] == summary["val_error_ratio"]
         assert r["twin_ratio"] == summary["noise_ratio"]
         assert r["wall_time_saved"] == summary["savings"]["wall_time"]

@@ -130,9 +130,10 @@ def compare(
                         probe = build_scene(module, preset, seed)
                         k_fulls[route] = find_k_full(probe)
                         release(probe)
-                    torch_seed = seed + TWIN_SEED_OFFSET if schedule == TWIN else None
+                    torch_seed = None
                     if schedule == TWIN:
                         schedule, name = f"fixed:{k_full}", f"twin:{k_full}"
+                        torch_seed = seed + TWIN_SEED_OFFSET
                     else:
                         schedule = f"fixed:{k_fulls[route]}" if schedule == "full" else schedule
                         name = schedule if route is None else f"{schedule}@{route}"

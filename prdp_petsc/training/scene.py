@@ -11,11 +11,11 @@ A scene file (the shipped ones live in ``demos/``) defines
     and nothing the scene does not need.
 
 A preset name may carry changed settings, ``"paper modes=32 k_step=10"``
-(`preset_config`; the command line's ``--set modes=32``): each value is read as a
-Python literal (a number, ``[8, 16]`` without spaces, ``True``) and otherwise kept
-as a string (``net=mlp``).  A key that names a setting of `prdp_petsc.PRDP`
-(``k_init``, ``k_step``, ``tau_stop``, ...) also goes into ``Scene.prdp``
-(`with_prdp_settings`), so it changes the controller in every scene.
+(`preset_config`; the command line's ``--set modes=32``): each value takes the type
+the presets give its key (``false`` for a switch, ``net=mlp`` a string).  A key
+that names a setting of `prdp_petsc.PRDP` (``k_init``, ``k_step``, ``tau_stop``,
+...) also goes into ``Scene.prdp`` (`with_prdp_settings`), so it changes the
+controller in every scene.
 
 The harness (`prdp_petsc.training.harness`) does the rest: training loop, K schedule
 (PRDP or fixed), finding K_full, cost accounting, results, plots, command line.
@@ -154,7 +154,7 @@ def preset_config(module: ModuleType, preset: str) -> dict:
     ``config.get``), as a Python literal or else a string, with a warning (once per
     key), since a misspelt key would otherwise change nothing silently.
     """
-    name, *pairs = str(preset).split() or [""]
+    name, pairs = _parse(preset)
     if name not in module.PRESETS:
         raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {name!r}")
     config = dict(module.PRESETS[name])
@@ -162,10 +162,7 @@ def preset_config(module: ModuleType, preset: str) -> dict:
     for settings in module.PRESETS.values():
         for key, value in settings.items():
             known.setdefault(key, value)
-    for pair in pairs:
-        key, eq, text = pair.partition("=")
-        if not (eq and key.isidentifier() and text):
-            raise ValueError(f"preset {preset!r}: expected key=value after the name, got {pair!r}")
+    for key, text in pairs:
         if key in known:
             config[key] = _typed(key, text, config.get(key, known[key]))
             continue
@@ -177,6 +174,18 @@ def preset_config(module: ModuleType, preset: str) -> dict:
             logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
         config[key] = _typed(key, text, None)
     return config
+
+
+def _parse(preset: str) -> tuple[str, list[tuple[str, str]]]:
+    """``"paper a=1 b=x"`` → ``("paper", [("a", "1"), ("b", "x")])``."""
+    name, *pairs = str(preset).split() or [""]
+    parsed = []
+    for pair in pairs:
+        key, eq, text = pair.partition("=")
+        if not (eq and key.isidentifier() and text):
+            raise ValueError(f"preset {preset!r}: expected key=value after the name, got {pair!r}")
+        parsed.append((key, text))
+    return name, parsed
 
 
 _WARNED: set = set()
@@ -192,8 +201,7 @@ PRDP_SETTINGS = {
 def with_prdp_settings(scene: Scene, preset: str, config: dict) -> Scene:
     """`scene` with the PRDP settings that `preset` changes (``"paper k_step=4"``)
     put into ``scene.prdp``, whether or not the scene reads them from its config."""
-    for pair in str(preset).split()[1:]:
-        key = pair.partition("=")[0]
+    for key, _ in _parse(preset)[1]:
         if key in PRDP_SETTINGS:
             scene.prdp = {**scene.prdp, key: config[key]}
     return scene

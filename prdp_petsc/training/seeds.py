@@ -30,6 +30,7 @@ from pathlib import Path
 
 from .compare import ACCURACY_RATIO, compare, format_table, stopped_runs
 from .harness import write_json
+from .parallel import Parallel
 
 __all__ = ["compare_seeds", "format_seeds", "parse_seeds", "plot_seeds", "ratio_statistics"]
 
@@ -99,6 +100,7 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
         raise ValueError("compare_seeds needs at least one seed")
     seeds = list(dict.fromkeys(seeds))  # a seed twice would count twice
     out = Path(out)
+    root = Parallel(kwargs.get("parallel")).root  # rank 0 alone writes files
     per_seed, tables = [], []
     for seed in seeds:
         summary = compare(scene_file, seed=seed, out=out / f"seed_{seed}", twin=True, **kwargs)
@@ -126,9 +128,9 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             row["savings_unavailable"] = summary["savings_unavailable"]
         per_seed.append(row)
         result = _aggregate(Path(scene_file).stem, seeds, per_seed)
-        if kwargs.get("parallel") is None or _root():
+        if root:
             write_json(out / "seeds.json", result)
-    if kwargs.get("plots", True) and (kwargs.get("parallel") is None or _root()):
+    if kwargs.get("plots", True) and root:
         result["plot"] = plot_seeds(result, out)
         write_json(out / "seeds.json", result)
     result["tables"] = tables
@@ -169,12 +171,6 @@ def plot_seeds(result: dict, out) -> str | None:
     fig.savefig(Path(out) / "seeds.png", dpi=120)
     plt.close(fig)
     return "seeds.png"
-
-
-def _root() -> bool:
-    from mpi4py import MPI
-
-    return MPI.COMM_WORLD.Get_rank() == 0
 
 
 def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
