@@ -38,6 +38,7 @@ _EXPORTS = {
     "mass_matrix": ".fem.forms",
     "PRDP": ".prdp",
     "PRDPStep": ".prdp",
+    "equal_accuracy_k": ".prdp",
     "rtol_from_level": ".prdp",
     "savings": ".prdp",
     "Scene": ".training.scene",

@@ -11,7 +11,7 @@ import math
 import operator
 from dataclasses import asdict, dataclass
 
-__all__ = ["PRDP", "PRDPStep", "rtol_from_level", "savings"]
+__all__ = ["PRDP", "PRDPStep", "equal_accuracy_k", "rtol_from_level", "savings"]
 
 logger = logging.getLogger(__name__)
 
@@ -91,6 +91,55 @@ def savings(ks=None, k_full=None, *, costs=None, cost_full=None) -> dict[str, fl
     return {"total": total, "pr": total - ic, "ic": ic}
 
 
+def equal_accuracy_k(errors: dict, k_full: int, tol: float = 0.05) -> dict:
+    """Smallest constant cap K that trains to within ``tol`` of full fidelity.
+
+    Model (docs/maths.md §7, "How far incomplete convergence can go"): a network
+    trained through a solve capped at K learns to undo the part of the solve's error
+    that K iterations leave, which a stationary solver contracts geometrically, so its
+    final validation error is e(K) = e_full + C ρ^K.  The two largest constant caps
+    K_a < K_b below `k_full` fix C and ρ if e(K_a) > e(K_b) > e_full; then
+    K_tol = K_b + ln(tol e_full / (e(K_b) - e_full)) / ln ρ.
+
+    Parameters
+    ----------
+    errors : dict
+        ``{K: final validation error}`` of constant-K runs over the same epochs; must
+        hold `k_full` (its error is e_full).
+    k_full : int
+        The converged cap.
+    tol : float
+        Relative accuracy, > 0 (0.05: within 5 %).
+
+    Returns
+    -------
+    dict
+        ``measured``: the smallest K in `errors` within tol of e_full (at worst
+        `k_full`); ``fitted``: ceil(K_tol) clamped to [1, k_full], or None where the
+        runs do not fit the model; ``pair``: (K_a, K_b) or None; ``rho``: ρ or None;
+        ``ic_bound``: 1 - K / k_full with the fitted K (else the measured one), the
+        most incomplete convergence can save at that accuracy.
+    """
+    if not (math.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be finite and > 0, got {tol}")
+    if k_full not in errors:
+        raise ValueError(f"errors must hold the converged cap k_full={k_full}")
+    e_full = float(errors[k_full])
+    measured = min(k for k, e in errors.items() if k <= k_full and e <= (1 + tol) * e_full)
+    out = {"measured": measured, "fitted": None, "pair": None, "rho": None}
+    below = sorted(k for k in errors if k < k_full)
+    if len(below) >= 2 and e_full > 0:
+        k_a, k_b = below[-2:]
+        d_a, d_b = errors[k_a] - e_full, errors[k_b] - e_full
+        if math.isfinite(d_a) and d_a > d_b > 0:
+            log_rho = math.log(d_b / d_a) / (k_b - k_a)
+            k_tol = k_b + math.log(tol * e_full / d_b) / log_rho
+            fitted = min(k_full, max(1, math.ceil(k_tol - 1e-9)))
+            out.update(fitted=fitted, pair=(k_a, k_b), rho=math.exp(log_rho))
+    out["ic_bound"] = 1.0 - (out["fitted"] or measured) / k_full
+    return out
+
+
 def rtol_from_level(
     level: int, rtol_init: float = 1e-1, factor: float = 0.5, rtol_min: float = 1e-10
 ) -> float:
@@ -133,8 +182,12 @@ class PRDP:
     use_ema : bool
         Smooth the metric (reference: yes, except Poisson).
     restart_window : bool
-        Not in the reference. If True, after each refinement the plateau test waits for
-        ``window`` metrics measured with the new K.
+        Not in the reference. If True, each refinement starts a new EMA from the first
+        metric measured with the new K, and the plateau test waits for ``window`` such
+        metrics: the tests then see the current K only.  Without it a metric that
+        blows up at a small K (an unstable rollout: 1e4 where the plateau is 1) stays
+        in the EMA for dozens of epochs and reads as "still improving" while the
+        metric measured with the new K rises.
     tau_worse : float
         "Got worse" threshold (>= 1); the reference uses 1.
 
@@ -202,6 +255,7 @@ class PRDP:
         self._k, self._refining, self._checkpoint = self.k_init, True, math.inf
         self._ema: list[float] = []  # E over the finite metrics only
         self._start = 1  # E[-window] must have index >= _start for a plateau test
+        self._fresh = False  # the next finite metric starts a new EMA (restart_window)
         self._history: list[PRDPStep] = []
 
     @property
@@ -234,14 +288,17 @@ class PRDP:
         else:
             if value < 0:
                 raise ValueError(f"metric must be >= 0 (PRDP compares ratios), got {value}")
-            ema = value if not self._ema else self.alpha * value + (1 - self.alpha) * self._ema[-1]
+            if not self._ema or self._fresh:
+                ema, self._fresh = value, False
+            else:
+                ema = self.alpha * value + (1 - self.alpha) * self._ema[-1]
             self._ema.append(ema)
             refine, reason = self._test()
         if refine:
             if self._ema:
                 self._checkpoint = self._ema[-1]
             if self.restart_window:
-                self._start = len(self._ema)
+                self._start, self._fresh = len(self._ema), True
             self._refining = True
             self._k = k + self.k_step if self.k_max is None else min(k + self.k_step, self.k_max)
         step = PRDPStep(k=k, metric=value, ema=ema, refined=self._k > k, k_next=self._k)
@@ -283,7 +340,7 @@ class PRDP:
         """Mutable state as plain (JSON-serialisable) Python objects; settings excluded."""
         return {
             "k": self._k, "refining": self._refining, "checkpoint": self._checkpoint,
-            "ema": list(self._ema), "start": self._start,
+            "ema": list(self._ema), "start": self._start, "fresh": self._fresh,
             "history": [asdict(s) for s in self._history],
         }  # fmt: skip
 
@@ -297,5 +354,6 @@ class PRDP:
             raise ValueError(f"state k={k} outside [k_min, k_max] of this PRDP")
         self._k, self._refining = k, bool(state["refining"])
         self._checkpoint, self._start = float(state["checkpoint"]), int(state["start"])
+        self._fresh = bool(state.get("fresh", False))  # absent in older checkpoints
         self._ema = [float(x) for x in state["ema"]]
         self._history = [PRDPStep(**s) for s in state["history"]]

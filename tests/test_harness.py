@@ -414,3 +414,20 @@ def test_cli_refuses_a_bad_k_max(tiny, tmp_path, capsys, bad):
     with pytest.raises(SystemExit) as exit_info:
         main(["run", str(tiny), "--k-max", bad, "--out", str(tmp_path)])
     assert exit_info.value.code == 2 and "--k-max" in capsys.readouterr().err
+
+
+def test_summary_bounds_incomplete_convergence_from_the_constant_runs():
+    """e(K) = e_full (1 + 0.5^(K - 4)): fixed:4 and fixed:8 fit rho = 0.5, K_5% = 9."""
+    errors = {k: 0.1 * (1 + 0.5 ** (k - 4)) for k in (1, 4, 8)}
+    logs = {f"fixed:{k}": fake_log([k] * 3, [1.0, 0.5, e]) for k, e in errors.items()}
+    logs["fixed:16"] = fake_log([16] * 3, [1.0, 0.5, 0.1])
+    summary = summarize("s", 16, logs)
+    bound = summary["equal_accuracy_k"]
+    assert bound["pair"] == (4, 8) and bound["rho"] == pytest.approx(0.5)
+    assert bound["fitted"] == 9 and bound["measured"] == 16
+    assert bound["ic_bound"] == pytest.approx(1 - 9 / 16)
+    line = next(x for x in format_table(summary).splitlines() if x.startswith("smallest"))
+    assert "16 of the runs, ≈ 9 fitting" in line and "at most 44 %" in line
+    # a twin 20 % away says the constant runs cannot resolve 5 %
+    logs["twin:16"] = fake_log([16] * 3, [1.0, 0.5, 0.12])
+    assert "do not resolve a 5 % difference" in format_table(summarize("s", 16, logs))

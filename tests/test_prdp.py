@@ -12,7 +12,7 @@ import math
 
 import pytest
 
-from prdp_petsc.prdp import PRDP, PRDPStep, rtol_from_level, savings
+from prdp_petsc.prdp import PRDP, PRDPStep, equal_accuracy_k, rtol_from_level, savings
 
 ALPHA = 2 / 7
 
@@ -81,10 +81,22 @@ def test_noise_around_plateau_checkpoint_at_trough_ratchets():
 
 
 def test_noise_with_restart_window():
-    # Tests at calls 4, 7, 10, 11 (window restarts after each refinement):
-    # call 7: r_c = E_6 / E_3 = 1.007227 / 0.988630 = 1.0188 -> refine (checkpoint E_6);
-    # call 10: r_c = 0.991263 / 1.007227 = 0.984 -> stop; call 11: r_c = 1.00081 -> refine.
-    assert run(PRDP(restart_window=True), NOISE_TROUGH) == [1, 1, 1, 2, 2, 2, 3, 3, 3, 3, 4]
+    # Each refinement restarts the EMA from the next metric and the window after it.
+    # Call 4 refines (checkpoint E_3 = 0.988630). Calls 5-7 restart E at 1.05:
+    # E = 1.05, 1.021429, 1.029592; call 7: r = 0.98056 (plateau), r_c = 1.0414 -> refine
+    # (checkpoint 1.029592). Calls 8-11: E = 0.95, 0.978571, 0.970408, 0.993149; calls 10
+    # and 11 are plateaus with r_c = 0.9425 and 0.9646: bought less than 10 % -> stop.
+    ctrl = PRDP(restart_window=True)
+    assert run(ctrl, NOISE_TROUGH) == [1, 1, 1, 2, 2, 2, 3, 3, 3, 3, 3]
+    assert [s.ema for s in ctrl.history[4:8]] == pytest.approx([1.05, 1.021429, 1.029592, 0.95])
+    assert ctrl.refining is False
+
+
+def test_restart_window_forgets_a_blow_up_at_the_old_k():
+    """An unstable rollout at K = 1 (1e4) must not read as "improving" at K = 2."""
+    metrics = [1e4] * 4 + [2.0, 2.2, 2.4, 2.6]  # K = 2 trains, its metric rises
+    assert run(PRDP(), metrics) == [1, 1, 1, 2, 2, 2, 2, 2]  # the EMA is still falling
+    assert run(PRDP(restart_window=True), metrics) == [1, 1, 1, 2, 2, 2, 3, 3]
 
 
 def test_noise_with_tau_worse_tolerance():
@@ -255,3 +267,56 @@ def test_refinement_is_logged(caplog):
     messages = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
     assert any("K 1 -> 2" in m for m in messages)
     assert any("stop refining at K=2" in m for m in messages)
+
+
+# --- equal_accuracy_k: the smallest constant K within tol of full fidelity ----------
+
+
+def _model_errors(ks, e_full=1e-3, c=0.5, rho=0.85):
+    return {k: e_full + c * rho**k for k in ks}
+
+
+def test_equal_accuracy_k_recovers_the_model():
+    errors = _model_errors([1, 21, 42, 84])
+    errors[84] = 1e-3  # converged: the rho^84 remainder is below the fit's resolution
+    out = equal_accuracy_k(errors, 84)
+    k_tol = math.log(0.05 * 1e-3 / 0.5) / math.log(0.85)  # c rho^K = tol e_full
+    assert out["fitted"] == math.ceil(k_tol)
+    assert out["pair"] == (21, 42) and out["rho"] == pytest.approx(0.85, rel=1e-3)
+    assert out["measured"] == 84  # fixed:42 is 1.54x e_full
+    assert out["ic_bound"] == pytest.approx(1 - out["fitted"] / 84)
+
+
+def test_equal_accuracy_k_measured_is_the_smallest_run_within_tol():
+    errors = {1: 3.0, 10: 1.04, 20: 1.01, 40: 1.0}
+    out = equal_accuracy_k(errors, 40)
+    assert out["measured"] == 10
+    # 10 and 20 both sit above e_full and decrease: the fit puts K_tol below 10
+    assert out["fitted"] is not None and out["fitted"] < 10
+    assert out["ic_bound"] == pytest.approx(1 - out["fitted"] / 40)
+
+
+@pytest.mark.parametrize(
+    "errors",
+    [
+        {9: 0.998, 18: 1.0, 36: 1.0},  # below e_full: no solver error left to fit
+        {9: 1.2, 18: 1.3, 36: 1.0},  # rising: not the model
+        {18: 1.2, 36: 1.0},  # one coarse run only
+    ],
+)
+def test_equal_accuracy_k_without_a_fit_falls_back_to_the_runs(errors):
+    out = equal_accuracy_k(errors, 36)
+    assert out["fitted"] is None and out["pair"] is None and out["rho"] is None
+    expected = min(k for k, e in errors.items() if e <= 1.05)
+    assert out["measured"] == expected
+    assert out["ic_bound"] == pytest.approx(1 - expected / 36)
+
+
+def test_equal_accuracy_k_clamps_and_validates():
+    # a fit that asks for more than K_full is clamped to K_full
+    errors = {10: 2.0, 20: 1.9, 40: 1.0}
+    assert equal_accuracy_k(errors, 40)["fitted"] == 40
+    with pytest.raises(ValueError, match="k_full"):
+        equal_accuracy_k({10: 2.0}, 40)
+    with pytest.raises(ValueError, match="tol"):
+        equal_accuracy_k({40: 1.0}, 40, tol=0)

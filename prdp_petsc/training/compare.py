@@ -15,7 +15,7 @@ import json
 import math
 from pathlib import Path
 
-from ..prdp import savings
+from ..prdp import equal_accuracy_k, savings
 from .harness import (
     build_scene,
     check_epochs,
@@ -224,6 +224,13 @@ def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None
         candidates = {name: log for name, log in logs.items() if name != twin_name}
         summary["fastest"] = fastest(candidates, full_name)
     summary.update(_savings(logs, "prdp", full_name))
+    constant = {
+        int(name[6:]): log["totals"]["final_val_error"]
+        for name, log in logs.items()
+        if name.startswith("fixed:") and name[6:].isdigit() and not log["stopped"]
+    }
+    if k_full in constant and len(constant) > 1:
+        summary["equal_accuracy_k"] = equal_accuracy_k(constant, k_full, ACCURACY_RATIO - 1)
     return summary
 
 
@@ -335,6 +342,25 @@ def format_table(summary: dict) -> str:
             f"full fidelity twice (twin:{summary['k_full']}: other initial weights "
             f"and batch order): val error ratio {summary['noise_ratio']:.3f}, the run-to-run noise"
         )
+    bound = summary.get("equal_accuracy_k")
+    if bound:
+        fit = bound["fitted"]
+        lines.append(
+            f"smallest constant K within 5 % of K_full: {bound['measured']} of the runs"
+            + (
+                f", ≈ {fit} fitting e_full + C ρ^K to fixed:{bound['pair'][0]}, "
+                f"fixed:{bound['pair'][1]} (ρ = {bound['rho']:.3f})"
+                if fit
+                else ""
+            )
+            + f"; incomplete convergence alone saves at most {100 * bound['ic_bound']:.0f} %"
+        )
+        noise = summary.get("noise_ratio")
+        if noise is not None and not 1 / ACCURACY_RATIO <= noise <= ACCURACY_RATIO:
+            lines.append(
+                f"  (the twin ends {noise:.3f}x full fidelity: below that noise the "
+                "constant-K errors do not resolve a 5 % difference)"
+            )
     for route, r in summary.get("routes", {}).items():
         if "savings" in r:
             lines.append(
