@@ -125,9 +125,13 @@ def build(config: dict, seed: int) -> pp.Scene:
         # (1e3-1e4 against ~0.05 converged), and with the reference's EMA that spike
         # masks every plateau for dozens of epochs (README, heat 1D)
         prdp={
-            "k_init": 1, "k_step": 1, "tau_step": 0.98, "ema_window": 8, "window": 3,
+            "k_init": 1,
+            "k_step": 1,
+            "tau_step": 0.98,
+            "ema_window": 8,
+            "window": 3,
             "restart_window": True,
-        },  # fmt: skip
+        },
         scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=config["gamma"]),
         info={"n": n, "nu_dt": NU_DT, "jacobi_scale": JACOBI_SCALE, **config},
     )
