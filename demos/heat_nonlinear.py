@@ -33,10 +33,11 @@ records a 20-step curve); the exact steps are Newton with a PETSc LU solve to â€
 rollout error stays near 0.4, that of the identity map is about 1), but K still shows:
 at K = 1 the error settles near 0.48, from K â‰ˆ 4 on near 0.39.
 
-Presets: ``quick`` (tests; seconds) and ``paper`` (about a minute per run on this
-project's 2-core machine).  Assembling R and J with scikit-fem costs far more than
-the inner GMRES iterations on this mesh (the solver takes under 5 % of an epoch),
-so PRDP's savings in inner iterations do not become wall-time savings here.
+Presets: ``quick`` (tests; seconds) and ``paper`` (about 20 s per run on this
+project's 2-core machine).  At K_full the inner GMRES iterations take about a third
+of an epoch (R and J are assembled element by element, the MeshNet and the Newton
+loop's Python take the rest), so PRDP's ~90 % fewer inner iterations become ~30 %
+less wall time (README).
 
 Run ``python demos/heat_nonlinear.py compare --preset paper --out results/heat_nonlinear``.
 """

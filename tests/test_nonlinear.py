@@ -230,3 +230,31 @@ def test_nonlinear_heat_refuses_a_bad_time_step():
     basis = skfem.Basis(skfem.MeshTri(), skfem.ElementTriP1())
     with pytest.raises(ValueError, match="dt"):
         NonlinearHeat(basis, dt=0.0)
+
+
+@pytest.mark.parametrize(
+    "element, mesh",
+    [
+        (skfem.ElementTriP1(), skfem.MeshTri.init_sqsymmetric().refined(2)),
+        (skfem.ElementTetP1(), skfem.MeshTet().refined(2)),
+        (skfem.ElementLineP1(), skfem.MeshLine().refined(4)),
+    ],
+    ids=["triangles", "tetrahedra", "lines"],
+)
+def test_p1_assembly_matches_the_scikit_fem_forms(element, mesh):
+    """The element-by-element P1 path gives the forms' residual, operators and vjp."""
+    basis = skfem.Basis(mesh, element)
+    fast = NonlinearHeat(basis, 0.05, dirichlet=basis.get_dofs())
+    forms = NonlinearHeat(basis, 0.05, dirichlet=basis.get_dofs())
+    forms._p1 = None  # the scikit-fem forms, assembled with the basis' quadrature
+    assert fast._p1 is not None
+    rng = np.random.default_rng(3)
+    u_i, lam = rng.standard_normal(fast.n), rng.standard_normal(fast.n)
+    p = (rng.standard_normal(basis.N), rng.random(basis.N), rng.random(len(fast.boundary)), 1.7)
+    np.testing.assert_allclose(fast.residual(u_i, *p), forms.residual(u_i, *p), atol=1e-12)
+    for name in ("jacobian", "picard"):
+        a, b = getattr(fast, name)(u_i, *p), getattr(forms, name)(u_i, *p)
+        assert a.shape == b.shape == (fast.n, fast.n)
+        assert abs(a - b).max() < 1e-12 * abs(b).max()
+    for a, b in zip(fast.vjp(u_i, lam, *p), forms.vjp(u_i, lam, *p)):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
