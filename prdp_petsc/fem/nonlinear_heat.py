@@ -37,6 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .forms import mass_matrix
+from .parametric import csr_pattern
 
 __all__ = ["NonlinearHeat"]
 
@@ -221,11 +222,7 @@ class _Pattern:
         r, c = row_of[rows], col_of[cols]
         self.keep = np.flatnonzero((r >= 0) & (c >= 0))  # entries of the block
         self.shape = (len(row_nodes), len(col_nodes))
-        linear = r[self.keep] * self.shape[1] + c[self.keep]  # row-major: CSR order
-        keys, self.slot = np.unique(linear, return_inverse=True)
-        self.indices = keys % self.shape[1]
-        counts = np.bincount(keys // self.shape[1], minlength=self.shape[0])
-        self.indptr = np.concatenate([[0], np.cumsum(counts)])
+        self.indptr, self.indices, self.slot = csr_pattern(r[self.keep], c[self.keep], self.shape)
 
     def assemble(self, values):
         data = np.bincount(self.slot, weights=values[self.keep], minlength=len(self.indices))
