@@ -125,7 +125,8 @@ def equal_accuracy_k(errors: dict, k_full: int, tol: float = 0.05) -> dict:
     if k_full not in errors:
         raise ValueError(f"errors must hold the converged cap k_full={k_full}")
     e_full = float(errors[k_full])
-    measured = min(k for k, e in errors.items() if k <= k_full and e <= (1 + tol) * e_full)
+    within = [k for k, e in errors.items() if k < k_full and e <= (1 + tol) * e_full]
+    measured = min(within, default=k_full)  # a NaN e_full leaves K_full itself
     out = {"measured": measured, "fitted": None, "pair": None, "rho": None}
     below = sorted(k for k in errors if k < k_full)
     if len(below) >= 2 and e_full > 0:

@@ -318,5 +318,7 @@ def test_equal_accuracy_k_clamps_and_validates():
     assert equal_accuracy_k(errors, 40)["fitted"] == 40
     with pytest.raises(ValueError, match="k_full"):
         equal_accuracy_k({10: 2.0}, 40)
+    nan = equal_accuracy_k({10: 2.0, 20: 1.5, 40: math.nan}, 40)  # a run that ended in NaN
+    assert nan["measured"] == 40 and nan["fitted"] is None and nan["ic_bound"] == 0.0
     with pytest.raises(ValueError, match="tol"):
         equal_accuracy_k({40: 1.0}, 40, tol=0)
