@@ -46,7 +46,12 @@ _EXPORTS = {
     "KSPSolver": ".core.solver",
     "use_comm": ".core.parallel",
     "SolveInfo": ".core.results",
-    "SolverError": ".core.results",
+    "SolverError": ".errors",
+    "InputError": ".errors",
+    "NonFiniteError": ".errors",
+    "StructureError": ".errors",
+    "MeshError": ".errors",
+    "UnusedOptionWarning": ".errors",
     "SolverStats": ".core.results",
 }
 

@@ -12,6 +12,7 @@ import warnings
 
 from petsc4py import PETSc
 
+from ..errors import UnusedOptionWarning
 from .options import option_value, prefixed_options
 from .settings import check_tolerances
 
@@ -24,15 +25,6 @@ __all__ = [
 
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_divtol")
 _OFF = ("0", "false", "no")
-
-
-class UnusedOptionWarning(UserWarning):
-    """Options of a `KSPSolver` that PETSc never read (misspelt, or meant for another type).
-
-    A warning, not an error: ``-fwd_ksp_type cg`` on the command line legitimately
-    leaves a scene's ``ksp_richardson_scale`` unread.  Turn it into an error with
-    ``warnings.simplefilter("error", UnusedOptionWarning)`` (or ``-W error::...``).
-    """
 
 
 class Configuration:

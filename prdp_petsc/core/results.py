@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from petsc4py import PETSc
 
+from ..errors import SolverError
+
 __all__ = ["SolveInfo", "SolverError", "SolverStats", "reason_name"]
 
 _REASONS = {
@@ -18,22 +20,6 @@ _REASONS = {
 def reason_name(reason: int) -> str:
     """Name of a PETSc ``KSPConvergedReason`` value, e.g. ``"DIVERGED_MAX_IT"``."""
     return _REASONS.get(int(reason), f"UNKNOWN({int(reason)})")
-
-
-class SolverError(RuntimeError):
-    """A KSP solve really diverged (NaN, breakdown, indefinite PC, DTOL, no transpose).
-
-    Hitting ``max_it`` is *not* an error; it is the normal outcome of a capped solve.
-
-    Attributes
-    ----------
-    reason : str
-        PETSc reason name (``"DIVERGED_DTOL"``, ``"DIVERGED_NANORINF"``, ...).
-    """
-
-    def __init__(self, message: str, reason: str = "UNKNOWN"):
-        super().__init__(message)
-        self.reason = reason
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,112 @@
+"""The exceptions and warnings of prdp_petsc: what went wrong, and whose move it is.
+
+Every layer raises these (this module imports neither PETSc nor torch, so the
+command line's ``-W error::prdp_petsc.errors.UnusedOptionWarning`` works before
+PETSc starts).  The taxonomy tells a caller, and the training harness, what to do:
+
+`SolverError`
+    A PETSc solve really failed (NaN in the iteration, breakdown, indefinite PC,
+    DIVERGED_DTOL, a PC without a transpose).  Hitting ``max_it`` is not an error.
+`InputError`
+    The library was given something it cannot use.  A ``ValueError``, so code that
+    catches ``ValueError`` keeps working.  Subclasses name the kind:
+
+    `NonFiniteError`
+        NaN or Inf in a right-hand side, cotangent, parameter, loss or metric.
+        Never turned into a number.
+    `StructureError`
+        A method whose assumptions the operator breaks: a symmetric-only KSP or PC
+        (CG, MINRES, ICC, Cholesky, ...) on an operator known to be non-symmetric,
+        a form that is not affine in its coefficient.
+    `MeshError`
+        A mesh file that cannot be read (an exception, never an exit).
+
+The harness (`prdp_petsc.training.harness.run`) records a `SolverError` or an
+`InputError` raised during training as a stopped run with a named reason and
+lets every other exception propagate: a bug in a scene (a numpy broadcast error,
+a plain ``ValueError``) is not a solver outcome.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "InputError",
+    "MeshError",
+    "NonFiniteError",
+    "PrdpPetscError",
+    "SolverError",
+    "StructureError",
+    "UnusedOptionWarning",
+    "stop_reason",
+]
+
+
+class PrdpPetscError(Exception):
+    """Base class of the errors this library raises on purpose."""
+
+    #: short name recorded as ``stopped.reason`` in a training run's results
+    reason = "ERROR"
+
+
+class SolverError(PrdpPetscError, RuntimeError):
+    """A KSP solve really diverged (NaN, breakdown, indefinite PC, DTOL, no transpose).
+
+    Hitting ``max_it`` is *not* an error; it is the normal outcome of a capped solve.
+
+    Attributes
+    ----------
+    reason : str
+        PETSc reason name (``"DIVERGED_DTOL"``, ``"DIVERGED_NANORINF"``, ...).
+    """
+
+    def __init__(self, message: str, reason: str = "UNKNOWN"):
+        super().__init__(message)
+        self.reason = reason
+
+
+class InputError(PrdpPetscError, ValueError):
+    """An input the library cannot use (shape, value, setting); names the argument."""
+
+    reason = "INVALID_INPUT"
+
+
+class NonFiniteError(InputError):
+    """NaN or Inf where a number is needed: right-hand side, cotangent, loss, metric."""
+
+    reason = "NON_FINITE"
+
+
+class StructureError(InputError):
+    """A method whose assumptions the operator breaks (CG on a non-symmetric matrix)."""
+
+    reason = "STRUCTURE"
+
+
+class MeshError(InputError):
+    """A mesh file that cannot be read or converted."""
+
+    reason = "MESH"
+
+
+class UnusedOptionWarning(UserWarning):
+    """Options of a `KSPSolver` that PETSc never read (misspelt, or meant for another type).
+
+    A warning, not an error: ``-fwd_ksp_type cg`` on the command line legitimately
+    leaves a scene's ``ksp_richardson_scale`` unread.  Turn it into an error with
+    ``warnings.simplefilter("error", UnusedOptionWarning)``, or for a whole run with
+    ``python -W error::prdp_petsc.errors.UnusedOptionWarning -m prdp_petsc.cli ...``
+    (``PYTHONWARNINGS=error::prdp_petsc.errors.UnusedOptionWarning`` for the
+    ``prdp-petsc`` command).
+    """
+
+
+def stop_reason(error: BaseException) -> str | None:
+    """The ``stopped.reason`` a training run records for `error`, or None to re-raise it.
+
+    A `SolverError` gives PETSc's reason, an `InputError` its kind
+    (``INVALID_INPUT``, ``NON_FINITE``, ``STRUCTURE``, ``MESH``); anything else is
+    not a recorded outcome.
+    """
+    if isinstance(error, SolverError | InputError):
+        return error.reason
+    return None
