@@ -161,6 +161,8 @@ PRESETS = {
     "two_solvers": {"two_solvers": True},
     "interrupt": {"interrupt_at": 1},
     "invalid": {"invalid_at": 2},
+    "bug": {"bug_at": 1},
+    "nan_loss": {"nan_at": 2},
     "odd_info": {"odd_info": True},
     "rising": {"rising": True},
 }
@@ -179,8 +181,10 @@ def build(config, seed):
         if epoch == config.get("interrupt_at"):
             raise KeyboardInterrupt
         if epoch >= config.get("invalid_at", 10**9):
-            raise ValueError("b contains NaN or Inf")
-        return [None]
+            raise pp.NonFiniteError("b contains NaN or Inf")
+        if epoch >= config.get("bug_at", 10**9):  # a bug in the scene, not a solver outcome
+            np.ones(3) + np.ones(4)
+        return [epoch]
 
     calls = []
 
@@ -197,7 +201,8 @@ def build(config, seed):
         info[np.int64(7)] = "seven"
     return pp.Scene(
         solvers=solvers, optimizer=opt, batches=batches,
-        loss=lambda _: sum(pp.solve(A, theta, s).square().sum() for s in solvers),
+        loss=lambda epoch: sum(pp.solve(A, theta, s).square().sum() for s in solvers)
+        * (float("nan") if epoch >= config.get("nan_at", 10**9) else 1.0),
         validate=validate,
         probe=lambda: (A, np.ones(10)), epochs=4,
         prdp={"window": 1, "ema_window": 1, "k_step": 2}, info=info,
@@ -320,13 +325,13 @@ def test_cli_compare_with_stopped_runs_exits_nonzero(tiny, tmp_path, capsys):
     assert rc == 1
     summary = json.loads((out / "summary.json").read_text())
     full = f"fixed:{summary['k_full']}"
-    assert summary["runs"]["prdp"]["stopped"]["reason"] == "INVALID_INPUT"
+    assert summary["runs"]["prdp"]["stopped"]["reason"] == "NON_FINITE"
     assert summary["runs"]["prdp"]["epochs"] == 2
     assert "savings" not in summary
     # the table has a stopped column and says why there is no savings line
     assert "stopped" in printed.splitlines()[1]
-    assert "INVALID_INPUT at epoch 2" in printed
-    assert f"no savings: prdp stopped at epoch 2 (INVALID_INPUT); {full} stopped" in printed
+    assert "NON_FINITE at epoch 2" in printed
+    assert f"no savings: prdp stopped at epoch 2 (NON_FINITE); {full} stopped" in printed
     assert "runs that stopped early: prdp" in printed
 
 
@@ -431,3 +436,24 @@ def test_summary_bounds_incomplete_convergence_from_the_constant_runs():
     # a twin 20 % away says the constant runs cannot resolve 5 %
     logs["twin:16"] = fake_log([16] * 3, [1.0, 0.5, 0.12])
     assert "do not resolve a 5 % difference" in format_table(summarize("s", 16, logs))
+
+
+def test_a_bug_in_a_scene_propagates_and_the_cli_exits_1(tiny, tmp_path, capsys):
+    # a numpy broadcast error is a ValueError, but not a solver outcome: never "stopped"
+    with pytest.raises(ValueError, match="broadcast"):
+        run(tiny, "fixed:2", preset="bug", epochs=3, out=tmp_path, progress=False)
+    rc = main(["run", str(tiny), "--preset", "bug", "--epochs", "3", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 1 and "broadcast" in err and err.count("\n") == 1
+
+
+def test_a_nan_loss_stops_the_run_with_a_named_reason(tiny, tmp_path):
+    result = run(tiny, "fixed:2", preset="nan_loss", epochs=5, out=tmp_path, progress=False)
+    stopped = result["stopped"]
+    assert stopped["reason"] == "NON_FINITE" and stopped["epoch"] == 2
+    assert len(result["epochs"]) == 2  # epochs 0 and 1 complete; none trained on NaN
+    assert json.loads((tmp_path / "results.json").read_text())["stopped"] == stopped
+    assert (
+        main(["run", str(tiny), "--preset", "nan_loss", "--epochs", "4", "--out", str(tmp_path)])
+        == 1
+    )

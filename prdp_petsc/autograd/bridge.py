@@ -20,54 +20,41 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..core.operator import as_csr
-from ..core.results import SolverError
+from ..core.operator import frozen_csr
+from ..core.results import CallInfo, SolverError
 from ..core.solver import KSPSolver
+from ..errors import InputError
 from ..fem.parametric import ParametricMatrix
 from .once import once_differentiable
+from .tensors import as_numpy, check_vector
 
 __all__ = ["matvec", "solve"]
-
-
-def _as_numpy(t: torch.Tensor, name: str, *, finite: bool = True) -> np.ndarray:
-    """float64 numpy view of tensor `t`; with `finite`, NaN/Inf raise ValueError."""
-    if not isinstance(t, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
-    if t.dtype != torch.float64:
-        raise TypeError(f"{name} must be float64 (got {t.dtype}); call .double() first")
-    arr = t.detach().cpu().numpy()
-    if finite and not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or Inf")
-    return arr
-
-
-def _check_vector(arr: np.ndarray, n: int, name: str) -> None:
-    if arr.ndim not in (1, 2) or arr.shape[-1] != n:
-        raise ValueError(f"{name} must have shape ({n},) or (batch, {n}), got {tuple(arr.shape)}")
 
 
 def _operator(A, theta: torch.Tensor | None):
     """Return (ParametricMatrix or None, CSR tuple ``(indptr, indices, data, shape)``).
 
     ``data`` is (nnz,), or (B, nnz) for θ of shape (B, p): one operator per sample.
+    The tuple is the library's own (read-only values of a `ParametricMatrix`, or a
+    frozen copy of a scipy matrix), so a backward uses what its forward used.
     """
     if isinstance(A, ParametricMatrix):
         if theta is None:
-            raise ValueError("A is a ParametricMatrix: pass its parameters as theta=")
-        values = A.values(_as_numpy(theta, "theta", finite=False))  # validates θ
+            raise InputError("A is a ParametricMatrix: pass its parameters as theta=")
+        values = A.values(as_numpy(theta, "theta", finite=False))  # validates θ
         return A, (A.indptr, A.indices, values, A.shape)
     if theta is not None:
-        raise ValueError("theta= is only meaningful for a ParametricMatrix A")
+        raise InputError("theta= is only meaningful for a ParametricMatrix A")
     if not sp.issparse(A):
         raise TypeError(f"A must be a scipy sparse matrix or ParametricMatrix, got {type(A)}")
-    return None, as_csr(A)
+    return None, frozen_csr(A)
 
 
 def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) -> None:
     """A batch of operators (θ of shape (B, p)) needs `name` of shape (B, n), same B."""
     if values.ndim == 2 and (len(shape) != 2 or shape[0] != len(values)):
         batch, p = len(values), P.n_params
-        raise ValueError(
+        raise InputError(
             f"theta must have shape ({p},) for {name} of shape {tuple(shape)}: theta of shape "
             f"({batch}, {p}) is a batch of operators and needs {name} of shape ({batch}, "
             f"{shape[-1]}); for a shared {name} pass {name}.expand({batch}, -1)"
@@ -90,12 +77,18 @@ def _solve_each(
         return run(rhs)
     indptr, indices, data, shape = csr
     out = np.empty_like(rhs)
-    for i in reversed(range(len(data))) if transpose else range(len(data)):
+    order = list(reversed(range(len(data)))) if transpose else list(range(len(data)))
+    calls = {}
+    kind = "last_adjoint" if transpose else "last_forward"
+    for i in order:
         solver.set_operator((indptr, indices, data[i], shape), symmetric=symmetric)
         try:
             out[i] = run(rhs[i])
         except SolverError as err:
             raise SolverError(f"sample {i} of the batch: {err}", reason=err.reason) from err
+        calls[i] = getattr(solver, kind)
+    # one record of the whole batch, in batch order (the solves ran one per sample)
+    setattr(solver, kind, CallInfo.concat(calls[i] for i in range(len(data))))
     return out
 
 
@@ -117,7 +110,8 @@ class _ImplicitSolve(torch.autograd.Function):
         need_b, need_theta = ctx.needs_input_grad[:2]
         if not (need_b or need_theta):
             return None, None, None, None, None
-        # the operator is set again only if another solve replaced it since the forward
+        # the operator is set again only if another solve replaced it since the forward;
+        # a NaN or Inf cotangent raises NonFiniteError in the solver (never a zero λ)
         g = grad_x.detach().cpu().numpy()
         lam = _solve_each(
             ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True, version=ctx.version
@@ -173,17 +167,29 @@ def solve(
     Returns
     -------
     torch.Tensor
-        x, float64, on the device of `b`.  ``solver.last`` holds the KSP's
-        iterations, reason and residual norm for the last sample of the batch.
+        x, float64, on the device of `b`.  ``solver.last_forward`` (after the
+        backward also ``solver.last_adjoint``) holds every sample's iterations,
+        reason and residual norm (`prdp_petsc.core.results.CallInfo`);
+        ``solver.last`` the last sample's.
 
     Raises
     ------
     SolverError
         When a solve diverges (PETSc's reason in ``.reason``); in a batch of
         operators the message names the sample.
+    NonFiniteError
+        NaN or Inf in b, θ, x0, or in the cotangent reaching the backward.
+    StructureError
+        A symmetric-only KSP or PC on a non-symmetric operator (see `KSPSolver`).
 
     Notes
     -----
+    The operator contract: the backward uses exactly the operator the forward
+    used.  A scipy `A` is copied (read-only) at the forward, so editing it in
+    place afterwards (``A.data *= 3``) changes neither this solve's gradient nor
+    any other; a `ParametricMatrix` is immutable (its arrays are read-only) and
+    its values for θ are computed at the forward.
+
     A batch of operators runs one ``KSPSolve`` per sample, each after
     ``set_operator`` with that sample's values, hence B PC setups forward.  The
     backward visits the samples in reverse order, so the last forward operator is
@@ -196,27 +202,33 @@ def solve(
     right-hand side; see `prdp_petsc.autograd.dirichlet`.
     """
     if mode not in ("implicit", "unrolled"):
-        raise ValueError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
+        raise InputError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
     if not isinstance(solver, KSPSolver):
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
     P, csr = _operator(A, theta)
-    _check_vector(_as_numpy(b, "b"), csr[3][0], "b")
+    check_vector(as_numpy(b, "b"), csr[3][0], "b")
     if P is not None:
         _check_pairing(P, csr[2], b.shape, "b")
     if x0 is not None:
         if x0.shape != b.shape:
-            raise ValueError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
-        _as_numpy(x0, "x0")  # finite
+            raise InputError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
+        as_numpy(x0, "x0")  # finite
         if P is not None:
             residual = b - matvec(A, x0, theta=theta)
         else:
-            residual = b - ConstMatVec.apply(x0, A)
+            residual = b - ConstMatVec.apply(x0, _frozen_matrix(csr))
         return x0 + solve(A, residual, solver, theta=theta, mode=mode)
     if mode == "unrolled":
         from .unrolled import unrolled_solve
 
         return unrolled_solve(A, b, solver, theta=theta)
     return _ImplicitSolve.apply(b, theta, P, csr, solver)
+
+
+def _frozen_matrix(csr: tuple) -> sp.csr_matrix:
+    """A scipy matrix on the frozen arrays of `csr` (read-only: nobody can edit it)."""
+    indptr, indices, data, shape = csr
+    return sp.csr_matrix((data, indices, indptr), shape=shape, copy=False)
 
 
 class ConstMatVec(torch.autograd.Function):
@@ -275,7 +287,7 @@ def matvec(A: ParametricMatrix, v: torch.Tensor, *, theta: torch.Tensor) -> torc
     """
     if not isinstance(A, ParametricMatrix):
         raise TypeError("matvec expects a ParametricMatrix; for a constant matrix use torch")
-    values = A.values(_as_numpy(theta, "theta"))  # validates θ
-    _check_vector(_as_numpy(v, "v"), A.shape[1], "v")
+    values = A.values(as_numpy(theta, "theta"))  # validates θ
+    check_vector(as_numpy(v, "v"), A.shape[1], "v")
     _check_pairing(A, values, v.shape, "v")
     return _MatVec.apply(v, theta, A, values)

@@ -19,8 +19,10 @@ import scipy.sparse as sp
 import torch
 
 from ..core.solver import KSPSolver
+from ..errors import InputError
 from ..fem.parametric import ParametricMatrix
-from .bridge import ConstMatVec, _as_numpy, _check_vector, matvec, solve
+from .bridge import ConstMatVec, matvec, solve
+from .tensors import as_numpy, check_vector
 
 __all__ = ["Dirichlet"]
 
@@ -40,7 +42,7 @@ class Dirichlet:
         n = A.shape[0]
         self.boundary = np.unique(np.asarray(boundary, dtype=np.int64).ravel())
         if self.boundary.size and (self.boundary[0] < 0 or self.boundary[-1] >= n):
-            raise ValueError(f"boundary indices must lie in [0, {n})")
+            raise InputError(f"boundary indices must lie in [0, {n})")
         self.interior = np.setdiff1d(np.arange(n), self.boundary)
         self.n = n
         if isinstance(A, ParametricMatrix):
@@ -59,8 +61,8 @@ class Dirichlet:
         result is (B, n_I): row i is ``f_I − A_IB(θ_i) g_i``.
         """
         self._check_theta(theta)
-        _check_vector(_as_numpy(f, "f"), self.n, "f")
-        _check_vector(_as_numpy(g, "g"), len(self.boundary), "g")
+        check_vector(as_numpy(f, "f"), self.n, "f")
+        check_vector(as_numpy(g, "g"), len(self.boundary), "g")
         f_i = f[..., torch.from_numpy(self.interior).to(f.device)]
         if not isinstance(self.A_IB, ParametricMatrix):
             return f_i - ConstMatVec.apply(g, self.A_IB).to(f.device)
@@ -68,7 +70,7 @@ class Dirichlet:
             batch = len(theta)
             for name, t in (("f", f), ("g", g)):
                 if t.ndim == 2 and len(t) != batch:
-                    raise ValueError(
+                    raise InputError(
                         f"{name} has batch size {len(t)} but theta has {batch}; pass {name} "
                         f"of shape ({batch}, {t.shape[-1]}) or ({t.shape[-1]},)"
                     )
@@ -79,9 +81,9 @@ class Dirichlet:
         """θ is required for a ParametricMatrix and refused otherwise, as in `solve`."""
         if isinstance(self.A_II, ParametricMatrix):
             if theta is None:
-                raise ValueError("A is a ParametricMatrix: pass its parameters as theta=")
+                raise InputError("A is a ParametricMatrix: pass its parameters as theta=")
         elif theta is not None:
-            raise ValueError("theta= is only meaningful for a ParametricMatrix A")
+            raise InputError("theta= is only meaningful for a ParametricMatrix A")
 
     def expand(self, u_i: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """Full vector with ``u[I] = u_i`` and ``u[B] = g``."""

@@ -27,16 +27,16 @@ import torch
 
 from ..core.results import SolverError
 from ..core.solver import KSPSolver
-from .bridge import _as_numpy
+from ..core.structure import symmetric_only
+from ..errors import InputError, StructureError
 from .once import once_differentiable
+from .tensors import as_numpy
 
 __all__ = ["NonlinearProblem", "NonlinearSolution", "newton_solve"]
 
 logger = logging.getLogger(__name__)
 
 _METHODS = ("newton", "picard")
-# Krylov methods that assume a symmetric operator (wrong, not just slow, otherwise)
-_SYMMETRIC_KSPS = frozenset({"cg", "pipecg", "groppcg", "pipecgrr", "cr", "pipecr", "minres"})
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ class NonlinearProblem:
 
     def __post_init__(self):
         if isinstance(self.n, bool) or not isinstance(self.n, int | np.integer) or self.n < 1:
-            raise ValueError(f"n must be an integer >= 1, got {self.n!r}")
+            raise InputError(f"n must be an integer >= 1, got {self.n!r}")
         for name in ("residual", "jacobian", "vjp", "picard"):
             value = getattr(self, name)
             if not (callable(value) or (value is None and name in ("vjp", "picard"))):
@@ -243,15 +243,16 @@ def _array(p) -> np.ndarray:
 
 
 def _check_krylov(solver: KSPSolver, ksp, symmetric, what: str) -> None:
-    """Refuse a symmetric-only Krylov method on an operator declared non-symmetric."""
+    """Refuse a symmetric-only method on an operator declared non-symmetric, before any
+    step runs (the solver itself checks the operators it gets, declared or tested)."""
     if symmetric is False and solver.declared_symmetric:
-        raise ValueError(
+        raise StructureError(
             f"the {what} is not symmetric, but its KSPSolver was built with symmetric=True "
             "(that would give wrong gradients); build it without symmetric="
         )
-    if symmetric is False and ksp.getType() in _SYMMETRIC_KSPS:
-        raise ValueError(
-            f"the {what} is not symmetric, but its KSP is {ksp.getType()!r}, which needs a "
+    if symmetric is False and solver.check_structure and symmetric_only(ksp):
+        raise StructureError(
+            f"the {what} is not symmetric, but its KSP uses {symmetric_only(ksp)}: each needs a "
             "symmetric operator; use ksp_type gmres (or bcgs), e.g. AdjointSettings(options="
             "{'ksp_type': 'gmres'}) for the adjoint, or method='picard' with a symmetric "
             "Picard operator for the forward steps"
@@ -339,28 +340,28 @@ def newton_solve(
     loop over samples (each has its own Jacobian and PC setups anyway).
     """
     if method not in _METHODS:
-        raise ValueError(f"method must be 'newton' or 'picard', got {method!r}")
+        raise InputError(f"method must be 'newton' or 'picard', got {method!r}")
     if isinstance(max_newton, bool) or not isinstance(max_newton, int) or max_newton < 1:
-        raise ValueError(f"max_newton must be an integer >= 1, got {max_newton!r}")
+        raise InputError(f"max_newton must be an integer >= 1, got {max_newton!r}")
     for name, value in (("rtol", rtol), ("atol", atol)):
         if isinstance(value, bool) or not np.isfinite(value) or value < 0:
-            raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+            raise InputError(f"{name} must be finite and >= 0, got {value!r}")
     if divtol is not None and not (np.isfinite(divtol) and divtol > 1):
-        raise ValueError(f"divtol must be finite and > 1 (or None), got {divtol!r}")
+        raise InputError(f"divtol must be finite and > 1 (or None), got {divtol!r}")
     adjoint_solver = solver if adjoint_solver is None else adjoint_solver
     for name, s in (("solver", solver), ("adjoint_solver", adjoint_solver)):
         if not isinstance(s, KSPSolver):
             raise TypeError(f"{name} must be a KSPSolver, got {type(s).__name__}")
     if method == "picard" and getattr(problem, "picard", None) is None:
-        raise ValueError("method='picard' needs problem.picard (the Picard operator)")
+        raise InputError("method='picard' needs problem.picard (the Picard operator)")
     n = int(problem.n)
     if u0 is None:
         u0 = torch.zeros(n, dtype=torch.float64)
-    if _as_numpy(u0, "u0").shape != (n,):
-        raise ValueError(f"u0 must have shape ({n},), got {tuple(u0.shape)}")
+    if as_numpy(u0, "u0").shape != (n,):
+        raise InputError(f"u0 must have shape ({n},), got {tuple(u0.shape)}")
     for i, p in enumerate(params):
         if isinstance(p, torch.Tensor):
-            _as_numpy(p, f"params[{i}]")  # float64, finite
+            as_numpy(p, f"params[{i}]")  # float64, finite
     needs_grad = torch.is_grad_enabled() and any(
         isinstance(p, torch.Tensor) and p.requires_grad for p in params
     )
@@ -369,7 +370,7 @@ def newton_solve(
     _check_krylov(solver, solver.ksp, forward_symmetric, f"{method} operator")
     if needs_grad:
         if getattr(problem, "vjp", None) is None:
-            raise ValueError("a parameter requires grad: the problem needs a vjp callable")
+            raise InputError("a parameter requires grad: the problem needs a vjp callable")
         jacobian_symmetric = getattr(problem, "jacobian_symmetric", None)
         _check_krylov(adjoint_solver, adjoint_solver.adjoint_ksp, jacobian_symmetric, "Jacobian")
     loop = _Loop(

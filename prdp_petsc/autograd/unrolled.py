@@ -16,7 +16,9 @@ norm type), so in fixed mode (``rtol = atol = 0``) exactly K run and the
 iterates equal PETSc's.  θ of shape (B, p) runs B operators at once, one per
 column.  Memory grows linearly with K (every iterate is kept for backward).
 
-Failures are those of implicit mode: a divergence PETSc reports
+Failures are those of implicit mode: CG on an operator known to be non-symmetric
+raises `prdp_petsc.errors.StructureError` (unless ``check_structure=False``), a NaN
+or Inf cotangent `prdp_petsc.errors.NonFiniteError`; a divergence PETSc reports
 (``DIVERGED_DTOL``, ``DIVERGED_NANORINF``, CG's ``DIVERGED_INDEFINITE_PC``/``_MAT``)
 raises `SolverError` with the same reason name, and ``solver.last`` describes
 the last column (the failing one on error) with PETSc's iterations, reason and
@@ -44,7 +46,12 @@ from petsc4py import PETSc
 from ..core import safeguards
 from ..core.results import SolverError
 from ..core.solver import KSPSolver
+from ..core.sparsity import csr_symmetric
+from ..core.structure import check_structure, symmetric_only
+from ..errors import InputError
+from ..fem.parametric import ParametricMatrix
 from .convergence import Convergence, Reason
+from .tensors import check_finite
 from .unrolled_operator import UnrolledOperator
 
 __all__ = ["UnrolledOperator", "method_of", "unrolled_solve"]
@@ -71,16 +78,18 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
         When PETSc would report a divergence (same reason name as implicit mode).
     """
     if solver.nullspace is not None:
-        raise ValueError(
+        raise InputError(
             "mode='unrolled' does not project null spaces as PETSc does; use mode='implicit' "
             "for a solver with a nullspace"
         )
     ksp_type, pc_type, scale = method_of(solver)
     if (ksp_type, pc_type) not in _SUPPORTED:
-        raise ValueError(
+        raise InputError(
             f"mode='unrolled' supports {sorted(_SUPPORTED)}, the solver is "
             f"{ksp_type}/{pc_type}; use mode='implicit' for other KSP/PC pairs"
         )
+    if solver.check_structure and symmetric_only(solver.ksp):  # CG: A must be symmetric
+        check_structure(solver.ksp, _symmetric(A), "unrolled forward")
     t0 = time.perf_counter()
     n = b.shape[-1]
     exponents = safeguards.rhs_exponents(b.detach().cpu().reshape(-1, n).numpy())
@@ -110,6 +119,15 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
     return _AdjointCount.apply(x, solver, B.shape[1], its)
 
 
+def _symmetric(A) -> bool:
+    """Whether the operator is symmetric: declared or tested (`ParametricMatrix`), or
+    tested entry against mirror (a scipy matrix)."""
+    if isinstance(A, ParametricMatrix):
+        return A.is_symmetric
+    A = A.tocsr()
+    return csr_symmetric(A.indptr, A.indices, A.data, A.shape)
+
+
 class _AdjointCount(torch.autograd.Function):
     """Identity on the unrolled solution whose backward records the adjoint work.
 
@@ -124,6 +142,7 @@ class _AdjointCount(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
+        check_finite(grad.detach().cpu().numpy(), "the cotangent of the unrolled solve")
         stats = ctx.solver.stats  # looked up now: reset_stats() may have replaced it
         stats.adjoint_solves += ctx.solves
         stats.adjoint_iterations += ctx.iterations

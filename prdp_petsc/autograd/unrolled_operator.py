@@ -22,8 +22,8 @@ def _csr_tensor(indptr, indices, values, shape) -> torch.Tensor:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(
-            torch.from_numpy(np.asarray(indptr, dtype=np.int64)),
-            torch.from_numpy(np.asarray(indices, dtype=np.int64)),
+            torch.tensor(np.asarray(indptr, dtype=np.int64)),
+            torch.tensor(np.asarray(indices, dtype=np.int64)),
             values,
             size=shape,
             check_invariants=False,
@@ -57,7 +57,7 @@ class UnrolledOperator:
             )
             theta = theta.cpu()
             columns = theta.T if theta.ndim == 2 else theta[:, None]
-            values = torch.from_numpy(A.a0)[:, None] + torch.sparse.mm(G_t, columns)
+            values = torch.from_numpy(np.array(A.a0))[:, None] + torch.sparse.mm(G_t, columns)
             self.values = values.T if theta.ndim == 2 else values[:, 0]
             indptr, indices, shape = A.indptr, A.indices, A.shape
         else:
@@ -67,7 +67,7 @@ class UnrolledOperator:
             indptr, indices, shape = A.indptr, A.indices, A.shape
         self.shape = tuple(shape)
         self.rows = torch.from_numpy(np.repeat(np.arange(shape[0]), np.diff(indptr)))
-        self.cols = torch.from_numpy(np.asarray(indices, dtype=np.int64))
+        self.cols = torch.tensor(np.asarray(indices, dtype=np.int64))
         self.csr = self.csr_t = None
         if not self.batched:
             nnz = len(indices)

@@ -189,6 +189,7 @@ class Configuration:
             "nullspace": self.nullspace,
             "transpose_nullspace": self.transpose_nullspace,
             "symmetric": self.declared_symmetric,
+            "check_structure": self.check_structure,
             "comm": self.comm,
         }
         kwargs.update(changes)

@@ -16,10 +16,11 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
+from ..errors import InputError, NonFiniteError
 from .parallel import ownership_range
-from .sparsity import mirror_symmetric, transpose_permutation
+from .sparsity import csr_symmetric, transpose_permutation
 
-__all__ = ["OperatorMat", "as_csr"]
+__all__ = ["OperatorMat", "as_csr", "frozen_csr"]
 
 
 def as_csr(A) -> tuple:
@@ -34,11 +35,28 @@ def as_csr(A) -> tuple:
             A = A.sorted_indices()
         indptr, indices, data, shape = A.indptr, A.indices, A.data, A.shape
     if shape[0] != shape[1]:
-        raise ValueError(f"A must be square, got shape {shape}")
+        raise InputError(f"A must be square, got shape {shape}")
     data = np.asarray(data, dtype=np.float64)
     if not np.all(np.isfinite(data)):
-        raise ValueError("A has NaN or Inf entries")
+        raise NonFiniteError("A has NaN or Inf entries")
     return indptr, indices, data, tuple(shape)
+
+
+def frozen_csr(A) -> tuple:
+    """`as_csr` of `A` as read-only copies the caller cannot change afterwards.
+
+    What an autograd backward uses must be exactly what its forward used, whatever
+    the caller does to its matrix in between (``M.data *= 3``); the copy costs one
+    pass over the arrays, far less than a solve.  A `KSPSolver` recognises the same
+    frozen tuple set again without comparing values.
+    """
+    indptr, indices, data, shape = as_csr(A)
+    out = []
+    for arr in (indptr, indices, data):
+        arr = np.array(arr, copy=True)
+        arr.flags.writeable = False
+        out.append(arr)
+    return (*out, shape)
 
 
 class OperatorMat:
@@ -47,8 +65,9 @@ class OperatorMat:
     Attributes
     ----------
     mat : PETSc.Mat or None
-    symmetric : bool
-        Whether A = Aᵀ (declared, or tested on the values).
+    symmetric : bool or None
+        Whether A = Aᵀ (declared, or tested on the values); None for a caller's
+        Mat whose structure nobody declared.
     version : int
         Increases whenever the Mat or its values change: a caller that remembers
         it can tell in O(1) whether the Mat still holds its operator.
@@ -167,7 +186,7 @@ class OperatorMat:
                 self.symmetric = bool(self._declared)
             else:
                 known, flag = self.mat.isSymmetricKnown()
-                self.symmetric = bool(known and flag)
+                self.symmetric = bool(flag) if known else None
 
     def _same_pattern(self, indptr, indices, shape) -> bool:
         if self._pattern is None:
@@ -184,8 +203,9 @@ class OperatorMat:
         """Test A = Aᵀ entry against mirror (unless declared) and tell PETSc."""
         self._declared = symmetric
         if symmetric is None:
-            symmetric = self._tperm is not None and mirror_symmetric(
-                self._values, self._values[self._tperm]
+            ip, ix, shape = self._pattern
+            symmetric = self._tperm is not None and csr_symmetric(
+                ip, ix, self._values, shape, self._tperm
             )
         self.symmetric = bool(symmetric)
         self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 from petsc4py import PETSc
 
 from ..errors import SolverError
 
-__all__ = ["SolveInfo", "SolverError", "SolverStats", "reason_name"]
+__all__ = ["CallInfo", "SolveInfo", "SolverError", "SolverStats", "reason_name"]
 
 _REASONS = {
     getattr(PETSc.KSP.ConvergedReason, name): name
@@ -24,16 +25,106 @@ def reason_name(reason: int) -> str:
 
 @dataclass(frozen=True)
 class SolveInfo:
-    """Outcome of one KSP solve: iteration count, reason name and residual norm."""
+    """Outcome of one KSP solve: iteration count, reason name and residual norm.
+
+    Attributes
+    ----------
+    iterations : int
+        PETSc's iteration count of the returned iterate.
+    reason : str
+        PETSc's ``KSPConvergedReason`` name.
+    residual_norm : float or None
+        The last residual norm PETSc computed (in the KSP's norm type), or None
+        when PETSc computed none: ``-ksp_norm_type none``, ``preonly``, or
+        Richardson with a PC that runs its own sweeps (SOR), whose tolerances
+        PETSc then ignores.  Never 0.0 for "not computed".
+    """
 
     iterations: int
     reason: str
-    residual_norm: float
+    residual_norm: float | None
+
+    @property
+    def residual_computed(self) -> bool:
+        """Whether PETSc computed a residual norm (see `residual_norm`)."""
+        return self.residual_norm is not None
 
     @property
     def converged(self) -> bool:
-        """True when PETSc reports convergence (not when the cap was hit)."""
-        return self.reason.startswith("CONVERGED")
+        """True when PETSc met a tolerance on a residual norm it computed.
+
+        Hitting the cap is not convergence, and neither is ``CONVERGED_ITS``: PETSc
+        reports it when it ran the requested iterations without a norm to test
+        (``preonly``, ``-ksp_norm_type none``, Richardson+SOR).
+        """
+        return (
+            self.reason.startswith("CONVERGED")
+            and self.reason != "CONVERGED_ITS"
+            and self.residual_computed
+        )
+
+
+@dataclass(frozen=True)
+class CallInfo:
+    """The outcome of every sample of one solver call (a batch), in batch order.
+
+    `KSPSolver` keeps the last forward and the last adjoint call as
+    ``solver.last_forward`` and ``solver.last_adjoint``; ``solver.last`` is the
+    last sample of the last call, as before.  Index it (``info[i]``) for one
+    sample's `SolveInfo`.
+
+    Attributes
+    ----------
+    kind : {"forward", "adjoint"}
+    samples : tuple of SolveInfo
+    """
+
+    kind: str
+    samples: tuple
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, i) -> SolveInfo:
+        return self.samples[i]
+
+    def __iter__(self):
+        return iter(self.samples)
+
+    @property
+    def iterations(self) -> np.ndarray:
+        """Iterations per sample, ``(B,)`` int."""
+        return np.array([s.iterations for s in self.samples], dtype=np.int64)
+
+    @property
+    def reasons(self) -> list[str]:
+        """PETSc reason name per sample."""
+        return [s.reason for s in self.samples]
+
+    @property
+    def residual_norms(self) -> np.ndarray:
+        """Residual norm per sample, ``(B,)``; NaN where PETSc computed none
+        (`residual_computed` says which)."""
+        return np.array(
+            [np.nan if s.residual_norm is None else s.residual_norm for s in self.samples]
+        )
+
+    @property
+    def residual_computed(self) -> np.ndarray:
+        """Whether PETSc computed each sample's residual norm, ``(B,)`` bool."""
+        return np.array([s.residual_computed for s in self.samples], dtype=bool)
+
+    @property
+    def converged(self) -> bool:
+        """True when every sample converged (`SolveInfo.converged`)."""
+        return bool(self.samples) and all(s.converged for s in self.samples)
+
+    @staticmethod
+    def concat(calls) -> CallInfo:
+        """One record of several calls of the same kind (a batch of operators)."""
+        calls = list(calls)
+        kind = calls[0].kind if calls else "forward"
+        return CallInfo(kind, tuple(s for c in calls for s in c.samples))
 
 
 @dataclass

@@ -17,6 +17,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
+from ..errors import InputError, NonFiniteError
 from . import safeguards
 from .configuration import (
     Configuration,
@@ -32,9 +33,10 @@ from .options import (
     prefixed_options,
 )
 from .parallel import RowLayout, as_petsc_comm
-from .results import SolveInfo, SolverError, SolverStats
+from .results import CallInfo, SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings, check_tolerances
 from .step import SolveStep
+from .structure import check_structure
 
 __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
@@ -82,6 +84,11 @@ class KSPSolver(Configuration):
         ``False``, or ``None`` (default) to take the operator's own declaration
         (`ParametricMatrix.symmetric`, the ``symmetric=`` of `set_operator`) or
         else test every entry against its mirror whenever the values change.
+    check_structure : bool
+        Refuse a symmetric-only KSP or PC (CG, MINRES, CR, ICC, Cholesky, ...; see
+        `prdp_petsc.core.structure`) on an operator known to be non-symmetric, with
+        a `prdp_petsc.errors.StructureError` naming an alternative (default True).
+        ``False`` is the expert's opt-out.
     comm : PETSc.Comm or mpi4py communicator, optional
         Communicator of the KSPs and of the Mat made from a scipy operator
         (default: `prdp_petsc.core.parallel.default_comm`, i.e. ``COMM_SELF``
@@ -114,6 +121,13 @@ class KSPSolver(Configuration):
     ``sor``) as a `SolverError`; ``AdjointSettings(options={"ksp_use_explicit
     transpose": True})`` solves such an adjoint with an explicit Aᵀ instead.
     Free the PETSc objects with `destroy` or a ``with`` block.
+
+    Every call reports every sample: ``last_forward`` and ``last_adjoint`` are the
+    `CallInfo` of the last forward and adjoint call (iterations, reason and
+    residual per sample; a residual PETSc did not compute is None, never 0), and
+    ``last`` is the `SolveInfo` of the last sample of the last call.  A NaN or Inf
+    in a right-hand side raises `prdp_petsc.errors.NonFiniteError` before PETSc
+    sees it; a solve that returns NaN or Inf raises `SolverError`.
     """
 
     def __init__(
@@ -129,12 +143,13 @@ class KSPSolver(Configuration):
         nullspace=None,
         transpose_nullspace=None,
         symmetric: bool | None = None,
+        check_structure: bool = True,
         comm=None,
     ):
         check_tolerances(max_it, rtol, atol)
         self.comm = as_petsc_comm(comm)
         if divtol is not None and not (np.isfinite(divtol) and divtol > 0):
-            raise ValueError(f"divtol must be finite and > 0, got {divtol!r}")
+            raise InputError(f"divtol must be finite and > 0, got {divtol!r}")
         self.options = parse_options(options)
         refuse_tolerance_options(self.options, "options", "max_it=, rtol=, atol=, divtol=")
         if adjoint is None:
@@ -166,6 +181,7 @@ class KSPSolver(Configuration):
         self._atol = float(atol)
         self._divtol = divtol
         self.declared_symmetric = symmetric
+        self.check_structure = bool(check_structure)
         self.nullspace = normalize_nullspace(nullspace)
         self.transpose_nullspace = (
             self.nullspace
@@ -174,6 +190,8 @@ class KSPSolver(Configuration):
         )
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
+        self.last_forward: CallInfo | None = None
+        self.last_adjoint: CallInfo | None = None
         self._op = OperatorMat(self.comm)
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
@@ -203,8 +221,9 @@ class KSPSolver(Configuration):
         return self._op.mat
 
     @property
-    def symmetric(self) -> bool:
-        """Whether the current operator is symmetric (declared or tested)."""
+    def symmetric(self) -> bool | None:
+        """Whether the current operator is symmetric (declared or tested); None if unknown
+        (a caller's PETSc Mat without ``MAT_SYMMETRIC`` set)."""
         return self._op.symmetric
 
     @property
@@ -237,7 +256,7 @@ class KSPSolver(Configuration):
             for obj in (ksp, adj):
                 if obj is not None:
                     obj.destroy()
-            raise ValueError(rejected_options_message(self._items, err)) from err
+            raise InputError(rejected_options_message(self._items, err)) from err
         self._used = set(pushed.used)
         for obj in (ksp, adj):  # read by safeguards.rescue
             obj.setConvergenceHistory(reset=True)
@@ -346,12 +365,13 @@ class KSPSolver(Configuration):
         rhs = np.asarray(rhs, dtype=np.float64)
         batch = rhs.reshape(-1, rhs.shape[-1])
         layout = self._layout
+        kind = "adjoint" if transpose else "forward"
         if batch.shape[1] != layout.size:
             rows = "rows" if layout.replicated or not layout.distributed else "local rows"
-            raise ValueError(
+            raise InputError(
                 f"right-hand side has {batch.shape[1]} entries, operator has {layout.size} {rows}"
             )
-        kind = "adjoint" if transpose else "forward"
+        self._check_finite(batch, kind)
         ksp = self._adj if transpose else self._ksp
         as_transpose = transpose and not self._adjoint_is_forward()
         step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
@@ -367,11 +387,13 @@ class KSPSolver(Configuration):
         # solve, to learn which were never read.  KSPSolve itself reads none.
         setup = check or self._setup_version[kind] != self._op.version
         with PushedOptions(self._items if setup else [], watch=check) as pushed:
+            if setup and self.check_structure:
+                self._check_structure(ksp, kind)
             try:
                 for i in range(len(batch)):
                     iterations += step(batch[i], out[i], int(exponents[i]))
             finally:
-                self.last = step.info()
+                self._record(kind, step)
         self._setup_version[kind] = self._op.version
         if check:
             self._unchecked[kind] = False
@@ -385,6 +407,31 @@ class KSPSolver(Configuration):
         elapsed = time.perf_counter() - t0
         self.stats.record(kind, len(batch), iterations, elapsed)
         return out.reshape(rhs.shape)
+
+    def _check_finite(self, batch: np.ndarray, kind: str) -> None:
+        """NaN or Inf in a right-hand side: `NonFiniteError`, never a solve (PETSc would
+        return x = 0 with ``DIVERGED_NANORINF``)."""
+        bad = not (np.isfinite(batch.sum()) or np.all(np.isfinite(batch)))  # sum: fast path
+        if self._layout.distributed and not self._layout.replicated:
+            bad = bool(self._layout.agree_max(np.array([bad]))[0])
+        if bad:
+            rows = np.flatnonzero(~np.all(np.isfinite(batch), axis=1)).tolist()
+            where = f" (rows {rows[:5]}{', ...' if len(rows) > 5 else ''})" if rows else ""
+            rhs = "right-hand side (cotangent)" if kind == "adjoint" else "right-hand side"
+            raise NonFiniteError(f"{kind} solve: the {rhs} contains NaN or Inf{where}")
+
+    def _check_structure(self, ksp: PETSc.KSP, kind: str) -> None:
+        """`check_structure` of `ksp` against the operator, its sub-solvers after set-up."""
+        symmetric = self._op.symmetric
+        check_structure(ksp, symmetric, kind)  # before set-up: the cheap, common case
+        if symmetric is False and ksp.getPC().getType() in ("bjacobi", "asm"):
+            ksp.setUp()  # KSPSolve would; now the blocks' KSPs exist
+            check_structure(ksp, symmetric, kind, set_up=True)
+
+    def _record(self, kind: str, step: SolveStep) -> None:
+        call = CallInfo(kind, tuple(step.infos))
+        setattr(self, f"last_{kind}", call)
+        self.last = step.info()
 
     def reset_stats(self) -> None:
         """Zero the counters in `stats`."""

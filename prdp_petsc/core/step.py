@@ -36,13 +36,13 @@ class SolveStep:
         Run ``KSPSolveTranspose`` instead of ``KSPSolve``.
     """
 
-    __slots__ = ("ksp", "mat", "b_vec", "x_vec", "layout", "kind", "transpose", "run", "_last")
+    __slots__ = ("ksp", "mat", "b_vec", "x_vec", "layout", "kind", "transpose", "run", "infos")
 
     def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool):
         self.ksp, self.mat, self.kind, self.transpose = ksp, mat, kind, transpose
         self.b_vec, self.x_vec, self.layout = b_vec, x_vec, layout
         self.run = ksp.solveTranspose if transpose else ksp.solve
-        self._last: SolveInfo | int | None = None  # exponent of the last row, or its info
+        self.infos: list[SolveInfo] = []  # one per row solved (the failing one included)
 
     def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
         """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
@@ -56,7 +56,6 @@ class SolveStep:
         try:
             self.run(self.b_vec, x_vec)
         except PETSc.Error as err:
-            self._last = None
             raise self._petsc_failure(err) from err
         finally:
             if atol > 0:
@@ -66,26 +65,31 @@ class SolveStep:
         if reason in safeguards.LATE_REASONS or safeguards.went_far(ksp):
             rescued = self._verify(reason, exponent)
         elif reason < 0 and reason != _MAX_IT:
-            self._last = self._info(exponent)
-            raise self._diverged(self._last)
+            self.infos.append(self._info(exponent))
+            raise self._diverged(self.infos[-1])
         else:
-            self._last = exponent  # the SolveInfo is read from the KSP when asked for
+            self.infos.append(self._info(exponent))
         x = self.layout.gather(x_vec)
         out[:] = np.ldexp(x, exponent) if exponent else x
         return ksp.getIterationNumber() + rescued
 
     def info(self) -> SolveInfo | None:
         """`SolveInfo` of the last row (PETSc's own outcome when a solve failed)."""
-        if isinstance(self._last, int):
-            self._last = self._info(self._last)
-        return self._last
+        return self.infos[-1] if self.infos else None
 
     def _info(self, exponent: int) -> SolveInfo:
+        """PETSc's outcome of the solve just run; no residual where PETSc computed none.
+
+        The KSPs record their residual history (reset at every solve), so an empty
+        history means no norm was computed (``preonly``, ``-ksp_norm_type none``,
+        Richardson+SOR), and ``KSPGetResidualNorm``'s 0 means nothing.
+        """
         ksp = self.ksp
+        computed = ksp.getConvergenceHistory().size > 0
         return SolveInfo(
             ksp.getIterationNumber(),
             reason_name(ksp.getConvergedReason()),
-            float(np.ldexp(ksp.getResidualNorm(), exponent)),
+            float(np.ldexp(ksp.getResidualNorm(), exponent)) if computed else None,
         )
 
     def _verify(self, reason: int, exponent: int) -> int:
@@ -99,7 +103,7 @@ class SolveStep:
             self.ksp, self.mat, self.b_vec, self.x_vec, transpose=self.transpose
         )
         if rescued is None:
-            self._last = reported
+            self.infos.append(reported)
             if late:
                 raise self._diverged(reported)
             raise SolverError(
@@ -108,14 +112,17 @@ class SolveStep:
                 "max_it or set rtol > 0",
                 reason="LOST_ACCURACY",
             )
-        self._last = self._info(exponent)
+        self.infos.append(self._info(exponent))
         return rescued
 
     def _diverged(self, info: SolveInfo) -> SolverError:
+        residual = "not computed" if info.residual_norm is None else f"{info.residual_norm:.3e}"
+        hint = "check the operator and the PC"
+        if self.ksp.getType() == "richardson":
+            hint += ", or lower the Richardson scale (-ksp_richardson_scale)"
         return SolverError(
             f"{self.kind} solve diverged: {info.reason} after {info.iterations} iterations "
-            f"({self._types()}, residual {info.residual_norm:.3e}); check the operator and "
-            "the PC, or lower the Richardson scale",
+            f"({self._types()}, residual {residual}); {hint}",
             reason=info.reason,
         )
 

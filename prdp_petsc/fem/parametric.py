@@ -19,7 +19,14 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from ..core.sparsity import SYMMETRY_RTOL, mirror_symmetric, transpose_permutation
+from ..core.sparsity import (
+    DIAGONAL_RTOL,
+    SYMMETRY_RTOL,
+    diagonal_scale,
+    mirror_symmetric,
+    transpose_permutation,
+)
+from ..errors import InputError, NonFiniteError
 
 __all__ = ["ParametricMatrix", "csr_pattern"]
 
@@ -44,6 +51,14 @@ class ParametricMatrix:
         Declared structure: ``True`` if A(θ) = A(θ)ᵀ for every θ, ``False`` if not.
         ``None`` (default) tests it once on a₀ and G, entry against mirror.  A wrong
         declaration gives wrong gradients (the adjoint would solve with A).
+
+    Notes
+    -----
+    Immutable: the arrays (pattern, a₀ and those of G) are read-only copies made
+    at construction (arrays that are already read-only and own their memory are
+    taken as they are), so ``A.a0[0] = 1`` raises instead of changing the
+    operator under a pending backward pass.  Derive a new matrix instead
+    (``A * 2``, ``A + M``, or the constructor with new arrays).
     """
 
     indptr: np.ndarray
@@ -55,10 +70,24 @@ class ParametricMatrix:
     symmetric: bool | None = None
 
     def __post_init__(self):
+        # immutable: what a backward pass uses is what its forward used
+        for name, dtype in (("indptr", None), ("indices", None), ("a0", np.float64)):
+            object.__setattr__(self, name, _frozen(getattr(self, name), dtype))
+        G = sp.csr_matrix(self.G)
+        if not G.has_canonical_format:  # scipy sorts in place later: do it before freezing
+            G = G.copy()
+            G.sum_duplicates()
+        G = sp.csr_matrix(
+            (_frozen(G.data, np.float64), _frozen(G.indices), _frozen(G.indptr)),
+            shape=G.shape,
+            copy=False,
+        )
+        object.__setattr__(self, "G", G)
         rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
+        rows.flags.writeable = False
         object.__setattr__(self, "rows", rows)
         if self.G.shape[0] != self.nnz or self.a0.shape != (self.nnz,):
-            raise ValueError(
+            raise InputError(
                 f"G {self.G.shape} and a0 {self.a0.shape} must have nnz={self.nnz} rows"
             )
 
@@ -81,11 +110,11 @@ class ParametricMatrix:
         p = self.n_params
         empty_batch = theta.ndim == 2 and len(theta) == 0
         if theta.ndim not in (1, 2) or theta.shape[-1] != p or empty_batch:
-            raise ValueError(f"theta must have shape ({p},) or (batch, {p}), got {theta.shape}")
+            raise InputError(f"theta must have shape ({p},) or (batch, {p}), got {theta.shape}")
         if not np.all(np.isfinite(theta)):
-            raise ValueError("theta contains NaN or Inf")
+            raise NonFiniteError("theta contains NaN or Inf")
         if self.positive and not np.all(theta > 0):
-            raise ValueError(
+            raise InputError(
                 f"theta is a diffusion coefficient and must be > 0 (min {theta.min():.3g})"
             )
         return theta
@@ -111,7 +140,7 @@ class ParametricMatrix:
     def matrix(self, theta: np.ndarray) -> sp.csr_matrix:
         """The assembled scipy CSR matrix A(θ) for one θ of shape (p,)."""
         if np.ndim(theta) != 1:
-            raise ValueError(f"matrix() takes one theta of shape ({self.n_params},)")
+            raise InputError(f"matrix() takes one theta of shape ({self.n_params},)")
         values = self.values(theta).copy()  # the cached array is shared and read-only
         return sp.csr_matrix((values, self.indices, self.indptr), shape=self.shape)
 
@@ -148,18 +177,21 @@ class ParametricMatrix:
 
         The test compares every entry of a₀ and of each column of G with its own
         mirror (`prdp_petsc.core.sparsity.mirror_symmetric`), so no large entry
-        elsewhere can hide an asymmetry.
+        elsewhere can hide an asymmetry; the rounding allowance of an entry (i, j)
+        is also scaled by ``sqrt(d_i d_j)``, d the diagonal of ``|a₀| + |G| 1``.
         """
         if self.symmetric is not None:
             return bool(self.symmetric)
         perm = transpose_permutation(self.indptr, self.indices, self.shape)
         if perm is None:
             return False
-        if not mirror_symmetric(self.a0, self.a0[perm]):
-            return False
         G, mirror = self.G, self.G[perm]
-        bound = abs(G).maximum(abs(mirror)) * SYMMETRY_RTOL
-        return G.nnz == 0 or (abs(G - mirror) - bound).max() <= 0
+        absolute = np.abs(self.a0) + np.asarray(abs(G) @ np.ones(self.n_params)).ravel()
+        scale = diagonal_scale(self.indptr, self.indices, absolute, self.shape)
+        if not mirror_symmetric(self.a0, self.a0[perm], scale=scale):
+            return False
+        excess = (abs(G - mirror) - abs(G).maximum(abs(mirror)) * SYMMETRY_RTOL).tocoo()
+        return bool(np.all(excess.data <= DIAGONAL_RTOL * scale[excess.row]))
 
     def vjp_matvec(self, w: np.ndarray, v: np.ndarray, *, per_sample=False) -> np.ndarray:
         """``∂/∂θ ⟨w, A(θ) v⟩ = Gᵀ(w[rows] ⊙ v[cols])``; `per_sample` as in `theta_gradient`."""
@@ -212,11 +244,11 @@ class ParametricMatrix:
         """Add a constant scipy matrix or another ParametricMatrix (θ stacked: [θ₁, θ₂])."""
         if isinstance(other, ParametricMatrix):
             if other.shape != self.shape:
-                raise ValueError(f"shape mismatch {self.shape} vs {other.shape}")
+                raise InputError(f"shape mismatch {self.shape} vs {other.shape}")
             return _union([self, other], [self.G, other.G], self.positive and other.positive)
         other = sp.csr_matrix(other)
         if other.shape != self.shape:
-            raise ValueError(f"shape mismatch {self.shape} vs {other.shape}")
+            raise InputError(f"shape mismatch {self.shape} vs {other.shape}")
         const = ParametricMatrix(
             other.indptr,
             other.indices,
@@ -240,6 +272,15 @@ class ParametricMatrix:
         )
 
     __rmul__ = __mul__
+
+
+def _frozen(arr, dtype=None) -> np.ndarray:
+    """`arr` as a read-only array that owns its memory (copied unless it already is)."""
+    arr = np.asarray(arr, dtype=dtype)
+    if arr.flags.writeable or arr.base is not None:
+        arr = np.array(arr, copy=True)
+        arr.flags.writeable = False
+    return arr
 
 
 def csr_pattern(rows: np.ndarray, cols: np.ndarray, shape) -> tuple:

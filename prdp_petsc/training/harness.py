@@ -24,6 +24,7 @@ import torch
 
 from ..core.results import SolverError
 from ..core.solver import KSPSolver
+from ..errors import InputError, NonFiniteError, stop_reason
 from ..prdp import PRDP
 from .parallel import Parallel
 from .scene import load_scene, preset_config, with_prdp_settings
@@ -229,12 +230,18 @@ def run(
         ``fwd_iterations``, ``adj_iterations``), ``totals``, ``threads``,
         ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
         and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
-        first epoch not completed), ``reason`` (a PETSc reason, ``INVALID_INPUT`` or
-        ``interrupted``) and ``message``; ``rollout``, the per-step error of the
+        first epoch not completed), ``reason`` (a PETSc reason; ``NON_FINITE`` for a
+        NaN or Inf input, loss or metric; ``STRUCTURE``, ``INVALID_INPUT`` for the
+        other `prdp_petsc.errors.InputError` kinds; or ``interrupted``) and
+        ``message``; ``rollout``, the per-step error of the
         trained model, for scenes that define it.
 
     Raises
     ------
+    Exception
+        Anything but a `SolverError` or an `InputError` raised while training (a
+        bug in the scene, a plain ``ValueError`` from numpy) propagates: it is not
+        a solver outcome, and recording it as one would hide it.
     KeyboardInterrupt
         Re-raised after ``results.json`` records ``stopped: {"reason": "interrupted"}``.
     """
@@ -339,19 +346,19 @@ def _train(
                 s.reset_stats()
             t0 = time.perf_counter()
             try:
-                losses = [ranks.step(scene, batch) for batch in scene.batches(epoch, generator)]
+                losses = []
+                for batch in scene.batches(epoch, generator):
+                    losses.append(ranks.step(scene, batch))
+                    _check_finite(losses[-1], f"the training loss of batch {len(losses) - 1}")
                 if scene.scheduler is not None:
                     scene.scheduler.step()
                 metric = ranks.validate(scene)
-            except SolverError as err:
-                logger.error("epoch %d: %s", epoch, err)
-                result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
-                return
-            except ValueError as err:  # the bridge's input checks: e.g. the network made NaN
+                _check_finite(metric, "the validation metric")
+            except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
                 logger.error("epoch %d: %s", epoch, err)
                 result["stopped"] = {
                     "epoch": epoch,
-                    "reason": "INVALID_INPUT",
+                    "reason": stop_reason(err),
                     "message": str(err),
                 }
                 return
@@ -382,6 +389,15 @@ def _train(
                 write_json(out / "results.json", result)
     finally:
         bar.close()
+
+
+def _check_finite(value: float, what: str) -> None:
+    """A NaN or Inf loss or metric stops the run (`NonFiniteError`), never trains on."""
+    if not math.isfinite(value):
+        raise NonFiniteError(
+            f"{what} is {value}: training cannot continue (a diverged network, a too large "
+            "learning rate, or a solve that lost accuracy); earlier epochs are complete"
+        )
 
 
 def _totals(log: list[dict]) -> dict:

@@ -1,0 +1,44 @@
+"""What the torch bridge accepts: float64 tensors of the right shape, finite.
+
+Shared by `prdp_petsc.autograd.bridge`, `~prdp_petsc.autograd.dirichlet` and
+`~prdp_petsc.autograd.nonlinear`, so every entry point refuses the same inputs
+with the same errors: a wrong type is a ``TypeError``, a wrong shape an
+`prdp_petsc.errors.InputError`, NaN or Inf a `prdp_petsc.errors.NonFiniteError`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..errors import InputError, NonFiniteError
+
+__all__ = ["as_numpy", "check_finite", "check_vector"]
+
+
+def as_numpy(t: torch.Tensor, name: str, *, finite: bool = True) -> np.ndarray:
+    """float64 numpy view of tensor `t` (no copy on the CPU).
+
+    Raises ``TypeError`` unless `t` is a float64 tensor; with `finite`,
+    `NonFiniteError` if it holds NaN or Inf.
+    """
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.dtype != torch.float64:
+        raise TypeError(f"{name} must be float64 (got {t.dtype}); call .double() first")
+    arr = t.detach().cpu().numpy()
+    if finite:
+        check_finite(arr, name)
+    return arr
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    """`NonFiniteError` naming `name` if `arr` holds NaN or Inf (a sum first: fast path)."""
+    if not (np.isfinite(arr.sum()) or np.all(np.isfinite(arr))):
+        raise NonFiniteError(f"{name} contains NaN or Inf")
+
+
+def check_vector(arr: np.ndarray, n: int, name: str) -> None:
+    """`InputError` unless `arr` has shape ``(n,)`` or ``(batch, n)``."""
+    if arr.ndim not in (1, 2) or arr.shape[-1] != n:
+        raise InputError(f"{name} must have shape ({n},) or (batch, {n}), got {tuple(arr.shape)}")
