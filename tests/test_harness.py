@@ -124,6 +124,8 @@ PRESETS = {"quick": {}}
 
 def build(config, seed):
     A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
+    if config.get("advection"):  # a non-symmetric operator: CG does not fit it
+        A = (A + config["advection"] * sp.diags([np.ones(9), -np.ones(9)], [1, -1])).tocsr()
     solver = pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi",
                            "ksp_richardson_scale": 3.0}, prefix="div_", max_it=1)
     theta = torch.ones(10, dtype=torch.float64, requires_grad=True)
@@ -162,6 +164,7 @@ PRESETS = {
     "interrupt": {"interrupt_at": 1},
     "invalid": {"invalid_at": 2},
     "bug": {"bug_at": 1},
+    "advection": {"advection": 0.3},
     "nan_loss": {"nan_at": 2},
     "odd_info": {"odd_info": True},
     "rising": {"rising": True},
@@ -169,6 +172,8 @@ PRESETS = {
 
 def build(config, seed):
     A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
+    if config.get("advection"):  # a non-symmetric operator: CG does not fit it
+        A = (A + config["advection"] * sp.diags([np.ones(9), -np.ones(9)], [1, -1])).tocsr()
     solvers = [pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi"},
                             prefix="tiny_", max_it=1)]
     if config.get("two_solvers"):
@@ -457,3 +462,15 @@ def test_a_nan_loss_stops_the_run_with_a_named_reason(tiny, tmp_path):
         main(["run", str(tiny), "--preset", "nan_loss", "--epochs", "4", "--out", str(tmp_path)])
         == 1
     )
+
+
+def test_compare_skips_a_route_that_does_not_fit_and_says_so(tiny, tmp_path, capsys):
+    rc = main(["compare", str(tiny), "--preset", "advection", "--epochs", "2", "--out",
+               str(tmp_path), "--no-progress", "--routes", "cg/jacobi,gmres/jacobi"])  # fmt: skip
+    printed = capsys.readouterr().out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert "StructureError" not in printed and rc == 0
+    assert "ksp_type cg" in summary["routes"]["cg/jacobi"]["skipped"]
+    assert "cg/jacobi: skipped, it does not fit the scene's solver" in printed
+    assert not any(name.endswith("@cg/jacobi") for name in summary["runs"])  # never trained
+    assert "savings" in summary["routes"]["gmres/jacobi"]  # the fitting route ran

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 from pathlib import Path
 
+from ..errors import StructureError
 from ..prdp import equal_accuracy_k, savings
 from .harness import (
     build_scene,
@@ -28,6 +30,8 @@ from .harness import (
 from .parallel import Parallel
 from .routes import fastest, parse_route, route_options
 from .scene import load_scene
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["ACCURACY_RATIO", "compare", "format_table", "stopped_runs", "summarize"]
 
@@ -119,17 +123,26 @@ def compare(
         ]
         logs = {}
         k_fulls = {"": k_full}
+        skipped = {}  # route -> why it does not fit the scene's solvers
         if twin:  # full fidelity again, torch seeded differently: the run-to-run noise
             runs.append((TWIN, None))
         for schedule, route in runs:
+            if route in skipped:
+                continue
             context = route_options(prefixes, route) if route else contextlib.nullcontext()
             name = folder = None
             try:
                 with context:
                     if route and route not in k_fulls:  # the route's own K_full
                         probe = build_scene(module, preset, seed)
-                        k_fulls[route] = find_k_full(probe)
-                        release(probe)
+                        try:
+                            k_fulls[route] = find_k_full(probe)
+                        except StructureError as err:  # e.g. CG on a non-symmetric operator
+                            logger.warning("route %s skipped: %s", route, err)
+                            skipped[route] = str(err)
+                            continue
+                        finally:
+                            release(probe)
                     torch_seed = None
                     if schedule == TWIN:
                         schedule, name = f"fixed:{k_full}", f"twin:{k_full}"
@@ -157,10 +170,10 @@ def compare(
                 results = folder / "results.json" if folder else None
                 if results is not None and results.is_file():
                     logs[name] = json.loads(results.read_text())
-                interrupted = summarize(scene_name, k_fulls, logs, threads=threads)
+                interrupted = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
                 write(out / "summary.json", interrupted)
                 raise
-    summary = summarize(scene_name, k_fulls, logs, threads=threads)
+    summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
     summary["parallel"] = ranks.describe()
     write(out / "summary.json", summary)
     if plots and ranks.root:
@@ -182,14 +195,23 @@ def _prdp_for(settings: dict, k_full: int, k_route: int) -> dict:
     return out
 
 
-def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None = None) -> dict:
+def summarize(
+    scene: str,
+    k_full: int | dict,
+    logs: dict,
+    *,
+    threads: int | None = None,
+    skipped: dict | None = None,
+) -> dict:
     """Summary of a comparison: runs, PRDP savings against K_full, error ratio.
 
     `k_full` is an int, or ``{route: K_full}`` with ``""`` for the scene's own
     solver; routes add ``routes`` (their K_full and PRDP savings) and ``fastest``.
     A run ``twin:K`` (full fidelity again, torch seeded differently) adds
     ``noise_ratio``, its final validation error over K_full's; it is not a
-    candidate for ``fastest``.
+    candidate for ``fastest``.  `skipped` maps routes that do not fit the scene's
+    solvers (a `StructureError`: CG on a non-symmetric operator) to the reason;
+    they appear in ``routes`` as ``{"skipped": reason}``.
     """
     k_fulls = k_full if isinstance(k_full, dict) else {"": k_full}
     k_full = k_fulls[""]
@@ -215,12 +237,15 @@ def summarize(scene: str, k_full: int | dict, logs: dict, *, threads: int | None
         summary["noise_ratio"] = _ratio(
             twin["totals"]["final_val_error"], full["totals"]["final_val_error"]
         )
-    if len(k_fulls) > 1:
+    if len(k_fulls) > 1 or skipped:
         summary["routes"] = {
             route: {"k_full": k, **_savings(logs, f"prdp@{route}", f"fixed:{k}@{route}")}
             for route, k in k_fulls.items()
             if route
         }
+        summary["routes"].update(
+            {route: {"skipped": why} for route, why in (skipped or {}).items()}
+        )
         candidates = {name: log for name, log in logs.items() if name != twin_name}
         summary["fastest"] = fastest(candidates, full_name)
     summary.update(_savings(logs, "prdp", full_name))
@@ -362,7 +387,9 @@ def format_table(summary: dict) -> str:
                 "constant-K errors do not resolve a 5 % difference)"
             )
     for route, r in summary.get("routes", {}).items():
-        if "savings" in r:
+        if "skipped" in r:
+            lines.append(f"{route}: skipped, it does not fit the scene's solver: {r['skipped']}")
+        elif "savings" in r:
             lines.append(
                 f"PRDP vs K_full on {route} (K_full = {r['k_full']}): "
                 f"{100 * r['savings']['iterations']:.1f} % fewer inner iterations, "
@@ -385,6 +412,7 @@ def format_table(summary: dict) -> str:
         main = ["prdp", f"fixed:{summary['k_full']}"] + [
             name
             for route, r in summary.get("routes", {}).items()
+            if "skipped" not in r
             for name in (f"prdp@{route}", f"fixed:{r['k_full']}@{route}")
         ]
         for name in main:
