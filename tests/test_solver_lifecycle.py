@@ -177,7 +177,7 @@ def test_empty_prefix_does_not_copy_unrelated_options_to_the_adjoint(petsc_optio
     petsc_option("log_view_memory", None)
     petsc_option("ksp_type", "gmres")
     solver = pp.KSPSolver({"pc_type": "jacobi"}, max_it=3)
-    names = [name for name, _ in solver._option_items()]
+    names = [name for name, _ in solver.config.option_items()]
     assert "adj_ksp_type" in names  # KSP options are inherited by the adjoint
     assert "adj_log_view_memory" not in names
     assert solver.adjoint_ksp.getType() == "gmres"

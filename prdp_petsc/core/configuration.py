@@ -1,20 +1,23 @@
-"""How a `KSPSolver` is configured: tolerances (properties on both KSPs) and options.
+"""What a `KSPSolver` tells PETSc: options, prefixes and tolerances, as one value.
 
 The PRDP controller owns ``max_it``, so tolerances are set by the program, never
 by options: `refuse_tolerance_options` says so for ``-<prefix>ksp_max_it`` and
 friends, `rejected_options_message` names an option PETSc refused, and
-`UnusedOptionWarning` reports options PETSc never read.
+`Configuration.unused` lists options PETSc never read (reported as
+`prdp_petsc.errors.UnusedOptionWarning`).  A `Configuration` holds no PETSc
+object: `Configuration.apply` writes its tolerances into the KSPs it is given.
 """
 
 from __future__ import annotations
 
-import warnings
+import dataclasses
 
+import numpy as np
 from petsc4py import PETSc
 
-from ..errors import UnusedOptionWarning
-from .options import option_value, prefixed_options
-from .settings import check_tolerances
+from ..errors import InputError, UnusedOptionWarning
+from .options import option_value, parse_options, prefixed_options
+from .settings import AdjointSettings, check_tolerances
 
 __all__ = [
     "Configuration",
@@ -23,23 +26,60 @@ __all__ = [
     "rejected_options_message",
 ]
 
+#: "not given" for `Configuration.set_tolerances` (None is a value to refuse)
+KEEP = object()
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_divtol")
 _OFF = ("0", "false", "no")
 
 
 class Configuration:
-    """``max_it``, ``rtol``, ``atol``, ``divtol``, the adjoint cap and the options of a
-    `KSPSolver`: what PETSc is told, and what it never read.
+    """Options, prefixes and tolerances of the forward and adjoint KSPs, validated.
 
-    Each setter validates the value and applies it to the forward and adjoint KSPs
-    at once (``KSPSetTolerances``), so it holds from the next solve on.  The class
-    expects ``_max_it``, ``_rtol``, ``_atol``, ``_divtol``, ``adjoint``, ``_ksp``,
-    ``_adj``, ``options``, ``_adjoint_own``, the prefixes and ``_used`` on the
-    instance.
+    Parameters are those of `KSPSolver` (``options``, ``prefix``, ``max_it``,
+    ``rtol``, ``atol``, ``adjoint``, ``divtol``).  Tolerances change through
+    `set_tolerances` and `set_adjoint_max_it` (validated), and reach PETSc
+    through `apply`.
     """
 
-    def _option_items(self) -> list[tuple[str, object]]:
-        """(name, value) pairs this solver writes into PETSc's database.
+    def __init__(self, options, prefix: str, max_it, rtol, atol, adjoint, divtol):
+        check_tolerances(max_it, rtol, atol)
+        if divtol is not None and not (np.isfinite(divtol) and divtol > 0):
+            raise InputError(f"divtol must be finite and > 0, got {divtol!r}")
+        self.options = parse_options(options)
+        refuse_tolerance_options(self.options, "options", "max_it=, rtol=, atol=, divtol=")
+        if adjoint is None:
+            adjoint = AdjointSettings()
+        elif isinstance(adjoint, dict):
+            adjoint = AdjointSettings(**adjoint)
+        else:
+            adjoint = dataclasses.replace(adjoint)  # ours to change (adjoint max_it)
+        if adjoint.max_it is not None or adjoint.rtol is not None or adjoint.atol is not None:
+            check_tolerances(
+                max_it if adjoint.max_it is None else adjoint.max_it,
+                0.0 if adjoint.rtol is None else adjoint.rtol,
+                0.0 if adjoint.atol is None else adjoint.atol,
+                "adjoint ",
+            )
+        self.adjoint = adjoint
+        self.adjoint_own = parse_options(adjoint.options)
+        refuse_tolerance_options(
+            self.adjoint_own, "adjoint options", "AdjointSettings(max_it=, ...)"
+        )
+        self.adjoint_options = {**self.options, **self.adjoint_own}
+        self.prefix = prefix
+        self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"
+        for p in dict.fromkeys((prefix, self.adjoint_prefix)):
+            refuse_tolerance_options(
+                prefixed_options(p), f"command-line options under prefix {p!r}", "the program"
+            )
+        self.max_it = int(max_it)
+        self.rtol = float(rtol)
+        self.atol = float(atol)
+        self.divtol = divtol
+
+    # -- options -------------------------------------------------------------------
+    def option_items(self) -> list[tuple[str, object]]:
+        """(name, value) pairs to write into PETSc's database for both KSPs.
 
         The adjoint inherits the forward options *as the forward KSP sees them*, so
         ``-fwd_ksp_type cg`` on the command line changes both solves unless
@@ -47,13 +87,14 @@ class Configuration:
         """
         exclude = self.adjoint_prefix if self.adjoint_prefix.startswith(self.prefix) else None
         forward = {**self.options, **prefixed_options(self.prefix, exclude)}
-        adjoint = {**forward, **self._adjoint_own}
+        adjoint = {**forward, **self.adjoint_own}
         return [(self.prefix + k, v) for k, v in self.options.items()] + [
             (self.adjoint_prefix + k, v) for k, v in adjoint.items()
         ]
 
-    def _shares_pc(self) -> bool:
-        if any(k.startswith("pc_") for k in self._adjoint_own):
+    def shares_pc(self) -> bool:
+        """Whether the adjoint KSP can share the forward PC (no PC options of its own)."""
+        if any(k.startswith("pc_") for k in self.adjoint_own):
             return False
         cmdline = prefixed_options(self.adjoint_prefix)
         # an explicit transpose re-points the adjoint's operators (and a shared PC) to Aᵀ
@@ -63,143 +104,84 @@ class Configuration:
                 return False
         return not any(k.startswith("pc_") for k in cmdline)
 
-    def _warn_unused(self, kind: str) -> None:
-        """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
+    def unused(self, kind: str, used: set[str]) -> list[str]:
+        """Option names of the `kind` KSP ("forward"/"adjoint") that PETSc never read.
+
+        `used` holds the names PETSc read while they were pushed; the command line
+        under the KSP's own prefix is included.
+        """
         prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
-        given = self._adjoint_own if kind == "adjoint" else self.options
+        given = self.adjoint_own if kind == "adjoint" else self.options
         names = {prefix + k for k in given}
         if prefix:  # the command line under a prefix of its own
             exclude = None if kind == "adjoint" else self.adjoint_prefix
             names |= {prefix + k for k in prefixed_options(prefix, exclude)}
         opts = PETSc.Options()
-        unused = sorted(n for n in names if n not in self._used and not opts.used(n))
-        if unused:
-            warnings.warn(
-                f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
-                f"{self._types(kind)}): "
-                + ", ".join("-" + n for n in unused)
-                + "; check their spelling (-help lists the options PETSc reads)",
-                UnusedOptionWarning,
-                stacklevel=4,
-            )
+        return sorted(n for n in names if n not in used and not opts.used(n))
 
-    def _types(self, kind: str) -> str:
-        ksp = self._adj if kind == "adjoint" else self._ksp
-        return f"{ksp.getType()}/{ksp.getPC().getType()}"
-
-    @property
-    def max_it(self) -> int:
-        """Forward iteration cap K (the adjoint follows unless set on its own)."""
-        return self._max_it
-
-    @max_it.setter
-    def max_it(self, value: int) -> None:
-        check_tolerances(value, self._rtol, self._atol)
-        self._max_it = int(value)
-        self._apply_tolerances()
-
-    @property
-    def rtol(self) -> float:
-        """Forward relative tolerance (0: off)."""
-        return self._rtol
-
-    @rtol.setter
-    def rtol(self, value: float) -> None:
-        self.set_tolerances(rtol=value)
-
-    @property
-    def atol(self) -> float:
-        """Forward absolute tolerance (0: off)."""
-        return self._atol
-
-    @atol.setter
-    def atol(self, value: float) -> None:
-        self.set_tolerances(atol=value)
-
-    @property
-    def divtol(self) -> float | None:
-        """Divergence tolerance (None: PETSc's default, 1e5)."""
-        return self._divtol
-
+    # -- tolerances ------------------------------------------------------------------
     @property
     def adjoint_max_it(self) -> int:
         """Adjoint iteration cap: `AdjointSettings.max_it` or the forward `max_it`."""
-        return self.adjoint.max_it if self.adjoint.max_it is not None else self._max_it
+        return self.adjoint.max_it if self.adjoint.max_it is not None else self.max_it
 
-    @adjoint_max_it.setter
-    def adjoint_max_it(self, value: int | None) -> None:
+    def set_tolerances(self, *, max_it=KEEP, rtol=KEEP, atol=KEEP) -> None:
+        """Change the forward tolerances (those not given are kept), validated together."""
+        max_it = self.max_it if max_it is KEEP else max_it
+        rtol = self.rtol if rtol is KEEP else rtol
+        atol = self.atol if atol is KEEP else atol
+        check_tolerances(max_it, rtol, atol)
+        self.max_it, self.rtol, self.atol = int(max_it), float(rtol), float(atol)
+
+    def set_adjoint_max_it(self, value: int | None) -> None:
+        """Give the adjoint its own cap, or None to follow the forward one."""
         if value is not None:
             check_tolerances(value, 0.0, 0.0, "adjoint ")
         self.adjoint.max_it = None if value is None else int(value)
-        self._apply_tolerances()
 
-    def set_tolerances(self, *, rtol: float | None = None, atol: float | None = None) -> None:
-        """Change the forward stopping tolerances (e.g. for an rtol schedule)."""
-        rtol = self._rtol if rtol is None else rtol
-        atol = self._atol if atol is None else atol
-        check_tolerances(self._max_it, rtol, atol)
-        self._rtol, self._atol = float(rtol), float(atol)
-        self._apply_tolerances()
-
-    def _apply_tolerances(self) -> None:
-        if self._ksp is None:
-            return
-        dt = self._divtol if self._divtol is not None else PETSc.DEFAULT
-        self._ksp.setTolerances(rtol=self._rtol, atol=self._atol, divtol=dt, max_it=self._max_it)
-        adj = self.adjoint
-        self._adj.setTolerances(
-            rtol=self._rtol if adj.rtol is None else adj.rtol,
-            atol=self._atol if adj.atol is None else adj.atol,
+    def apply(self, ksp: PETSc.KSP, adj: PETSc.KSP) -> None:
+        """``KSPSetTolerances`` on the forward and adjoint KSPs."""
+        dt = self.divtol if self.divtol is not None else PETSc.DEFAULT
+        ksp.setTolerances(rtol=self.rtol, atol=self.atol, divtol=dt, max_it=self.max_it)
+        a = self.adjoint
+        adj.setTolerances(
+            rtol=self.rtol if a.rtol is None else a.rtol,
+            atol=self.atol if a.atol is None else a.atol,
             divtol=dt,
             max_it=self.adjoint_max_it,
         )
 
+    # -- records -----------------------------------------------------------------------
     def describe(self) -> dict:
-        """JSON-ready record of the solver: prefixes, tolerances, options and the
-        KSP/PC types PETSc really uses (command-line options included)."""
+        """JSON-ready record: prefixes, options and tolerances."""
         return {
             "prefix": self.prefix,
             "adjoint_prefix": self.adjoint_prefix,
             "options": {k: option_value(v) for k, v in self.options.items()},
-            "adjoint_options": {k: option_value(v) for k, v in self._adjoint_own.items()},
-            "max_it": self._max_it,
-            "rtol": self._rtol,
-            "atol": self._atol,
+            "adjoint_options": {k: option_value(v) for k, v in self.adjoint_own.items()},
+            "max_it": self.max_it,
+            "rtol": self.rtol,
+            "atol": self.atol,
             "adjoint_max_it": self.adjoint_max_it,
-            "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
-            "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
-            "ranks": self.ksp.getComm().getSize(),
         }
 
-    def clone(self, **changes) -> Configuration:
-        """A new solver with the same settings, some of them changed.
-
-        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces, the
-        symmetry declaration and the communicator are copied; keyword arguments
-        (any of `KSPSolver`'s) replace them.
-        """
-        kwargs = {
+    def arguments(self) -> dict:
+        """The `KSPSolver` keyword arguments that rebuild this configuration."""
+        return {
             "options": dict(self.options),
             "prefix": self.prefix,
-            "max_it": self._max_it,
-            "rtol": self._rtol,
-            "atol": self._atol,
+            "max_it": self.max_it,
+            "rtol": self.rtol,
+            "atol": self.atol,
             "adjoint": self.adjoint,
-            "divtol": self._divtol,
-            "nullspace": self.nullspace,
-            "transpose_nullspace": self.transpose_nullspace,
-            "symmetric": self.declared_symmetric,
-            "check_structure": self.check_structure,
-            "comm": self.comm,
+            "divtol": self.divtol,
         }
-        kwargs.update(changes)
-        return type(self)(**kwargs)
 
 
 def refuse_tolerance_options(options: dict, where: str, use: str) -> None:
     bad = [k for k in options if k in _TOLERANCE_KEYS]
     if bad:
-        raise ValueError(
+        raise InputError(
             f"{bad} in {where}: a KSPSolver's tolerances are set by {use} (the PRDP "
             "schedule owns max_it); pass them as keyword arguments (max_it=, rtol=, atol=, "
             "divtol=, or AdjointSettings for the adjoint)"

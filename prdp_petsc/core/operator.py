@@ -210,6 +210,12 @@ class OperatorMat:
         self.symmetric = bool(symmetric)
         self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
 
+    def arrays(self) -> list[np.ndarray]:
+        """The numpy arrays kept here: the values, the PETSc-int pattern and the
+        transpose permutation (none for a caller's Mat)."""
+        kept = [self._values, self._tperm, *(self._pattern[:2] if self._pattern else ())]
+        return [a for a in kept if a is not None]
+
     def destroy(self) -> None:
         """Free a Mat made here (a caller's Mat is left alone) and forget the pattern."""
         if self._owned and self.mat is not None:

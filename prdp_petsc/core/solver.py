@@ -10,31 +10,22 @@ autograd.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
+import warnings
 
 import numpy as np
 from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
 from . import safeguards
-from .configuration import (
-    Configuration,
-    UnusedOptionWarning,
-    refuse_tolerance_options,
-    rejected_options_message,
-)
+from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
 from .nullspace import attach_nullspaces, check_nullspaces, normalize_nullspace
 from .operator import OperatorMat
-from .options import (
-    PushedOptions,
-    parse_options,
-    prefixed_options,
-)
+from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, SolveInfo, SolverError, SolverStats
-from .settings import AdjointSettings, check_tolerances
+from .settings import AdjointSettings
 from .step import SolveStep
 from .structure import check_structure
 
@@ -46,7 +37,7 @@ logger = logging.getLogger(__name__)
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
 
 
-class KSPSolver(Configuration):
+class KSPSolver:
     """A PETSc KSP with a capped iteration count and a matching transpose solve.
 
     Parameters
@@ -146,40 +137,9 @@ class KSPSolver(Configuration):
         check_structure: bool = True,
         comm=None,
     ):
-        check_tolerances(max_it, rtol, atol)
         self.comm = as_petsc_comm(comm)
-        if divtol is not None and not (np.isfinite(divtol) and divtol > 0):
-            raise InputError(f"divtol must be finite and > 0, got {divtol!r}")
-        self.options = parse_options(options)
-        refuse_tolerance_options(self.options, "options", "max_it=, rtol=, atol=, divtol=")
-        if adjoint is None:
-            adjoint = AdjointSettings()
-        elif isinstance(adjoint, dict):
-            adjoint = AdjointSettings(**adjoint)
-        else:
-            adjoint = dataclasses.replace(adjoint)  # ours to change (adjoint_max_it)
-        self.adjoint = adjoint
-        if adjoint.max_it is not None or adjoint.rtol is not None or adjoint.atol is not None:
-            check_tolerances(
-                max_it if adjoint.max_it is None else adjoint.max_it,
-                0.0 if adjoint.rtol is None else adjoint.rtol,
-                0.0 if adjoint.atol is None else adjoint.atol,
-                "adjoint ",
-            )
-        own = parse_options(adjoint.options)
-        refuse_tolerance_options(own, "adjoint options", "AdjointSettings(max_it=, ...)")
-        self._adjoint_own = own
-        self.adjoint_options = {**self.options, **own}
-        self.prefix = prefix
-        self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"
-        for p in dict.fromkeys((prefix, self.adjoint_prefix)):
-            refuse_tolerance_options(
-                prefixed_options(p), f"command-line options under prefix {p!r}", "the program"
-            )
-        self._max_it = int(max_it)
-        self._rtol = float(rtol)
-        self._atol = float(atol)
-        self._divtol = divtol
+        #: options, prefixes and tolerances (`prdp_petsc.core.configuration.Configuration`)
+        self.config = Configuration(options, prefix, max_it, rtol, atol, adjoint, divtol)
         self.declared_symmetric = symmetric
         self.check_structure = bool(check_structure)
         self.nullspace = normalize_nullspace(nullspace)
@@ -237,7 +197,7 @@ class KSPSolver(Configuration):
 
     def _build(self, comm) -> None:
         """Create and configure both KSPs on `comm`, fully or not at all."""
-        self._items = self._option_items()
+        self._items = self.config.option_items()
         self._setup_version = {"forward": -1, "adjoint": -1}
         self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
         ksp = adj = None
@@ -247,7 +207,7 @@ class KSPSolver(Configuration):
             ksp.setOptionsPrefix(self.prefix)
             adj = PETSc.KSP().create(comm=comm)
             adj.setOptionsPrefix(self.adjoint_prefix)
-            if self._shares_pc():
+            if self.config.shares_pc():
                 adj.setPC(ksp.getPC())
             with pushed:
                 ksp.setFromOptions()
@@ -261,7 +221,7 @@ class KSPSolver(Configuration):
         for obj in (ksp, adj):  # read by safeguards.rescue
             obj.setConvergenceHistory(reset=True)
         self._ksp, self._adj = ksp, adj
-        self._apply_tolerances()
+        self.config.apply(ksp, adj)
         logger.debug("KSPs %r, %r built", self.prefix, self.adjoint_prefix)
 
     def setup(self, comm=None) -> None:
@@ -302,6 +262,108 @@ class KSPSolver(Configuration):
 
     def __exit__(self, *exc) -> None:
         self.destroy()
+
+    # -- configuration (`Configuration` holds it; PETSc gets it at once) ------------------
+    options = property(lambda self: self.config.options, doc="PETSc options (no prefix).")
+    adjoint_options = property(
+        lambda self: self.config.adjoint_options, doc="Options of the adjoint KSP."
+    )
+    prefix = property(lambda self: self.config.prefix, doc="Options prefix of the forward KSP.")
+    adjoint_prefix = property(
+        lambda self: self.config.adjoint_prefix, doc="Options prefix of the adjoint KSP."
+    )
+    adjoint = property(lambda self: self.config.adjoint, doc="The `AdjointSettings`.")
+    rtol = property(
+        lambda self: self.config.rtol,
+        lambda self, value: (self.config.set_tolerances(rtol=value), self._apply_tolerances()),
+        doc="Forward relative tolerance (0: off); a new value applies to the next solve.",
+    )
+    atol = property(
+        lambda self: self.config.atol,
+        lambda self, value: (self.config.set_tolerances(atol=value), self._apply_tolerances()),
+        doc="Forward absolute tolerance (0: off).",
+    )
+    divtol = property(
+        lambda self: self.config.divtol, doc="Divergence tolerance (None: PETSc's, 1e5)."
+    )
+
+    @property
+    def max_it(self) -> int:
+        """Forward iteration cap K (the adjoint follows unless set on its own)."""
+        return self.config.max_it
+
+    @max_it.setter
+    def max_it(self, value: int) -> None:
+        self.config.set_tolerances(max_it=value)
+        self._apply_tolerances()
+
+    @property
+    def adjoint_max_it(self) -> int:
+        """Adjoint iteration cap: `AdjointSettings.max_it` or the forward `max_it`."""
+        return self.config.adjoint_max_it
+
+    @adjoint_max_it.setter
+    def adjoint_max_it(self, value: int | None) -> None:
+        self.config.set_adjoint_max_it(value)
+        self._apply_tolerances()
+
+    def set_tolerances(self, *, rtol: float | None = None, atol: float | None = None) -> None:
+        """Change the forward stopping tolerances (e.g. for an rtol schedule); None keeps."""
+        given = {k: v for k, v in (("rtol", rtol), ("atol", atol)) if v is not None}
+        self.config.set_tolerances(**given)
+        self._apply_tolerances()
+
+    def _apply_tolerances(self) -> None:
+        if self._ksp is not None:
+            self.config.apply(self._ksp, self._adj)
+
+    def describe(self) -> dict:
+        """JSON-ready record of the solver: prefixes, tolerances, options and the
+        KSP/PC types PETSc really uses (command-line options included)."""
+        return {
+            **self.config.describe(),
+            "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
+            "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
+            "ranks": self.ksp.getComm().getSize(),
+        }
+
+    def clone(self, **changes) -> KSPSolver:
+        """A new solver with the same settings, some of them changed.
+
+        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces, the
+        symmetry declaration, the structure check and the communicator are copied;
+        keyword arguments (any of `KSPSolver`'s) replace them.
+        """
+        kwargs = {
+            **self.config.arguments(),
+            "nullspace": self.nullspace,
+            "transpose_nullspace": self.transpose_nullspace,
+            "symmetric": self.declared_symmetric,
+            "check_structure": self.check_structure,
+            "comm": self.comm,
+            **changes,
+        }
+        return type(self)(**kwargs)
+
+    def _warn_unused(self, kind: str) -> None:
+        """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
+        unused = self.config.unused(kind, self._used)
+        if unused:
+            ksp = self._adj if kind == "adjoint" else self._ksp
+            prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
+            warnings.warn(
+                f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
+                f"{ksp.getType()}/{ksp.getPC().getType()}): "
+                + ", ".join("-" + n for n in unused)
+                + "; check their spelling (-help lists the options PETSc reads)",
+                UnusedOptionWarning,
+                stacklevel=4,
+            )
+
+    def host_arrays(self) -> list[np.ndarray]:
+        """The numpy arrays this solver keeps of its operator (values, pattern, transpose
+        permutation), e.g. to measure its memory besides PETSc's Mat."""
+        return self._op.arrays()
 
     def set_operator(self, A, *, symmetric: bool | None = None) -> None:
         """Set the matrix; the PC is set up again only if its values changed.
@@ -439,6 +501,6 @@ class KSPSolver(Configuration):
 
     def __repr__(self) -> str:
         return (
-            f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self._max_it}, "
-            f"rtol={self._rtol}, atol={self._atol}, adjoint_max_it={self.adjoint_max_it})"
+            f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self.max_it}, "
+            f"rtol={self.rtol}, atol={self.atol}, adjoint_max_it={self.adjoint_max_it})"
         )

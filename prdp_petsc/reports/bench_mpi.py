@@ -128,10 +128,9 @@ def _solve_worker(args) -> dict:
         backward.append(time.perf_counter() - t1)
         theta.grad = None
     mat = solver.mat
-    op = solver._op  # the solver's own copies: values, pattern, transpose permutation
     replicated = _distinct_nbytes(
         [A.indptr, A.indices, A.a0, A.G.data, A.G.indices, A.G.indptr]
-        + [A.values(theta.detach().numpy()), op._values, op._tperm, *op._pattern[:2]]
+        + [A.values(theta.detach().numpy()), *solver.host_arrays()]
         + [b.numpy(), u.detach().numpy()]
     )
     return {
