@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
+from ..errors import InputError
+
 __all__ = [
     "attach_nullspaces",
     "check_nullspace",
@@ -44,17 +46,17 @@ def normalize_nullspace(spec, name: str = "nullspace"):
         return None
     if isinstance(spec, str):
         if spec != "constant":
-            raise ValueError(f"{name} must be 'constant' or an array of vectors, got {spec!r}")
+            raise InputError(f"{name} must be 'constant' or an array of vectors, got {spec!r}")
         return spec
     vecs = np.atleast_2d(np.asarray(spec, dtype=np.float64))
     if vecs.ndim != 2 or vecs.shape[1] == 0:
-        raise ValueError(f"{name} must have shape (n,) or (k, n), got {np.shape(spec)}")
+        raise InputError(f"{name} must have shape (n,) or (k, n), got {np.shape(spec)}")
     if not np.all(np.isfinite(vecs)):
-        raise ValueError(f"{name} contains NaN or Inf")
+        raise InputError(f"{name} contains NaN or Inf")
     q, r = np.linalg.qr(vecs.T)
     diag = np.abs(np.diag(r))
     if diag.size == 0 or diag.min() <= 1e-12 * max(diag.max(), 1e-300):
-        raise ValueError(f"{name} vectors must be non-zero and linearly independent")
+        raise InputError(f"{name} vectors must be non-zero and linearly independent")
     return np.ascontiguousarray(q.T)
 
 
@@ -69,7 +71,7 @@ def petsc_nullspace(spec, mat: PETSc.Mat) -> PETSc.NullSpace:
         if row.size == v.getSize():  # full length (the replicated layout, or one rank)
             row = row[start:end]
         elif v.getLocalSize() != row.size:
-            raise ValueError(
+            raise InputError(
                 f"null-space vectors have {row.size} entries, the operator has "
                 f"{v.getSize()} columns ({v.getLocalSize()} on this rank)"
             )
@@ -97,7 +99,7 @@ def check_nullspace(mat: PETSc.Mat, ns: PETSc.NullSpace, *, transpose: bool, nam
         defect = out.norm() / (scale * v.norm()) if scale > 0 else 0.0
         if not defect <= NULL_TOLERANCE:
             op = "Aᵀ" if transpose else "A"
-            raise ValueError(
+            raise InputError(
                 f"{name} is not a null space of the operator: ‖{op} v‖/(‖A‖‖v‖) = "
                 f"{defect:.2e} > {NULL_TOLERANCE:g}; PETSc would project the right-hand side "
                 "and solve another problem. Pass the right vectors (or transpose_nullspace= "

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import shlex
 
+from ..errors import InputError
+
 __all__ = [
     "KSP_ROOTS",
     "PushedOptions",
@@ -28,7 +30,7 @@ def parse_options(options: dict | str | None) -> dict:
     while i < len(tokens):
         tok = tokens[i]
         if not tok.startswith("-") or is_number(tok):
-            raise ValueError(f"options: expected '-name', got {tok!r} in {options!r}")
+            raise InputError(f"options: expected '-name', got {tok!r} in {options!r}")
         value = None
         if i + 1 < len(tokens) and (not tokens[i + 1].startswith("-") or is_number(tokens[i + 1])):
             value = tokens[i + 1]

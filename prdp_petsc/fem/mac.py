@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..errors import InputError
 from .parametric import ParametricMatrix, csr_pattern
 
 __all__ = [
@@ -73,7 +74,7 @@ def ns_operator(n: int, dt: float, nu: float) -> ParametricMatrix:
         [a_x at u, a_y at u, a_x at v, a_y at v] (the rows of `wind_matrix`).
     """
     if n < 3 or dt <= 0 or nu < 0:
-        raise ValueError(f"need n >= 3, dt > 0, nu >= 0; got n={n}, dt={dt}, nu={nu}")
+        raise InputError(f"need n >= 3, dt > 0, nu >= 0; got n={n}, dt={dt}, nu={nu}")
     h = 1.0 / n
     m = n * n
     idx = _index(n).ravel()
@@ -193,7 +194,7 @@ def restrict(state: np.ndarray, n_fine: int) -> np.ndarray:
     is the mean of its four fine divergences: divergence-free stays divergence-free.
     """
     if n_fine % 2:
-        raise ValueError(f"n_fine must be even, got {n_fine}")
+        raise InputError(f"n_fine must be even, got {n_fine}")
     s = np.asarray(state).reshape(*np.shape(state)[:-1], 3, n_fine, n_fine)
     u, v, p = s[..., 0, :, :], s[..., 1, :, :], s[..., 2, :, :]
     uc = (u[..., 0::2, 1::2] + u[..., 1::2, 1::2]) / 2

@@ -36,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import InputError
 from .forms import mass_matrix
 from .parametric import csr_pattern
 
@@ -71,14 +72,14 @@ class NonlinearHeat:
 
     def __init__(self, basis, dt: float, *, dirichlet=None):
         if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be finite and > 0, got {dt!r}")
+            raise InputError(f"dt must be finite and > 0, got {dt!r}")
         self.basis = basis
         self.dt = float(dt)
         n = basis.N
         boundary = np.zeros(0, dtype=np.int64) if dirichlet is None else dirichlet
         self.boundary = np.unique(np.asarray(boundary, dtype=np.int64).ravel())
         if self.boundary.size and (self.boundary[0] < 0 or self.boundary[-1] >= n):
-            raise ValueError(f"dirichlet indices must lie in [0, {n})")
+            raise InputError(f"dirichlet indices must lie in [0, {n})")
         self.interior = np.setdiff1d(np.arange(n), self.boundary)
         self.M = mass_matrix(basis)
         self._M_I = self.M[self.interior].tocsr()  # rows I of M: the residual's mass term
