@@ -1,8 +1,10 @@
 """The exceptions and warnings of prdp_petsc: what went wrong, and whose move it is.
 
-Every layer raises these (this module imports neither PETSc nor torch, so the
-command line's ``-W error::prdp_petsc.errors.UnusedOptionWarning`` works before
-PETSc starts).  The taxonomy tells a caller, and the training harness, what to do:
+Every layer raises these; this module imports neither PETSc nor torch, so the
+command line can apply ``-W error::prdp_petsc.errors.UnusedOptionWarning`` before
+PETSc starts (`prdp_petsc.cli.apply_warning_options`: Python itself reads ``-W``
+before site-packages are importable and drops filters of installed packages).
+The taxonomy tells a caller, and the training harness, what to do:
 
 `SolverError`
     A PETSc solve really failed (NaN in the iteration, breakdown, indefinite PC,
@@ -93,10 +95,10 @@ class UnusedOptionWarning(UserWarning):
 
     A warning, not an error: ``-fwd_ksp_type cg`` on the command line legitimately
     leaves a scene's ``ksp_richardson_scale`` unread.  Turn it into an error with
-    ``warnings.simplefilter("error", UnusedOptionWarning)``, or for a whole run with
-    ``python -W error::prdp_petsc.errors.UnusedOptionWarning -m prdp_petsc.cli ...``
-    (``PYTHONWARNINGS=error::prdp_petsc.errors.UnusedOptionWarning`` for the
-    ``prdp-petsc`` command).
+    ``warnings.simplefilter("error", UnusedOptionWarning)`` in a script, or for a
+    command-line run with ``python -W error::prdp_petsc.errors.UnusedOptionWarning -m
+    prdp_petsc.cli ...`` (``PYTHONWARNINGS=...`` for ``prdp-petsc``), which the
+    command line applies when it starts.
     """
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import skfem
 
+from prdp_petsc.errors import MeshError
 from prdp_petsc.fem.meshes import (
     MESH_DIR_ENV,
     available_meshes,
@@ -187,8 +188,65 @@ def test_other_formats_drop_extras(tmp_path):
 
     points[0, 2] = 0.5  # no longer planar
     meshio.write(tmp_path / "bent.vtu", meshio.Mesh(points, cells))
-    with pytest.raises(ValueError, match="plane"):
+    with pytest.raises(MeshError, match="bent.vtu does not lie in a plane"):
         load_mesh(tmp_path / "bent.vtu")
     meshio.write(tmp_path / "lines.vtu", meshio.Mesh(points, cells[:2]))
-    with pytest.raises(ValueError, match="triangle or tetra"):
+    with pytest.raises(MeshError, match="lines.vtu has no triangle or tetra"):
         load_mesh(tmp_path / "lines.vtu")
+
+
+# file name: (content, what the message must say about the cause)
+UNREADABLE = {
+    "garbage.msh": (b"garbage\nnot a mesh\n", "not a gmsh file"),
+    "empty.msh": (b"", "empty"),
+    "empty.vtu": (b"", "empty"),
+    "garbage.vtu": (b"<VTKFile>\n", "could not parse it as a .vtu file"),
+    "mesh.unknown": (b"0 0 0\n", "Could not deduce file format"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(UNREADABLE))
+def test_unreadable_file_raises_mesh_error(tmp_path, name):
+    # meshio itself calls sys.exit(1) on several of these; load_mesh must raise instead
+    content, cause = UNREADABLE[name]
+    path = tmp_path / name
+    path.write_bytes(content)
+    try:
+        load_mesh(path)
+    except MeshError as error:
+        assert str(path) in str(error)
+        assert cause in str(error)
+        assert isinstance(error, ValueError)  # code that catches ValueError keeps working
+    except SystemExit:  # pragma: no cover - the failure this test guards against
+        pytest.fail(f"load_mesh({name}) exited the process")
+    else:  # pragma: no cover
+        pytest.fail(f"load_mesh({name}) read an unreadable file")
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+@pytest.mark.parametrize("fraction", [0.1, 0.5, 0.9])
+def test_truncated_shipped_mesh_raises_mesh_error(tmp_path, name, fraction):
+    data = (mesh_dir() / f"{name}.msh").read_bytes()
+    path = tmp_path / f"{name}.msh"
+    path.write_bytes(data[: int(fraction * len(data))])
+    try:
+        load_mesh(path)
+    except MeshError as error:
+        assert str(path) in str(error)
+    except SystemExit:  # pragma: no cover
+        pytest.fail(f"load_mesh of a truncated {name}.msh exited the process")
+    else:  # pragma: no cover
+        pytest.fail(f"load_mesh read a truncated {name}.msh")
+
+
+def test_keyboard_interrupt_is_not_a_mesh_error(tmp_path, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(meshio.gmsh, "read", interrupted)
+    monkeypatch.setattr(meshio, "read", interrupted)
+    shutil.copy(mesh_dir() / "sliver.msh", tmp_path / "sliver.msh")
+    (tmp_path / "square.vtu").write_bytes(b"<VTKFile>\n")
+    for name in ("sliver.msh", "square.vtu"):
+        with pytest.raises(KeyboardInterrupt):
+            load_mesh(tmp_path / name)

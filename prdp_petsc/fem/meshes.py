@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import skfem
 
+from ..errors import InputError, MeshError
+
 __all__ = ["available_meshes", "load_mesh", "mesh_dir", "min_angle_degrees"]
 
 #: Environment variable that overrides the folder of named meshes.
@@ -85,30 +87,74 @@ def _resolve(name_or_path: str | os.PathLike) -> Path:
 
 
 def _read(path: Path):
-    """Read ``path`` with meshio; ``.msh`` is tried as gmsh first (not ANSYS)."""
+    """Read ``path`` with meshio, turning every way it can fail into a `MeshError`.
+
+    ``.msh`` is tried as gmsh first, then as ANSYS, through those formats' own
+    readers, which raise rather than print.  Any other file goes through
+    ``meshio.read``, which on a file it cannot parse prints the reason and calls
+    ``sys.exit(1)``; that exit, and whatever a parser raises on a malformed or
+    truncated file (``ValueError``, ``KeyError``, ``IndexError``, ...), becomes a
+    `MeshError` naming the file.  ``KeyboardInterrupt`` and ``MemoryError`` pass.
+    """
     import meshio
 
-    if path.suffix == ".msh":
-        try:
-            return meshio.read(path, file_format="gmsh")
-        except meshio.ReadError:
-            pass
-    return meshio.read(path)
+    if path.stat().st_size == 0:
+        raise MeshError(f"cannot read mesh file {path}: the file is empty")
+    try:
+        if path.suffix == ".msh":
+            return _read_msh(path)
+        return meshio.read(path)
+    except (MeshError, MemoryError):
+        raise
+    except SystemExit:
+        # meshio has printed its reason (to stdout and stderr) before exiting
+        raise MeshError(
+            f"cannot read mesh file {path}: meshio could not parse it as a "
+            f"{path.suffix or 'suffix-less'} file (its reason is printed above)"
+        ) from None
+    except Exception as exc:
+        raise MeshError(f"cannot read mesh file {path}: {_cause(exc)}") from exc
 
 
-def _simplex_part(m):
+def _read_msh(path: Path):
+    """Read a ``.msh`` file as gmsh, else as ANSYS; a `MeshError` names both failures."""
+    import meshio
+
+    try:
+        return meshio.gmsh.read(str(path))
+    except meshio.ReadError as exc:  # not gmsh at all; a malformed gmsh file raises others
+        gmsh_error = exc
+    try:
+        return meshio.ansys.read(str(path))
+    except MemoryError:
+        raise
+    except Exception as exc:
+        raise MeshError(
+            f"cannot read mesh file {path}: not a gmsh file ({_cause(gmsh_error)}), "
+            f"and reading it as ANSYS failed ({_cause(exc)})"
+        ) from exc
+
+
+def _cause(exc: BaseException) -> str:
+    """``ValueError: text`` for `exc`, or its type alone when it carries no message."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _simplex_part(m, path: Path):
     """Keep only the top-dimensional simplices and their facets from meshio mesh ``m``.
 
     Vertices, lower-dimensional cells and meshio's ``gmsh:*`` bookkeeping sets are
     dropped; vertices used by no top-dimensional cell are removed and the cells
-    renumbered. Named physical groups survive as cell sets.
+    renumbered. Named physical groups survive as cell sets. ``path`` (the file ``m``
+    was read from) only names the file in a `MeshError`.
     """
     import meshio
 
     kind = next((k for k in _SIMPLICES if k in m.cells_dict), None)
     if kind is None:
-        raise ValueError(
-            f"mesh has no triangle or tetra cells (found {sorted(m.cells_dict)}); "
+        raise MeshError(
+            f"mesh file {path} has no triangle or tetra cells (found {sorted(m.cells_dict)}); "
             "only first-order simplex meshes are supported"
         )
     facet = _SIMPLICES[kind][1]
@@ -138,7 +184,9 @@ def _simplex_part(m):
         z = points[:, 2]
         scale = max(np.ptp(points[:, :2], axis=0).max(), 1.0)
         if np.ptp(z) > 1e-12 * scale:
-            raise ValueError("triangle mesh does not lie in a plane z = const; cannot make it 2D")
+            raise MeshError(
+                f"triangle mesh {path} does not lie in a plane z = const; cannot make it 2D"
+            )
         points = points[:, :2]
     return meshio.Mesh(
         points,
@@ -172,8 +220,13 @@ def load_mesh(name_or_path: str | os.PathLike, refine: int = 0) -> skfem.Mesh:
     ------
     FileNotFoundError
         Unknown name (the message lists the available names) or missing file.
-    ValueError
-        ``refine`` negative, or the file holds no triangles or tetrahedra.
+    prdp_petsc.errors.MeshError
+        The file cannot be read: meshio cannot parse it (garbage, empty, truncated,
+        a format it does not know; meshio's own ``sys.exit`` is caught), it holds
+        no triangles or tetrahedra, or its triangles do not lie in a plane.  The
+        message names the file and the cause.  A subclass of ``ValueError``.
+    prdp_petsc.errors.InputError
+        ``refine`` negative or not an integer (a ``ValueError`` too).
 
     Notes
     -----
@@ -182,10 +235,11 @@ def load_mesh(name_or_path: str | os.PathLike, refine: int = 0) -> skfem.Mesh:
     refinement of triangle meshes but not of tetrahedral ones.
     """
     if not isinstance(refine, int | np.integer) or refine < 0:
-        raise ValueError(f"refine must be a non-negative integer, got {refine!r}")
+        raise InputError(f"refine must be a non-negative integer, got {refine!r}")
     from skfem.io.meshio import from_meshio
 
-    mesh = from_meshio(_simplex_part(_read(_resolve(name_or_path))))
+    path = _resolve(name_or_path)
+    mesh = from_meshio(_simplex_part(_read(path), path))
     return mesh.refined(int(refine)) if refine else mesh
 
 
