@@ -16,8 +16,8 @@ scenes need no change.
     every rank takes the same optimizer step: the parameters equal those of serial
     training with the same global batch, to round-off.  Rank 0 validates, and its
     PRDP decision (the next K) is broadcast.  This needs a scene whose batches are
-    index tensors and whose loss is the mean of a per-sample loss over the batch
-    (as `shuffled_batches` scenes have).
+    index tensors and whose loss is the mean of a per-sample loss over the batch;
+    the first step of a run checks the loss (see `Parallel`) and refuses any other.
 
 Rank 0 writes results and shows progress; iteration counts are totals over the
 ranks (``batch``) or those of the collective solves (``domain``); solver time is
@@ -27,24 +27,65 @@ the mean over the ranks.
 from __future__ import annotations
 
 import contextlib
+import copy
 
 import numpy as np
 import torch
 
-from ..core.results import SolverError
+from ..errors import InputError, MeshError, NonFiniteError, SolverError, StructureError
 
-__all__ = ["MODES", "Parallel"]
+__all__ = ["MEAN_RTOL", "MODES", "Parallel"]
 
 MODES = ("domain", "batch")
+
+#: Relative difference beyond which ``batch`` mode refuses a loss: the ranks' weighted
+#: share losses against the whole batch's (float64; ``100 eps`` for coarser dtypes).
+#: The shipped scenes differ by 1e-16 to 1e-14, a sum over the batch by 1 - 1/P.
+MEAN_RTOL = 1e-9
 
 
 class Parallel:
     """How a training run uses the ranks of ``MPI.COMM_WORLD``.
 
+    One object serves one training run (`prdp_petsc.training.harness.run` makes it).
+
     Parameters
     ----------
     mode : {None, "domain", "batch"}
         None: every rank trains alone (one process: the serial run).
+
+    Notes
+    -----
+    ``batch`` mode is exact only for a loss that is the mean of per-sample losses:
+    then the ranks' share losses, weighted by their shares, sum to the loss of the
+    whole batch, and so do their gradients.  A sum over the batch, or a
+    normalisation by a batch total, gives another training run with no error, so
+    the first step of a run checks it, from the numbers rather than the scene's
+    code: every rank also computes the loss of the whole batch once, under
+    ``torch.no_grad()``, and when the sum of the weighted share losses differs from
+    it by more than `MEAN_RTOL` (relative) every rank raises `InputError` before
+    the optimizer steps, pointing to ``--parallel domain``.  A step whose losses
+    are NaN or Inf proves nothing; the check then runs again on the next step.
+
+    Cost: one forward pass of one batch per run on every rank, without backward
+    (for a loss through capped solves, one batch of forward solves), and one small
+    ``MPI_Allreduce``.  Its solves are left out of the solvers' `stats`, so the
+    iteration counts and solver times of the first epoch are those of training;
+    its wall time is in the first epoch's.  The loss must run under
+    ``torch.no_grad()``, as validation does.
+
+    A loss that draws from torch's random number generator (noise on the inputs,
+    dropout) cannot be checked: the ranks' shares and the whole batch draw other
+    numbers, so their losses differ whatever the loss is.  Nor could batch mode
+    reproduce the serial run for it: every rank starts from the same generator
+    state, so the ranks would draw the same noise for different samples.  Such a
+    loss is refused as well (the check sees torch's generator state change), with
+    ``--parallel domain`` as the alternative, where every rank draws what the serial
+    run draws.  The check saves and restores torch's generator state around the
+    whole-batch forward, so it changes no random number the run draws.  A loss
+    that draws from a generator of its own (a ``torch.Generator``, numpy) is not
+    seen as random; its whole-batch forward advances that generator, and its
+    losses will almost surely differ, which refuses it as not being a mean.
     """
 
     def __init__(self, mode: str | None = None):
@@ -58,6 +99,7 @@ class Parallel:
 
             self.comm = MPI.COMM_WORLD
             self.rank, self.size = self.comm.Get_rank(), self.comm.Get_size()
+        self._mean_checked = False
 
     @property
     def root(self) -> bool:
@@ -81,7 +123,9 @@ class Parallel:
     def step(self, scene, batch) -> float:
         """Zero the gradients, back-propagate the loss of `batch`, step; return the loss.
 
-        ``batch`` mode splits `batch` and sums the weighted gradients across ranks.
+        ``batch`` mode splits `batch` and sums the weighted gradients across ranks;
+        on the run's first step it checks that the loss is a mean of per-sample
+        losses (see the class notes) and raises `InputError` on every rank if not.
         """
         scene.optimizer.zero_grad()
         if self.mode != "batch":
@@ -90,18 +134,45 @@ class Parallel:
             scene.optimizer.step()
             return float(loss.detach())
         share, weight = self._share(batch)
-        error = None
+        check = not self._mean_checked
+        error = whole = None
         loss = 0.0
-        if len(share):
-            try:
+        try:
+            if check:
+                whole = _whole_batch_loss(scene, batch)
+            if len(share):
                 value = scene.loss(share) * weight
                 value.backward()
                 loss = float(value.detach())
-            except Exception as err:  # every rank must learn of it, or they wait forever
-                error = err
+        except Exception as err:  # every rank must learn of it, or they wait forever
+            error = err
         loss = self._sum_gradients(scene.optimizer, loss, error)
+        if check:
+            self._check_mean(loss, whole)
         scene.optimizer.step()
         return loss
+
+    def _check_mean(self, shares: float, whole: torch.Tensor) -> None:
+        """Refuse, on every rank, a loss whose split `shares` (summed) is not `whole`."""
+        from mpi4py import MPI
+
+        value = float(whole)
+        finite = bool(np.isfinite(value) and np.isfinite(shares))
+        rtol = max(MEAN_RTOL, 100 * torch.finfo(whole.dtype).eps)
+        scale = max(abs(value), abs(shares))
+        differ = finite and abs(shares - value) > rtol * scale
+        flags = np.array([not finite, differ], dtype=np.int8)  # any rank: every rank
+        self.comm.Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
+        if flags[1]:
+            raise InputError(
+                "--parallel batch needs a loss that is the mean of per-sample losses over "
+                f"the batch: the ranks' weighted share losses sum to {shares:.17g}, the "
+                f"whole batch's loss is {value:.17g} (relative difference "
+                f"{abs(shares - value) / scale:.1e}, more than {rtol:.0e}); a sum over the "
+                "batch or a normalisation by a batch total changes with the split. Use "
+                "--parallel domain instead."
+            )
+        self._mean_checked = not flags[0]  # NaN or Inf proves nothing: check the next step
 
     def _share(self, batch):
         if not isinstance(batch, torch.Tensor) or batch.ndim != 1:
@@ -208,20 +279,56 @@ class Parallel:
         return fwd, adj, float(total[2] / self.size)
 
 
+def _whole_batch_loss(scene, batch) -> torch.Tensor:
+    """The loss of the whole `batch` under ``no_grad``, leaving no trace in the run.
+
+    torch's random number generator is restored afterwards, and a loss that drew
+    from it is refused (`Parallel`); the solvers' `stats` are restored too, so the
+    check's solves are not counted as training work.
+    """
+    solvers = getattr(scene, "solvers", None) or []
+    stats = [copy.deepcopy(s.stats) for s in solvers]
+    try:
+        with torch.random.fork_rng(devices=[]):
+            state = torch.random.get_rng_state()
+            with torch.no_grad():
+                whole = scene.loss(batch)
+            random = not torch.equal(state, torch.random.get_rng_state())
+    finally:
+        for solver, saved in zip(solvers, stats, strict=True):
+            solver.stats = saved
+    if random:
+        raise InputError(
+            "--parallel batch cannot check or split a loss that draws from torch's random "
+            "number generator (noise, dropout): the ranks' shares would draw other numbers "
+            "than the serial run, every rank the same ones. Use --parallel domain instead."
+        )
+    return whole.detach()
+
+
+# the kinds of `prdp_petsc.errors` a rank raises again as they are (most specific first)
+_KINDS = (SolverError, NonFiniteError, StructureError, MeshError, InputError)
+
+
 def _describe(error) -> tuple | None:
-    """What other ranks need to raise `error` again: (type name, message, reason)."""
+    """What other ranks need to raise `error` again: (type name, message, reason, kind),
+    kind the name of the `prdp_petsc.errors` class `error` is an instance of, or None."""
     if error is None:
         return None
-    return type(error).__name__, str(error), getattr(error, "reason", None)
+    kind = next((k.__name__ for k in _KINDS if isinstance(error, k)), None)
+    return type(error).__name__, str(error), getattr(error, "reason", None), kind
 
 
 def _remote_error(rank: int, failure: tuple) -> Exception:
     """The error a rank raises when another rank failed: the same kind where it is
-    one the harness records (`SolverError`, ``ValueError``), else ``RuntimeError``."""
-    kind, message, reason = failure
+    one of `prdp_petsc.errors` (`SolverError` with its reason, `InputError` and its
+    kinds) or a ``ValueError``, else ``RuntimeError``."""
+    name, message, reason, kind = failure
     message = f"rank {rank}: {message}"
-    if reason is not None:
+    if kind == SolverError.__name__:
         return SolverError(message, reason=reason)
-    if kind == "ValueError":
+    if kind is not None:
+        return next(k for k in _KINDS if k.__name__ == kind)(message)
+    if name == "ValueError":
         return ValueError(message)
-    return RuntimeError(f"{kind} on {message}")
+    return RuntimeError(f"{name} on {message}")

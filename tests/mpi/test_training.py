@@ -6,13 +6,14 @@ round-off).  ``domain``: every solve is distributed; the run equals the serial o
 """
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from _mpi import COMM, all_ranks, same_on_all_ranks
 
-from prdp_petsc.core.results import SolverError
+from prdp_petsc.errors import InputError, SolverError
 from prdp_petsc.training.harness import build_scene, run
 from prdp_petsc.training.parallel import Parallel
 from prdp_petsc.training.scene import load_scene, shuffled_batches
@@ -85,6 +86,99 @@ def test_run_equals_serial_run(scene, mode, tmp_path):
     assert parallel["parallel"] == {"mode": mode, "ranks": COMM.Get_size()}
     assert all_ranks((out / "results.json").is_file())  # rank 0 wrote it
     assert same_on_all_ranks(_epochs(parallel, "val_metric"))
+
+
+class _Regression:
+    """Least squares of a linear model, 12 samples: per-sample losses (x_i·w - y_i)²
+    reduced over the batch by `reduce` ("mean", "sum", or "normalised": the sum over
+    Σ y_i² of the batch); `noise` adds torch's random numbers to the residuals."""
+
+    def __init__(self, reduce: str = "mean", noise: float = 0.0):
+        g = torch.Generator().manual_seed(0)
+        self.x = torch.randn(12, 3, generator=g, dtype=torch.float64)
+        self.y = torch.randn(12, generator=g, dtype=torch.float64)
+        self.weight = torch.nn.Parameter(torch.full((3,), 0.5, dtype=torch.float64))
+        self.optimizer = torch.optim.SGD([self.weight], lr=0.1)
+        self.reduce, self.noise, self.calls = reduce, noise, 0
+
+    def loss(self, idx):
+        self.calls += 1
+        residual = self.x[idx] @ self.weight - self.y[idx]
+        if self.noise:
+            residual = residual + self.noise * torch.randn(len(idx), dtype=torch.float64)
+        per_sample = residual**2
+        if self.reduce == "sum":
+            return per_sample.sum()
+        if self.reduce == "normalised":
+            return per_sample.sum() / (self.y[idx] ** 2).sum()
+        return per_sample.mean()
+
+
+def _step_error(ranks, scene, batch):
+    """The error `ranks.step` raised (None if none), so every rank reaches the asserts."""
+    try:
+        ranks.step(scene, batch)
+    except Exception as error:
+        return error
+    return None
+
+
+@pytest.mark.parametrize("reduce", ["sum", "normalised"])
+def test_batch_mode_refuses_a_loss_that_is_not_a_mean(reduce):
+    scene = _Regression(reduce)
+    start = scene.weight.detach().clone()
+    error = _step_error(Parallel("batch"), scene, torch.arange(7))
+    assert all_ranks(isinstance(error, InputError)), error
+    assert all_ranks("mean of per-sample losses" in str(error))
+    assert all_ranks("--parallel domain" in str(error))
+    assert all_ranks(torch.equal(scene.weight.detach(), start))  # refused before the step
+
+
+def test_batch_mode_checks_a_mean_loss_once_and_trains_as_serial():
+    serial, split = _Regression(), _Regression()
+    ranks, alone = Parallel("batch"), Parallel(None)
+    rng = torch.random.get_rng_state()
+    batches = [torch.tensor([3, 0, 7, 11, 5, 1, 9]), torch.tensor([2, 4, 10, 6, 8])]
+    got = [ranks.step(split, b) for b in batches]
+    expected = [alone.step(serial, b) for b in batches]
+    assert all_ranks(np.allclose(got, expected, rtol=1e-14, atol=0)), (got, expected)
+    assert all_ranks(torch.allclose(split.weight, serial.weight, rtol=1e-14, atol=0))
+    # the first step's whole-batch forward, then one share per step
+    assert all_ranks(split.calls == 3 and serial.calls == 2), split.calls
+    assert all_ranks(torch.equal(torch.random.get_rng_state(), rng))
+
+
+def test_batch_mode_refuses_a_loss_that_draws_random_numbers():
+    scene = _Regression(noise=1e-3)
+    torch.manual_seed(5)
+    rng = torch.random.get_rng_state()
+    error = _step_error(Parallel("batch"), scene, torch.arange(8))
+    assert all_ranks(isinstance(error, InputError)), error
+    assert all_ranks("random number generator" in str(error))
+    assert all_ranks("--parallel domain" in str(error))
+    # the check put torch's generator back, and the share's forward never ran
+    assert all_ranks(scene.calls == 1)
+    assert all_ranks(torch.equal(torch.random.get_rng_state(), rng))
+
+
+def test_run_stops_every_rank_for_a_sum_loss():
+    """heat1d with the sum of its per-sample losses: serial training runs it, batch
+    mode stops on every rank at the first step with the reason and what to do."""
+    heat1d = load_scene(DEMOS / "heat1d.py")
+
+    def build(config, seed):
+        scene = heat1d.build(config, seed)
+        mean = scene.loss
+        scene.loss = lambda idx: mean(idx) * len(idx)
+        return scene
+
+    module = SimpleNamespace(__name__="heat1d_sum", PRESETS=heat1d.PRESETS, build=build)
+    kwargs = {"preset": "quick", "epochs": 2, "seed": 1, "progress": False, "module": module}
+    result = run(DEMOS / "heat1d.py", "fixed:4", parallel="batch", **kwargs)
+    stopped = result["stopped"] or {}
+    assert all_ranks(stopped.get("reason") == "INVALID_INPUT" and stopped.get("epoch") == 0)
+    assert all_ranks("mean of per-sample losses" in stopped.get("message", ""))
+    assert all_ranks(result["epochs"] == [])
 
 
 class _Failing:
