@@ -24,18 +24,28 @@ one rank then aborts all of them (``MPI_Abort``) instead of leaving them waiting
 Exit status: 0 on success; 1 if a run stopped early (diverged solve, invalid
 input) or on an error, which prints one line (``--debug`` shows the traceback);
 2 for a usage error; 130 after Ctrl-C (the results written so far stay).
+
+Warning filters that name a category of this package, such as
+``python -W error::prdp_petsc.errors.UnusedOptionWarning -m prdp_petsc.cli ...`` or
+``PYTHONWARNINGS=error::prdp_petsc.errors.UnusedOptionWarning prdp-petsc ...`` (a
+misspelt PETSc option then stops the run), are applied when the command starts
+(`apply_warning_options`): Python reads them before its site-packages are
+importable, drops them and says ``Invalid -W option ignored``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import logging
+import re
 import sys
+import warnings
 
 # Nothing here imports PETSc (or torch) at module level: `init_petsc` must run first.
 
-__all__ = ["init_petsc", "main", "scene_main", "split_petsc_options"]
+__all__ = ["apply_warning_options", "init_petsc", "main", "scene_main", "split_petsc_options"]
 
 _TOOLS = {
     "bench": "prdp_petsc.reports.bench",
@@ -189,6 +199,62 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     return ours, petsc
 
 
+_ACTIONS = ("default", "always", "ignore", "module", "once", "error")
+
+
+def apply_warning_options(options: list[str] | None = None) -> None:
+    """Apply the warning filters of `options` whose category is one of prdp_petsc's.
+
+    Python reads ``-W`` and ``PYTHONWARNINGS`` (both end up in ``sys.warnoptions``,
+    the default of `options`) before its site-packages are on ``sys.path``, so it
+    cannot import ``prdp_petsc.errors`` for
+    ``-W error::prdp_petsc.errors.UnusedOptionWarning``: it prints ``Invalid -W
+    option ignored: invalid module name`` and drops the filter.  The command line
+    calls this first thing, so those filters apply after all.
+
+    Parameters
+    ----------
+    options : list of str, optional
+        Filters in Python's syntax, ``action:message:category:module:lineno``,
+        with Python's meaning (an abbreviated action, a message matched from its
+        start, a module matched whole, later filters first).  Filters whose
+        category is not in ``prdp_petsc`` are left to Python, which applied them.
+        They go before the filters Python set at start-up.
+    """
+    for option in sys.warnoptions if options is None else options:
+        fields = [field.strip() for field in option.split(":")]
+        fields += [""] * (5 - len(fields))
+        if len(fields) != 5 or not fields[2].startswith("prdp_petsc."):
+            continue
+        action, message, category, module, lineno = fields
+        try:
+            action = _warning_action(action)
+            owner, _, name = category.rpartition(".")
+            cls = getattr(importlib.import_module(owner), name, None)
+            if not (isinstance(cls, type) and issubclass(cls, Warning)):
+                raise ValueError(f"{category} is not a warning category")
+            line = int(lineno or 0)
+            if line < 0:
+                raise ValueError(f"invalid line number {lineno!r}")
+        except (ImportError, ValueError) as err:
+            print(f"prdp-petsc: invalid warning filter {option!r} ignored: {err}", file=sys.stderr)
+            continue
+        module = re.escape(module) + r"\Z" if module else ""
+        warnings.filterwarnings(action, re.escape(message), cls, module, line)
+
+
+def _warning_action(text: str) -> str:
+    """Python's reading of a ``-W`` action: empty is ``default``, a prefix names one."""
+    if not text:
+        return "default"
+    if text == "all":
+        return "always"
+    for action in _ACTIONS:
+        if action.startswith(text):
+            return action
+    raise ValueError(f"invalid action {text!r}")
+
+
 def init_petsc(options: list[str]) -> None:
     """Start PETSc with the command line's PETSc options, as petsc4py's demos do.
 
@@ -337,6 +403,7 @@ def _scene_command(parser: argparse.ArgumentParser, argv: list[str], scene_file=
 
 def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
     """Entry point of ``python demos/<scene>.py [run|compare] ...`` (default: compare)."""
+    apply_warning_options()
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("run", "compare", "-h", "--help"):
         argv.insert(0, "compare")
@@ -346,11 +413,10 @@ def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``prdp-petsc`` console script."""
+    apply_warning_options()
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if argv and argv[0] in _TOOLS:
-        import importlib
-
         debug = "--debug" in argv
         rest = [a for a in argv[1:] if a != "--debug"]
         return _guarded(lambda: importlib.import_module(_TOOLS[argv[0]]).main(rest), debug)
