@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from petsc4py import PETSc
 
-from ..core.results import SolveInfo, SolverError, reason_name
+from ..core.results import CallInfo, SolveInfo, SolverError, reason_name
 
 __all__ = ["Convergence", "Reason"]
 
@@ -110,7 +110,13 @@ class Convergence:
     def info(self, column: int = -1) -> SolveInfo:
         """`SolveInfo` of one column (default the last), as PETSc reports it."""
         norm = float(np.ldexp(float(self.norm[column]), int(self.exponents[column])))
+        if self.norm_type == _NONE:  # PETSc computes no norm: not computed, never 0
+            norm = None
         return SolveInfo(int(self.iterations[column]), reason_name(int(self.reason[column])), norm)
+
+    def call_info(self) -> CallInfo:
+        """`CallInfo` of every column, as `KSPSolver` reports a batch."""
+        return CallInfo("forward", tuple(self.info(i) for i in range(len(self.reason))))
 
     def failed(self) -> int | None:
         """Index of the first column that diverged (hitting max_it is no failure), or None."""
@@ -128,9 +134,10 @@ class Convergence:
             return
         info = self.info(column)
         where = f" (sample {column} of the batch)" if len(self.reason) > 1 else ""
+        norm = "not computed" if info.residual_norm is None else f"{info.residual_norm:.3e}"
         raise SolverError(
             f"unrolled forward solve diverged{where}: {info.reason} after {info.iterations} "
-            f"iterations ({what}, residual {info.residual_norm:.3e}); check the operator "
+            f"iterations ({what}, residual {norm}); check the operator "
             "and the PC, or lower the Richardson scale",
             reason=info.reason,
         )

@@ -102,6 +102,7 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
     else:
         x = _cg(A_t, B, inv_m, solver.max_it, conv)
     column = conv.failed()
+    solver.last_forward = conv.call_info()  # every sample, as implicit mode reports them
     solver.last = conv.info(-1 if column is None else column)
     conv.check(f"{ksp_type}/{pc_type}")
     x = _ldexp(x, exponents)

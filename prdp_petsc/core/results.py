@@ -51,17 +51,15 @@ class SolveInfo:
 
     @property
     def converged(self) -> bool:
-        """True when PETSc met a tolerance on a residual norm it computed.
+        """True when PETSc reports that a tolerance was met (``CONVERGED_RTOL``, ...).
 
         Hitting the cap is not convergence, and neither is ``CONVERGED_ITS``: PETSc
         reports it when it ran the requested iterations without a norm to test
-        (``preonly``, ``-ksp_norm_type none``, Richardson+SOR).
+        (``preonly``, ``-ksp_norm_type none``, Richardson+SOR).  Richardson with
+        multigrid tests the tolerance inside the PC: converged, with no residual
+        norm at the KSP (`residual_norm` None).
         """
-        return (
-            self.reason.startswith("CONVERGED")
-            and self.reason != "CONVERGED_ITS"
-            and self.residual_computed
-        )
+        return self.reason.startswith("CONVERGED") and self.reason != "CONVERGED_ITS"
 
 
 @dataclass(frozen=True)
