@@ -119,16 +119,29 @@ def test_residual_mlp_starts_as_identity():
     assert sum(p.numel() for p in net.parameters()) == 7 * 5 + 5 + 5 * 5 + 5 + 5 * 7 + 7
 
 
-def test_heat2d_mlp_emulator_learns_through_a_capped_solve(tmp_path):
-    """paper_mlp for 3 epochs at K = 8: the rollout error falls below the identity map's."""
+@pytest.mark.parametrize("seed", [0, 1])
+def test_heat2d_mlp_emulator_fits_the_step_but_not_the_rollout(seed):
+    """paper_mlp, 3 epochs at K = 8: the control experiment of heat2d's docstring.
+
+    The ResidualMLP learns the capped step it is trained on: the training loss falls
+    27-32x (0.0080-0.0111 -> 0.00029-0.00040 on seeds 0-3).  Its 10-step rollout
+    improves over the epochs (last/first 0.66, 0.70, 0.82, 0.51) but does not beat
+    the identity map it starts as: last/identity 0.86, 2.00, 1.15, 1.00 on seeds
+    0-3.  (This test used to claim < 0.9x the identity's error, true on seed 0
+    only.)
+    """
     module = load_scene(HEAT2D)
-    scene = build_scene(module, "paper_mlp", 0)
+    scene = build_scene(module, "paper_mlp", seed)
     n, width = scene.info["n"], module.PRESETS["paper_mlp"]["width"]  # a ResidualMLP's count
     assert scene.info["network_parameters"] == n * width + width + width**2 + width + width * n + n
     identity = scene.validate()  # the network starts as the identity
-    result = run(HEAT2D, "fixed:8", preset="paper_mlp", epochs=3, out=tmp_path, progress=False)
+    result = run(HEAT2D, "fixed:8", preset="paper_mlp", epochs=3, seed=seed, progress=False,
+                 module=module)  # fmt: skip
     errors = [e["val_metric"] for e in result["epochs"]]
-    assert errors[-1] < 0.9 * identity and errors[-1] < 0.8 * errors[0]
+    losses = [e["train_loss"] for e in result["epochs"]]
+    assert losses[-1] < 0.1 * losses[0]
+    assert errors[-1] < 0.9 * errors[0]
+    assert errors[-1] < 2.5 * identity  # the rollout stays near the identity's, no blow-up
     assert all(e["fwd_iterations"] == 8 * 64 * 6 for e in result["epochs"])  # K × samples
 
 

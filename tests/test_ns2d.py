@@ -15,8 +15,6 @@ from prdp_petsc.training.scene import load_scene
 SCENE = Path(__file__).resolve().parent.parent / "demos" / "ns2d.py"
 NS2D = load_scene(SCENE)
 DT, NU = 0.1, 1e-4
-#: 5-step x-velocity nMSE of the uncorrected coarse solver on the quick validation set
-UNCORRECTED_QUICK = 0.06114
 
 
 def state(n, count, seed=0):
@@ -178,10 +176,25 @@ def test_net_gradient_matches_finite_difference_with_capped_adjoint_converged():
         assert float((up - down) / (2 * eps)) == pytest.approx(float((g * d).sum()), rel=1e-5)
 
 
-@pytest.fixture(scope="module")
-def quick_runs():
-    return {
-        name: run(SCENE, schedule, preset=preset, progress=False)
+def uncorrected_metric(config: dict, seed: int) -> float:
+    """5-step x-velocity nMSE of the plain converged step, no network: what the scene's
+    validation metric must be for the untrained (zero) corrector."""
+    parts = NS2D.setup(config, seed)
+    hybrid, val = parts["hybrid"], parts["val"]
+    n, steps = config["n"], config["val_steps"]
+    s = val[0]
+    with converged(n) as solver, torch.no_grad():
+        for _ in range(steps):
+            s = hybrid.solve(s, solver)
+    pred, ref = s.reshape(len(s), 3, -1)[:, 0], val[steps].reshape(len(s), 3, -1)[:, 0]
+    return float((((pred - ref) ** 2).sum(-1) / (ref**2).sum(-1)).mean())
+
+
+@pytest.fixture(scope="module", params=[0, 2], ids=lambda s: f"seed{s}")
+def quick_runs(request):
+    seed = request.param
+    runs = {
+        name: run(SCENE, schedule, preset=preset, seed=seed, progress=False)
         for name, schedule, preset in (
             ("prdp", "prdp", "quick"),
             ("full", "fixed:64", "quick"),
@@ -189,16 +202,23 @@ def quick_runs():
             ("noise", "fixed:64", "quick_noise"),
         )
     }
+    return seed, runs
 
 
 def test_quick_preset_trains_and_counts_iterations(quick_runs):
-    full = quick_runs["full"]
+    """Measured on seeds 0-3 (uncorrected nMSE 0.061, 0.065, 0.049, 0.124): best epoch
+    over uncorrected 0.37, 0.45, 0.62, 0.48; last epoch 0.45, 0.49, 0.90, 0.48 (on seed
+    2 the 24 training windows overfit after epoch 2); detached 0.42, 0.49, 0.77, 0.48;
+    noise 0.40, 0.47, 0.77, 0.48.  Seeds 0 and 2 run here."""
+    seed, runs = quick_runs
+    full = runs["full"]
     config = NS2D.PRESETS["quick"]
     errors = [e["val_metric"] for e in full["epochs"]]
-    # the untrained corrector is the zero map: its metric is the plain coarse solver's
-    uncorrected = build_scene(NS2D, "quick", 0).validate()
-    assert uncorrected == pytest.approx(UNCORRECTED_QUICK, rel=1e-3)
-    assert errors[-1] < 0.7 * uncorrected  # the corrector learns
+    # the untrained corrector is the zero map: its metric is the plain converged step's
+    uncorrected = build_scene(NS2D, "quick", seed).validate()
+    assert uncorrected == pytest.approx(uncorrected_metric(config, seed), rel=1e-3)
+    assert min(errors) < 0.75 * uncorrected  # the corrector learns ...
+    assert errors[-1] < uncorrected  # ... and keeps some of it
     assert len(full["rollout"]) == config["rollout_steps"] >= 20
     # fixed mode: exactly K iterations per solve; 2 forward solves per sample, and an
     # adjoint only for the second (the first solve's input is data)
@@ -206,11 +226,12 @@ def test_quick_preset_trains_and_counts_iterations(quick_runs):
     assert full["info"]["unknowns"] == 3 * 12**2
     assert all(e["fwd_iterations"] == 64 * 2 * windows for e in full["epochs"])
     assert all(e["adj_iterations"] == 64 * windows for e in full["epochs"])
-    # without the physics gradient or with one-step noise training: no adjoint solves
+    # without the physics gradient or with one-step noise training: no adjoint solves,
+    # and the corrector still learns
     for name in ("detached", "noise"):
-        assert all(e["adj_iterations"] == 0 for e in quick_runs[name]["epochs"])
-        assert quick_runs[name]["epochs"][-1]["val_metric"] < errors[0]
-    ks = [e["k"] for e in quick_runs["prdp"]["epochs"]]
+        assert all(e["adj_iterations"] == 0 for e in runs[name]["epochs"])
+        assert runs[name]["epochs"][-1]["val_metric"] < uncorrected
+    ks = [e["k"] for e in runs["prdp"]["epochs"]]
     assert ks[0] == 8 and all(b - a in (0, 8) for a, b in zip(ks, ks[1:], strict=False))
 
 
