@@ -16,6 +16,7 @@ from .results import SolveInfo, SolverError, reason_name
 __all__ = ["SolveStep"]
 
 _MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
+_NO_NORM = PETSc.KSP.NormType.NONE
 
 
 class SolveStep:
@@ -80,12 +81,12 @@ class SolveStep:
     def _info(self, exponent: int) -> SolveInfo:
         """PETSc's outcome of the solve just run; no residual where PETSc computed none.
 
-        The KSPs record their residual history (reset at every solve), so an empty
-        history means no norm was computed (``preonly``, ``-ksp_norm_type none``,
+        The KSPs record their residual history (reset at every solve), so norm type
+        none or an empty history means no norm was computed (``preonly``, ``-ksp_norm_type none``,
         Richardson+SOR), and ``KSPGetResidualNorm``'s 0 means nothing.
         """
         ksp = self.ksp
-        computed = ksp.getConvergenceHistory().size > 0
+        computed = ksp.getNormType() != _NO_NORM and ksp.getConvergenceHistory().size > 0
         return SolveInfo(
             ksp.getIterationNumber(),
             reason_name(ksp.getConvergedReason()),
