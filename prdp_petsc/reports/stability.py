@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .stability_rows import _centroids, _poisson, evaluate, taylor_rate, to_markdown
+from .stability_rows import centroids, evaluate, poisson_problem, taylor_rate, to_markdown
 
 __all__ = ["CASES", "main", "run_cases", "taylor_rate", "to_markdown"]
 
@@ -75,8 +75,8 @@ def case_contrast(quick: bool = False) -> list[dict]:
     from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
-    A, b, _ = _poisson(mesh)
-    cx, cy = _centroids(mesh)
+    A, b, _ = poisson_problem(mesh)
+    cx, cy = centroids(mesh)
     discs = ((0.25, 0.25), (0.25, 0.75), (0.75, 0.25))
     inside = np.zeros(cx.size, dtype=bool)
     for x0, y0 in discs:
@@ -112,7 +112,7 @@ def case_anisotropy(quick: bool = False) -> list[dict]:
                 + du[1] * (D[1, 0] * dv[0] + D[1, 1] * dv[1])
             )
 
-        A, b, _ = _poisson(mesh, form=form)
+        A, b, _ = poisson_problem(mesh, form=form)
         theta = np.ones(mesh.t.shape[1])
         for options in (GAMG, "-ksp_type cg -pc_type icc"):
             rows.append(evaluate("anisotropy", f"ratio {ratio:.0e}, 30°", A, theta, b, options))
@@ -124,7 +124,7 @@ def case_neumann(quick: bool = False) -> list[dict]:
     from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
-    A, _, basis = _poisson(mesh, dirichlet=False)
+    A, _, basis = poisson_problem(mesh, dirichlet=False)
     x, y = mesh.p
     f = np.cos(np.pi * x) * np.cos(np.pi * y) + 0.3 * x  # a load with non-zero mean
     from skfem import LinearForm
@@ -173,7 +173,7 @@ def case_sliver(quick: bool = False) -> list[dict]:
     from ..fem.meshes import load_mesh, min_angle_degrees
 
     mesh = load_mesh("sliver", 0 if quick else 2)
-    A, b, _ = _poisson(mesh)
+    A, b, _ = poisson_problem(mesh)
     theta = np.ones(mesh.t.shape[1])
     angle = f"min angle {min_angle_degrees(mesh):.1f}°"
     return [
@@ -186,7 +186,7 @@ def _lshape_poisson(quick: bool):
     from ..fem.meshes import load_mesh
 
     mesh = load_mesh("lshape", 0 if quick else 1)
-    A, b, _ = _poisson(mesh)
+    A, b, _ = poisson_problem(mesh)
     return A, b, np.ones(mesh.t.shape[1])
 
 

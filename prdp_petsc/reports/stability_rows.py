@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-__all__ = ["CONVERGED", "evaluate", "taylor_rate", "to_markdown"]
+__all__ = ["CONVERGED", "centroids", "evaluate", "poisson_problem", "taylor_rate", "to_markdown"]
 
 logger = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ def taylor_rate(J, theta: np.ndarray, dJ: np.ndarray, h: np.ndarray, *, points: 
     return float(np.polyfit(np.log(eps[keep]), np.log(rem[keep]), 1)[0]), info
 
 
-def _poisson(mesh, *, dirichlet: bool = True, form=None, coefficient_basis=None):
+def poisson_problem(mesh, *, dirichlet: bool = True, form=None, coefficient_basis=None):
     """(A(θ) on the unknowns, load vector of f = 1, basis) for −∇·(κ∇u) = 1."""
     from skfem import Basis, ElementTriP0, ElementTriP1, LinearForm
 
@@ -72,7 +72,7 @@ def _poisson(mesh, *, dirichlet: bool = True, form=None, coefficient_basis=None)
     return d.A_II, b[d.interior], basis
 
 
-def _centroids(mesh) -> np.ndarray:
+def centroids(mesh) -> np.ndarray:
     return mesh.p[:, mesh.t].mean(axis=1)
 
 
