@@ -200,8 +200,8 @@ def test_bicgstab_divergence_after_convergence_returns_the_best_iterate():
     from prdp_petsc.fem.meshes import load_mesh
 
     mesh = load_mesh("lshape")
-    A, b, _ = stability._poisson(mesh)
-    cx, cy = stability._centroids(mesh)
+    A, b, _ = stability.poisson_problem(mesh)
+    cx, cy = stability.centroids(mesh)
     theta = np.where((cx < 0.3) & (cy < 0.3), 1e8, 1.0)
     M = A.matrix(theta)
     x_ref = spl.spsolve(M.tocsc(), b)
