@@ -273,16 +273,6 @@ class KSPSolver:
         lambda self: self.config.adjoint_prefix, doc="Options prefix of the adjoint KSP."
     )
     adjoint = property(lambda self: self.config.adjoint, doc="The `AdjointSettings`.")
-    rtol = property(
-        lambda self: self.config.rtol,
-        lambda self, value: (self.config.set_tolerances(rtol=value), self._apply_tolerances()),
-        doc="Forward relative tolerance (0: off); a new value applies to the next solve.",
-    )
-    atol = property(
-        lambda self: self.config.atol,
-        lambda self, value: (self.config.set_tolerances(atol=value), self._apply_tolerances()),
-        doc="Forward absolute tolerance (0: off).",
-    )
     divtol = property(
         lambda self: self.config.divtol, doc="Divergence tolerance (None: PETSc's, 1e5)."
     )
@@ -295,6 +285,26 @@ class KSPSolver:
     @max_it.setter
     def max_it(self, value: int) -> None:
         self.config.set_tolerances(max_it=value)
+        self._apply_tolerances()
+
+    @property
+    def rtol(self) -> float:
+        """Forward relative tolerance (0: off); a new value applies to the next solve."""
+        return self.config.rtol
+
+    @rtol.setter
+    def rtol(self, value: float) -> None:
+        self.config.set_tolerances(rtol=value)
+        self._apply_tolerances()
+
+    @property
+    def atol(self) -> float:
+        """Forward absolute tolerance (0: off)."""
+        return self.config.atol
+
+    @atol.setter
+    def atol(self, value: float) -> None:
+        self.config.set_tolerances(atol=value)
         self._apply_tolerances()
 
     @property
