@@ -32,7 +32,14 @@ from .compare import ACCURACY_RATIO, compare, format_table, stopped_runs
 from .harness import write_json
 from .parallel import Parallel
 
-__all__ = ["compare_seeds", "format_seeds", "parse_seeds", "plot_seeds", "ratio_statistics"]
+__all__ = [
+    "compare_seeds",
+    "format_seeds",
+    "parse_seeds",
+    "plot_seeds",
+    "ratio_statistics",
+    "seeds_figure",
+]
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -137,39 +144,64 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
     return result
 
 
-def plot_seeds(result: dict, out) -> str | None:
-    """``seeds.png``: per seed, the PRDP / full and twin / full error ratios (log
-    scale, the 5 % line) beside the wall-time saving; None without any ratio."""
+def seeds_figure(result: dict):
+    """The figure of `plot_seeds`, unsaved (a matplotlib Figure); None without any ratio.
+
+    Left, per seed, the PRDP / full and twin / full error ratios on a log scale (where
+    "10 % worse" and "10 % better" lie equally far from 1), with the lines at 1 and
+    at the per-seed test; right, the wall time PRDP saved.  Limits, ticks and styles
+    follow `prdp_petsc.training.plots`: limits from the points and lines drawn, plain
+    tick labels, PRDP and the twin marked as in `compare`'s plots.
+    """
     rows = [r for r in result["per_seed"] if "prdp_ratio" in r]
     if not rows:
         return None
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import run_styles, scale_axis
 
+    style = run_styles(["prdp", "twin:1"], 1)
+    prdp, twin = style["prdp"], style["twin:1"]
     x = list(range(len(rows)))
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))
-    left.axhline(1.0, color="0.6", lw=0.8)
-    left.axhline(result["accuracy"], color="C3", lw=0.8, ls="--", label="5 % test")
-    left.plot(x, [r["prdp_ratio"] for r in rows], "o", color="C3", label="PRDP / full")
+    accuracy = result["accuracy"]
+    fig = Figure(figsize=(10, 4.2), dpi=120, layout="constrained")
+    left, right = fig.subplots(1, 2)
+    left.axhline(1.0, color="0.45", lw=0.9, label="equal error (ratio 1)")
+    left.axhline(accuracy, color="C3", lw=0.9, ls="--", label=f"per-seed test (ratio {accuracy})")
+    ratios = [r["prdp_ratio"] for r in rows]
+    left.plot(x, ratios, ls="none", marker=prdp["marker"], color=prdp["color"], ms=7,
+              label="PRDP / full")  # fmt: skip
     twins = [i for i in x if rows[i].get("twin_ratio")]
+    twin_ratios = [rows[i]["twin_ratio"] for i in twins]
     if twins:
-        ratios = [rows[i]["twin_ratio"] for i in twins]
-        left.plot(twins, ratios, "s", mfc="none", color="C0", label="twin / full")
-    left.set_yscale("log")
-    left.set_ylabel("final validation error ratio")
-    right.bar(x, [100 * r["wall_time_saved"] for r in rows], color="C2", width=0.6)
+        left.plot(twins, twin_ratios, ls="none", marker=twin["marker"], color=twin["color"],
+                  mfc="none", mew=1.5, ms=7, label="twin / full (second seed)")  # fmt: skip
+    drawn = [*ratios, *twin_ratios, 1.0, accuracy]
+    scale_axis(left, "y", [drawn], log=min(drawn) > 0)
+    left.set_ylabel("final validation error ratio to full fidelity")
+    saved = [100 * r["wall_time_saved"] for r in rows]
+    right.bar(x, saved, color="C2", width=0.6)
+    right.axhline(0.0, color="0.45", lw=0.9)
+    scale_axis(right, "y", [saved, [0.0]], log=False)
+    if min(saved) >= 0:  # bars stand on the axis
+        right.set_ylim(bottom=0)
     right.set_ylabel("wall time saved by PRDP [%]")
     for ax in (left, right):
         ax.set_xticks(x, [str(r["seed"]) for r in rows])
+        ax.set_xlim(-0.6, len(rows) - 0.4)
         ax.set_xlabel("seed")
         ax.grid(alpha=0.3)
-    left.legend(fontsize=8)
+    fig.legend(loc="outside lower center", ncols=4, fontsize=8, frameon=False)
     fig.suptitle(f"{result['scene']}: PRDP against full fidelity, seed by seed")
-    fig.tight_layout()
-    fig.savefig(Path(out) / "seeds.png", dpi=120)
-    plt.close(fig)
+    return fig
+
+
+def plot_seeds(result: dict, out) -> str | None:
+    """Write ``seeds.png`` (`seeds_figure`) into `out`; its name, or None without any ratio."""
+    fig = seeds_figure(result)
+    if fig is None:
+        return None
+    fig.savefig(Path(out) / "seeds.png")
     return "seeds.png"
 
 
