@@ -118,7 +118,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         loss=loss,
         validate=validate,
         rollout=rollout,
-        probe=lambda: (A, val_traj[1].numpy()),
+        probe=lambda: (A, val_traj[1].numpy(), None),
         rtol_full=1e-6,
         epochs=config["epochs"],
         # the paper's settings, plus restart_window: at K = 1-2 the rollout blows up

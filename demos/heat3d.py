@@ -11,7 +11,7 @@ boundary.
 Solver in the loop: damped Jacobi (``richardson`` + ``jacobi``, scale 0.8) in fixed
 mode, K = ``max_it`` iterations from the input ûⁿ⁺¹ as initial guess (see heat2d),
 implicit (adjoint) gradients; the same
-scene as ``heat2d`` (built by its `build_emulator`), so
+scene as ``heat2d`` (both built by `prdp_petsc.training.emulators.heat_emulator_scene`), so
 ``-heat3d_ksp_type cg -heat3d_pc_type icc`` and ``compare --routes cg/icc`` work
 the same way.  The mesh is sized so that the solve dominates training: at K_full
 the solver takes most of each epoch's wall time (`solver %` in compare's table), so
@@ -39,22 +39,81 @@ Run ``python demos/heat3d.py compare --preset paper --routes cg/icc --out result
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import prdp_petsc as pp
-from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.emulators import heat_emulator_scene
 
-_HEAT2D = load_scene(Path(__file__).with_name("heat2d.py"))
-
-# heat2d's presets on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`)
+# heat2d's settings on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`)
 PRESETS = {
-    "quick": {**_HEAT2D.PRESETS["quick"], "mesh": "box3d", "dt": 1e-2, "k_init": 16, "k_step": 16},
-    "paper": {**_HEAT2D.PRESETS["paper"], "mesh": "box3d", "dt": 3e-3, "rollout_steps": 20},
+    "quick": {
+        "mesh": "box3d",
+        "refine": 0,
+        "dt": 1e-2,
+        "net": "modal",
+        "modes": 16,
+        "width": 128,
+        "depth": 2,
+        "warm_start": True,
+        "spans": 4,
+        "n_train": 8,
+        "n_val": 4,
+        "val_steps": 10,
+        "rollout_steps": 20,
+        "epochs": 8,
+        "batch": 8,
+        "lr": 3e-2,
+        "gamma": 0.9,
+        "k_init": 16,
+        "k_step": 16,
+    },
+    "paper": {
+        "mesh": "box3d",
+        "refine": 1,
+        "dt": 3e-3,
+        "net": "modal",
+        "modes": 128,
+        "width": 128,
+        "depth": 2,
+        "warm_start": True,
+        "spans": 6,
+        "n_train": 32,
+        "n_val": 8,
+        "val_steps": 10,
+        "rollout_steps": 20,
+        "epochs": 20,
+        "batch": 16,
+        "lr": 2e-2,
+        "gamma": 0.9,
+        "k_init": 10,
+        "k_step": 20,
+    },
 }
 
 
 def build(config: dict, seed: int) -> pp.Scene:
-    return _HEAT2D.build_emulator(config, seed, prefix="heat3d_")
+    mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
+    return heat_emulator_scene(
+        mesh,
+        seed,
+        prefix="heat3d_",
+        dt=config["dt"],
+        net=config["net"],
+        modes=config["modes"],
+        width=config["width"],
+        depth=config["depth"],
+        warm_start=config["warm_start"],
+        spans=config["spans"],
+        n_train=config["n_train"],
+        n_val=config["n_val"],
+        val_steps=config["val_steps"],
+        rollout_steps=config["rollout_steps"],
+        epochs=config["epochs"],
+        batch=config["batch"],
+        lr=config["lr"],
+        gamma=config["gamma"],
+        k_init=config["k_init"],
+        k_step=config["k_step"],
+        info=config,
+    )
 
 
 if __name__ == "__main__":

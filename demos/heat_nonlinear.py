@@ -201,7 +201,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         """The first Newton system of a held-out step: J(uⁿ) δ = −R(uⁿ)."""
         u = val_traj[0, 0].numpy()
         params = (heat.expand(u, zero_g), zero_f, zero_g, alpha)
-        return heat.jacobian(u, *params), -heat.residual(u, *params)
+        return heat.jacobian(u, *params), -heat.residual(u, *params), None
 
     return pp.Scene(
         solvers=[solver],

@@ -89,6 +89,7 @@ _BASE = {
     "solver_grad": True,
     "noise": 0.0,
     "adjoint_rtol": None,
+    "val_solver": "same",
     "train_steps": 5,
     "val_steps": 5,
     "rollout_steps": 20,
@@ -233,7 +234,7 @@ def setup(config: dict, seed: int) -> dict:
     solver = pp.KSPSolver(
         GMRES, prefix="ns2d_", max_it=config["k_init"], adjoint=adjoint, nullspace=mac.nullspace(n)
     )
-    val_solver = config.get("val_solver", "same")
+    val_solver = config["val_solver"]
     if val_solver not in ("same", "schur"):
         raise ValueError(f'val_solver must be "same" or "schur", got {val_solver!r}')
     if val_solver == "schur":  # the converged step, reached sooner
@@ -306,7 +307,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     def probe():
         s = val[1, 0].numpy()
         theta = mac.picard_parameters(s, mac.wind_matrix(n))
-        return hybrid.A.matrix(theta), s * hybrid.scale.numpy()
+        return hybrid.A.matrix(theta), s * hybrid.scale.numpy(), None
 
     return pp.Scene(
         solvers=[solver],

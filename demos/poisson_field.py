@@ -152,7 +152,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     )
     optimizer = torch.optim.Adam([theta], lr=config["lr"])
     beta = config["beta"]
-    mode = config.get("mode", "implicit")
+    mode = config["mode"]
 
     def loss(_):
         """``steps`` Adam steps; the last one's loss is returned for the harness to step."""
@@ -176,7 +176,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         batches=lambda epoch, generator: [None],
         loss=loss,
         validate=validate,
-        probe=lambda: (bc.A_II.matrix(kappa_true), f_np[bc.interior]),
+        probe=lambda: (bc.A_II.matrix(kappa_true), f_np[bc.interior], None),
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={

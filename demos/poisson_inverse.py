@@ -55,7 +55,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         batches=lambda epoch, generator: [None],  # one gradient step per "epoch"
         loss=loss,
         validate=lambda: abs(theta.item() - THETA_REF) / THETA_REF,
-        probe=lambda: (A, THETA_REF * shape),
+        probe=lambda: (A, THETA_REF * shape, None),
         rtol_full=1e-6,
         epochs=config["steps"],
         prdp={

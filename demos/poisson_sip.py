@@ -9,11 +9,12 @@ variant, where P's singular values spread over many more decades.
 
 Learning problem (Holl et al., "Scale-invariant learning by physics inversion"): a
 network f(y*; φ) maps an observed solution y* = P(x_true) to the source x, for random
-smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``).  f is a learnable
-sparse linear map on A's pattern (`SparseLinear`, one value per entry, starting at
-zero; input divided and output multiplied by fixed data scales): the class of the
-inverse physics ``M⁻¹ A`` it has to learn, up to mass lumping.  (A linear MeshNet was
-tried first and barely trained in a few epochs.)  ``method`` selects the
+smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``:
+`prdp_petsc.training.emulators.gaussian_bumps`).  f is a learnable sparse linear map
+on A's pattern (`SparseLinear`, one value per entry, starting at zero; input divided
+and output multiplied by fixed data scales): the class of the inverse physics
+``M⁻¹ A`` it has to learn, up to mass lumping.  (A linear MeshNet was tried first and
+barely trained in a few epochs.)  ``method`` selects the
 training rule:
 
 ``dp_adam``
@@ -72,8 +73,6 @@ invisible in y, which is why the x-space metric separates the methods.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -82,7 +81,8 @@ import torch
 from skfem.models.poisson import mass
 
 import prdp_petsc as pp
-from prdp_petsc.training.scene import load_scene, shuffled_batches
+from prdp_petsc.training.emulators import gaussian_bumps
+from prdp_petsc.training.scene import shuffled_batches
 
 METHODS = ("dp_adam", "dp_sgd", "sip")
 
@@ -114,12 +114,6 @@ PRESETS = {
 }
 
 PREFIX = "sip_"
-
-
-def bumps(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Random smooth sources: the Gaussian-bump fields of ``heat2d``."""
-    heat2d = load_scene(Path(__file__).with_name("heat2d.py"))
-    return heat2d.bumps(points, count, rng)
 
 
 def physics(refine: int = 0, contrast: float = 1.0):
@@ -162,7 +156,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     n = A.shape[0]
     rng = np.random.default_rng(seed)
     n_train = config["n_train"]
-    x_true = bumps(points, n_train + config["n_val"], rng)
+    x_true = gaussian_bumps(points, n_train + config["n_val"], rng)
     lu = spla.splu(A.tocsc())
     y_star = torch.from_numpy(lu.solve(M @ x_true.T).T)
     x_true = torch.from_numpy(x_true)
@@ -217,7 +211,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         loss=loss,
         validate=validate,
         rollout=rollout,
-        probe=lambda: (A, (M @ x_true[val].numpy().T).T),
+        probe=lambda: (A, (M @ x_true[val].numpy().T).T, None),
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={

@@ -21,6 +21,7 @@ import skfem
 
 import prdp_petsc as pp
 from prdp_petsc.fem import mac
+from prdp_petsc.training.emulators import heat_step_system
 from prdp_petsc.training.harness import find_k_full, run
 from prdp_petsc.training.modal import laplacian_modes
 from prdp_petsc.training.scene import load_scene
@@ -84,6 +85,69 @@ def test_scenes_are_discovered():
     assert not is_scene(Path(__file__))
 
 
+def settings_read(source: str) -> tuple[set, list, list]:
+    """What a scene's source reads from ``config``, anywhere in the file (helpers too).
+
+    Returns the keys of ``config["key"]`` and ``config.get("key")``, the lines of the
+    ``config.get`` calls, and the lines of reads whose key is not a string literal
+    (which no parser can check).
+    """
+    keys, gets, dynamic = set(), [], []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Subscript) and _is_config(node.value):
+            key = node.slice
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "get"
+            and _is_config(node.func.value)
+        ):
+            gets.append(node.lineno)
+            key = node.args[0] if node.args else None
+        else:
+            continue
+        if isinstance(key, ast.Constant) and isinstance(key.value, str):
+            keys.add(key.value)
+        else:
+            dynamic.append(node.lineno)
+    return keys, gets, dynamic
+
+
+def _is_config(node: ast.AST) -> bool:
+    return isinstance(node, ast.Name) and node.id == "config"
+
+
+def test_settings_read_finds_subscripts_and_gets_in_helpers():
+    source = """
+def helper(config):
+    return config["a"] + config.get("b", 1)
+
+def build(config, seed):
+    other = {"z": 0}
+    return helper(config) * config["c"] * other["z"] * config[seed]
+"""
+    keys, gets, dynamic = settings_read(source)
+    assert keys == {"a", "b", "c"}
+    assert gets == [3] and dynamic == [7]
+
+
+@pytest.mark.parametrize("path", SCENES, ids=lambda p: p.stem)
+def test_every_setting_a_scene_reads_is_in_every_preset(path):
+    """``--set key=value`` reaches every setting, and results record it (no hidden defaults)."""
+    keys, gets, dynamic = settings_read(path.read_text(encoding="utf-8"))
+    assert not gets, f"{path.name}:{gets}: read config[key] with the key in every preset"
+    assert not dynamic, f"{path.name}:{dynamic}: read settings by literal keys"
+    presets = load_scene(path).PRESETS
+    assert keys, f"{path.name}: no config[key] found"  # the parser sees the scene's settings
+    for name, preset in presets.items():
+        missing = sorted(keys - set(preset))
+        assert not missing, f"{path.name}: preset {name!r} lacks {missing}"
+        unread = sorted(set(preset) - keys)
+        assert not unread, (
+            f"{path.name}: preset {name!r} sets {unread}, which the scene never reads"
+        )
+
+
 @pytest.mark.parametrize("path", SCENES, ids=lambda p: p.stem)
 def test_scene_is_documented(path):
     module = load_scene(path)
@@ -135,10 +199,9 @@ def _modal_emulator(t, *, error_ratio, multiplier_gap):
     assert t.errors[-1] < error_ratio * t.untrained
     # the learned multiplier of the slowest mode approaches the exact implicit-Euler
     # decay 1 / (1 + Δt λ₁) from its start at 1 (a capped solve leaves some bias)
-    heat2d = load_scene(DEMOS / "heat2d.py")
     mesh = pp.load_mesh(t.config["mesh"], refine=t.config["refine"])
     dt = t.config["dt"]
-    A, B, _, _ = heat2d.heat_step_system(mesh, dt)
+    A, B, _, _ = heat_step_system(mesh, dt)
     lam, _ = laplacian_modes((A - B) / dt, B, 3)
     (weights,) = t.scene.optimizer.param_groups[0]["params"]
     assert weights.shape == (t.config["modes"],)
@@ -219,7 +282,8 @@ def check_ns2d(t):
     # without PC needs K_full = 72, 80, 76, 75 iterations on seeds 0-3.
     assert 60 <= t.k_full <= 100
     n = t.config["n"]
-    A, b = t.scene.probe()
+    A, b, x0 = t.scene.probe()
+    assert x0 is None  # GMRES from zero
     with pp.KSPSolver(t.module.GMRES, prefix="t_demo_ns_", max_it=50_000, rtol=1e-12,
                       nullspace=mac.nullspace(n)) as solver:  # fmt: skip
         solver.set_operator(A)

@@ -145,6 +145,17 @@ def test_heat2d_mlp_emulator_fits_the_step_but_not_the_rollout(seed):
     assert all(e["fwd_iterations"] == 8 * 64 * 6 for e in result["epochs"])  # K × samples
 
 
+def test_heat2d_network_is_a_setting_of_every_preset():
+    """``--set net=mlp`` on quick: a ResidualMLP of the preset's width and depth."""
+    module = load_scene(HEAT2D)
+    scene = build_scene(module, "quick net=mlp", 0)
+    n, width = scene.info["n"], module.PRESETS["quick"]["width"]
+    assert (scene.info["net"], module.PRESETS["quick"]["depth"]) == ("mlp", 2)
+    assert scene.info["network_parameters"] == n * width + width + width**2 + width + width * n + n
+    modal = build_scene(module, "quick", 0)
+    assert modal.info["network_parameters"] == module.PRESETS["quick"]["modes"] == 16
+
+
 def test_heat2d_refuses_an_unknown_network():
     module = load_scene(HEAT2D)
     module.PRESETS["bad"] = {**module.PRESETS["quick"], "net": "transformer"}

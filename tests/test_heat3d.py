@@ -8,6 +8,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc.training.emulators import bubble, gaussian_bumps, heat_step_system
 from prdp_petsc.training.harness import build_scene, find_k_full, run
 from prdp_petsc.training.modal import ModalNet, laplacian_modes
 from prdp_petsc.training.rollout import rollout_errors
@@ -15,14 +16,13 @@ from prdp_petsc.training.scene import load_scene
 
 DEMOS = Path(__file__).resolve().parent.parent / "demos"
 HEAT3D = load_scene(DEMOS / "heat3d.py")
-HEAT2D = load_scene(DEMOS / "heat2d.py")
 DT = HEAT3D.PRESETS["quick"]["dt"]
 
 
 @pytest.fixture(scope="module")
 def system():
     mesh = pp.load_mesh("box3d", refine=0)
-    A, B, interior, basis = HEAT2D.heat_step_system(mesh, DT)
+    A, B, interior, basis = heat_step_system(mesh, DT)
     return mesh, A, B, interior
 
 
@@ -40,7 +40,7 @@ def test_jacobi_at_k_full_matches_a_direct_solve(system):
     _, A, B, interior = system
     rng = np.random.default_rng(0)
     mesh = pp.load_mesh("box3d", refine=0)
-    u0 = HEAT2D.bumps(mesh.p[:, interior], 2, rng) * HEAT2D.bubble(A, B, DT)
+    u0 = gaussian_bumps(mesh.p[:, interior], 2, rng) * bubble(A, B, DT)
     exact = spla.spsolve(A.tocsc(), B @ u0[0])
     scene = build_scene(HEAT3D, "quick", 0)
     k_full = find_k_full(scene)
@@ -76,7 +76,7 @@ def test_energy_decays_at_the_rate_of_the_first_mode(system):
 def test_modal_net_starts_as_projection_and_represents_the_step(system):
     mesh, A, B, interior = system
     rng = np.random.default_rng(2)
-    u0 = HEAT2D.bumps(mesh.p[:, interior], 6, rng) * HEAT2D.bubble(A, B, DT)
+    u0 = gaussian_bumps(mesh.p[:, interior], 6, rng) * bubble(A, B, DT)
     net = ModalNet((A - B) / DT, B, 16)
     phi = net.phi.numpy()
     u = torch.from_numpy(u0)

@@ -131,7 +131,7 @@ def test_k_full_from_a_guess_is_petscs_count_to_rtol_times_norm_b(options):
             solvers=[pp.KSPSolver(options, max_it=1)], probe=lambda: probe, rtol_full=rtol
         )
 
-    cold, warm = find_k_full(scene(A, b)), find_k_full(scene(A, b, x0))
+    cold, warm = find_k_full(scene(A, b, None)), find_k_full(scene(A, b, x0))
     mat = PETSc.Mat().createAIJ(A.shape, csr=(A.indptr, A.indices, A.data), comm=PETSc.COMM_SELF)
     counts = []
     for guess in (np.zeros(100), x0):
@@ -149,3 +149,17 @@ def test_k_full_from_a_guess_is_petscs_count_to_rtol_times_norm_b(options):
     mat.destroy()
     assert (cold, warm) == tuple(counts)
     assert warm < cold
+
+
+def test_k_full_refuses_a_probe_without_its_guess():
+    """``probe() -> (A, b)`` is refused: the shape is ``(A, b, x0)``, x0 None from zero."""
+    from types import SimpleNamespace
+
+    from prdp_petsc.training.harness import find_k_full
+
+    A = fd_poisson(3).tocsr()
+    scene = SimpleNamespace(
+        solvers=[pp.KSPSolver(CG, max_it=1)], probe=lambda: (A, np.ones(9)), rtol_full=1e-6
+    )
+    with pytest.raises(TypeError, match=r"\(A, b, x0\), with x0=None .* got a 2-tuple"):
+        find_k_full(scene)

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc.training.emulators import gaussian_bumps
 from prdp_petsc.training.harness import run
 from prdp_petsc.training.scene import load_scene
 
@@ -26,7 +27,7 @@ SCENE = Path(__file__).resolve().parent.parent / "demos" / "poisson_sip.py"
 def setup():
     sip = load_scene(SCENE)
     A, M, points = sip.physics(refine=0, contrast=1e3)
-    x_true = torch.from_numpy(sip.bumps(points, 3, np.random.default_rng(1)))
+    x_true = torch.from_numpy(gaussian_bumps(points, 3, np.random.default_rng(1)))
     solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, prefix="sip_test_",
                           max_it=20_000, rtol=1e-13)  # fmt: skip
     yield sip, A, M, x_true, solver

@@ -8,7 +8,11 @@ A scene file (the shipped ones live in ``demos/``) defines
     reference settings.
 ``build(config: dict, seed: int) -> Scene``
     builds the physics, data, network, loss and validation metric for one preset,
-    and nothing the scene does not need.
+    and nothing the scene does not need.  It reads every setting as
+    ``config["key"]``, and every key it reads is in every preset, with its value
+    (no ``config.get(key, default)``): so ``--set key=value`` reaches it on any
+    preset, and the results record it.  Code that several scenes share lives in
+    the library (`prdp_petsc.training.emulators`), not in a scene another imports.
 
 A preset name may carry changed settings, ``"paper modes=32 k_step=10"``
 (`preset_config`; the command line's ``--set modes=32``): each value takes the type
@@ -67,11 +71,13 @@ class Scene:
         Scalar training loss of one batch (through the solvers).
     validate : callable ``() -> float``
         Validation metric, lower is better; this is what PRDP watches.
-    probe : callable ``() -> (A, b)`` or ``() -> (A, b, x0)``
-        A representative operator and right-hand side (numpy); the harness solves
-        it to tolerance `rtol_full` to find K_full.  A scene whose solves start
-        from a guess (``solve(..., x0=)``) returns it as ``x0``: K_full then counts
-        the iterations from x0 to PETSc's default test, ``‖r‖ ≤ rtol_full ‖b‖``.
+    probe : callable ``() -> (A, b, x0)``
+        A representative operator and right-hand side(s) (numpy); the harness
+        solves it to tolerance `rtol_full` to find K_full.  ``x0`` is None where the
+        scene's solves start from zero; a scene whose solves start from a guess
+        (``solve(..., x0=)``) returns that guess: K_full then counts the iterations
+        from x0 to PETSc's default test, ``‖r‖ ≤ rtol_full ‖b‖``.  A 2-tuple
+        ``(A, b)`` is refused (TypeError from `~.harness.find_k_full`).
     rtol_full : float
         Relative tolerance that defines a "converged" solve for this scene.
     epochs : int
@@ -150,9 +156,9 @@ def preset_config(module: ModuleType, preset: str) -> dict:
     A value takes the type the scene's presets give that key (``true``/``false`` for
     a bool, an integer for an int, a number for a float; anything else refused), so
     that ``solver_grad=false`` means False, not the string ``"false"``.  A key that
-    no preset names is still set (a scene may read optional settings with
-    ``config.get``), as a Python literal or else a string, with a warning (once per
-    key), since a misspelt key would otherwise change nothing silently.
+    no preset names is still set, as a Python literal or else a string, with a
+    warning (once per key): a scene reads only the keys of its presets, so such a
+    key is most likely misspelt and would otherwise change nothing silently.
     """
     name, pairs = _parse(preset)
     if name not in module.PRESETS:
