@@ -4,10 +4,13 @@ Sub-commands::
 
     prdp-petsc run SCENE_FILE [--schedule prdp|fixed:K] [--preset quick|paper]
                    [--set KEY=VALUE ...] [--k-max full|none|K] [--epochs N] [--seed S]
-                   [--threads T] [--parallel domain|batch] --out DIR [PETSc options]
+                   [--threads T] [--parallel domain|batch] [--checkpoint-every N]
+                   --out DIR [PETSc options]
+    prdp-petsc run --resume DIR [--epochs N] [--threads T] [PETSc options]
     prdp-petsc compare SCENE_FILE [--preset ...] [--set KEY=VALUE ...] [--epochs N]
                    [--seed S | --seeds 0-3] [--threads T] [--routes cg/icc,cg/gamg]
-                   [--parallel domain|batch] --out DIR [PETSc options]
+                   [--parallel domain|batch] [--checkpoint-every N] [--resume]
+                   --out DIR [PETSc options]
     prdp-petsc bench bridge --out DIR
     prdp-petsc work-precision PROBLEM --out DIR
     prdp-petsc stability --out DIR
@@ -16,6 +19,14 @@ Arguments that start with a single ``-`` and are not ours are PETSc options
 (``-heat_ksp_type cg -heat_ksp_monitor -log_view``): PETSc starts with them
 (``petsc4py.init``), so the scene's KSPs read them at ``KSPSetFromOptions`` and
 start-up options such as ``-log_view`` work as in any PETSc program.
+
+``run`` saves ``DIR/checkpoint.pt`` (the model, optimizer, PRDP controller and
+random states; every ``--checkpoint-every N`` epochs, default 1, and at the end).
+``run --resume DIR`` continues the run in DIR with its recorded scene, preset, seeds
+and schedule (changing one is refused) to ``--epochs N`` (default: the recorded
+number), appending to its ``results.json``; ``compare --resume`` reads the runs of
+``--out`` that finished and resumes the others.  Load a trained model with
+`prdp_petsc.training.harness.load_trained`.
 
 ``--parallel domain|batch`` uses the ranks of ``mpiexec -n P``: distributed solves,
 or a split of every mini-batch (see `prdp_petsc.training.parallel`).  An error on
@@ -51,6 +62,7 @@ _TOOLS = {
     "bench": "prdp_petsc.reports.bench",
     "work-precision": "prdp_petsc.reports.workprecision",
     "stability": "prdp_petsc.reports.stability",
+    "pages": "prdp_petsc.reports.pages",
 }
 
 
@@ -72,8 +84,13 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
     for name in ("run", "compare"):
         p = sub.add_parser(name, help=f"{name} a scene")
         if scene_arg:
-            p.add_argument("scene", help="scene file, e.g. demos/heat1d.py")
-        p.add_argument("--preset", default="quick", help="preset name (quick | paper)")
+            p.add_argument(
+                "scene",
+                nargs="?" if name == "run" else None,
+                help="scene file, e.g. demos/heat1d.py"
+                + (" (with --resume: the recorded one)" if name == "run" else ""),
+            )
+        p.add_argument("--preset", default=None, help="preset name (quick | paper; default quick)")
         p.add_argument(
             "--set",
             action="append",
@@ -86,7 +103,7 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
             "--epochs", type=_positive_int, default=None, help="override the preset's epochs"
         )
         seed = p.add_mutually_exclusive_group()
-        seed.add_argument("--seed", type=int, default=0)
+        seed.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
         if name == "compare":
             seed.add_argument(
                 "--seeds",
@@ -109,11 +126,30 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
             help="under mpiexec: distribute every solve (domain) or split every "
             "mini-batch across the ranks (batch)",
         )
-        p.add_argument("--out", required=True, help="output folder")
+        p.add_argument(
+            "--out",
+            required=name == "compare",
+            help="output folder"
+            + (" (default with --resume: that folder)" if name == "run" else ""),
+        )
+        p.add_argument(
+            "--checkpoint-every",
+            type=_positive_int,
+            default=1,
+            metavar="N",
+            help="save checkpoint.pt every N epochs and at the end (default 1)",
+        )
         p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
         p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
         if name == "run":
-            p.add_argument("--schedule", default="prdp", help="prdp | fixed:K")
+            p.add_argument(
+                "--resume",
+                metavar="DIR",
+                default=None,
+                help="continue the run in DIR from its checkpoint.pt, with its recorded "
+                "scene, preset, seeds and schedule, to --epochs (default: the recorded)",
+            )
+            p.add_argument("--schedule", default=None, help="prdp | fixed:K (default prdp)")
             p.add_argument(
                 "--k-max",
                 type=_k_max,
@@ -122,6 +158,12 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
                 "K_full of its probe), none, or a number >= the scene's k_init",
             )
         else:
+            p.add_argument(
+                "--resume",
+                action="store_true",
+                help="continue the comparison in --out: finished runs are read, "
+                "interrupted ones resume from their checkpoint",
+            )
             p.add_argument(
                 "--routes",
                 type=_routes,
@@ -282,7 +324,7 @@ def _run_scene_command(args, scene_file: str) -> int:
         result = run(
             scene_file,
             args.schedule,
-            preset=_preset(args),
+            preset=_preset(args, None if args.resume else "quick"),
             epochs=args.epochs,
             seed=args.seed,
             out=args.out,
@@ -290,6 +332,8 @@ def _run_scene_command(args, scene_file: str) -> int:
             threads=args.threads,
             parallel=args.parallel,
             prdp=None if args.k_max == "full" else {"k_max": args.k_max},
+            checkpoint_every=args.checkpoint_every,
+            resume=args.resume,
         )
         if not _is_root(args):
             return 1 if result["stopped"] else 0
@@ -301,7 +345,8 @@ def _run_scene_command(args, scene_file: str) -> int:
         return 0
     if args.seeds is not None:
         return _compare_seeds(args, scene_file)
-    summary = compare(scene_file, seed=args.seed, **_compare_options(args))
+    seed = 0 if args.seed is None else args.seed
+    summary = compare(scene_file, seed=seed, **_compare_options(args))
     if not _is_root(args):
         return 1 if stopped_runs(summary) else 0
     print(format_table(summary))
@@ -313,9 +358,12 @@ def _run_scene_command(args, scene_file: str) -> int:
     return 0
 
 
-def _preset(args) -> str:
-    """The preset with the ``--set`` changes: ``"paper modes=32"``."""
-    return " ".join([args.preset, *args.set])
+def _preset(args, default: str | None = "quick") -> str | None:
+    """The preset with the ``--set`` changes: ``"paper modes=32"`` (`default` for
+    neither: None lets a resumed run keep its recorded preset)."""
+    if args.preset is None and not args.set:
+        return default
+    return " ".join([args.preset or "quick", *args.set])
 
 
 def _compare_options(args) -> dict:
@@ -328,6 +376,8 @@ def _compare_options(args) -> dict:
         "threads": args.threads,
         "routes": args.routes,
         "parallel": args.parallel,
+        "resume": args.resume,
+        "checkpoint_every": args.checkpoint_every,
     }
 
 
@@ -396,9 +446,16 @@ def _guarded(command, debug: bool, out: str | None = None, args=None) -> int:
 def _scene_command(parser: argparse.ArgumentParser, argv: list[str], scene_file=None) -> int:
     ours, petsc = split_petsc_options(argv)
     args = parser.parse_args(ours)
+    resume = args.resume if args.command == "run" else None
+    if args.command == "run" and resume is None:
+        if scene_file is None and args.scene is None:
+            parser.error("run: give a SCENE_FILE, or --resume DIR")
+        if args.out is None:
+            parser.error("run: --out DIR is required (unless --resume DIR)")
     init_petsc(petsc)
     scene = scene_file if scene_file is not None else args.scene
-    return _guarded(lambda: _run_scene_command(args, scene), args.debug, args.out, args)
+    out = args.out or resume
+    return _guarded(lambda: _run_scene_command(args, scene), args.debug, out, args)
 
 
 def scene_main(scene_file: str, argv: list[str] | None = None) -> int:

@@ -134,7 +134,7 @@ def build(config, seed):
     return pp.Scene(
         solvers=[solver], optimizer=opt, batches=lambda e, g: [None],
         loss=lambda _: pp.solve(A, theta, solver).square().sum(),
-        validate=lambda: float(next(metric)), probe=lambda: (A, np.ones(10)), epochs=20,
+        validate=lambda: float(next(metric)), probe=lambda: (A, np.ones(10), None), epochs=20,
         prdp={"window": 1, "ema_window": 1, "k_step": 4},
     )
 """
@@ -209,7 +209,7 @@ def build(config, seed):
         loss=lambda epoch: sum(pp.solve(A, theta, s).square().sum() for s in solvers)
         * (float("nan") if epoch >= config.get("nan_at", 10**9) else 1.0),
         validate=validate,
-        probe=lambda: (A, np.ones(10)), epochs=4,
+        probe=lambda: (A, np.ones(10), None), epochs=4,
         prdp={"window": 1, "ema_window": 1, "k_step": 2}, info=info,
     )
 """

@@ -324,3 +324,28 @@ def test_equal_accuracy_k_clamps_and_validates():
     assert nan["measured"] == 40 and nan["fitted"] is None and nan["ic_bound"] == 0.0
     with pytest.raises(ValueError, match="tol"):
         equal_accuracy_k({40: 1.0}, 40, tol=0)
+
+
+def test_state_dict_round_trip_through_a_checkpoint():
+    """The state a training checkpoint saves (``torch.load(weights_only=True)``), with
+    every field in play: a restarted window, a non-finite metric, an infinite checkpoint."""
+    import io
+
+    import torch
+
+    metrics = [1.0, 1.0, math.inf, 0.5, 0.5, 0.5, 0.49, 0.6, 0.6, 0.6, 0.3]
+    for split in range(len(metrics) + 1):
+        a = PRDP(restart_window=True, window=2, ema_window=3, k_max=4)
+        run(a, metrics[:split])
+        buffer = io.BytesIO()
+        torch.save(a.state_dict(), buffer)
+        buffer.seek(0)
+        b = PRDP(restart_window=True, window=2, ema_window=3, k_max=4)
+        b.load_state_dict(torch.load(buffer, weights_only=True))
+        assert b.state_dict() == a.state_dict()
+        assert run(b, metrics[split:]) == run(a, metrics[split:])
+        assert b.history == a.history and b.refining == a.refining
+    assert a.k == 4 and any(not math.isfinite(s.metric) for s in a.history)
+    assert a.state_dict()["fresh"] is False and a.state_dict()["start"] > 1
+    empty = PRDP().state_dict()
+    assert empty["checkpoint"] == math.inf and empty["ema"] == [] and empty["history"] == []

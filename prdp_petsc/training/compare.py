@@ -18,7 +18,9 @@ from pathlib import Path
 
 from ..errors import StructureError
 from ..prdp import equal_accuracy_k, savings
+from .checkpoint import CHECKPOINT
 from .harness import (
+    RESULTS,
     build_scene,
     check_epochs,
     find_k_full,
@@ -28,6 +30,7 @@ from .harness import (
     write_json,
 )
 from .parallel import Parallel
+from .provenance import provenance
 from .routes import fastest, parse_route, route_options
 from .scene import load_scene
 
@@ -56,6 +59,8 @@ def compare(
     routes: tuple[str, ...] | list[str] = (),
     parallel: str | None = None,
     twin: bool = False,
+    resume: bool = False,
+    checkpoint_every: int = 1,
 ) -> dict:
     """PRDP against constant K_full and constant coarse Ks; write ``summary.json``.
 
@@ -80,6 +85,15 @@ def compare(
     parallel : {None, "domain", "batch"}
         Every run uses the MPI ranks this way (`prdp_petsc.training.parallel`);
         rank 0 writes the files.
+    twin : bool
+        Also run full fidelity with torch seeded ``seed + TWIN_SEED_OFFSET``.
+    resume : bool
+        Continue an earlier comparison in `out`: a run whose ``results.json`` says
+        it finished the requested epochs is read, not trained again; one with a
+        ``checkpoint.pt`` continues from it (`run`'s ``resume``; refused if its
+        recorded preset or seed differ); any other runs from the start.
+    checkpoint_every : int
+        Every run saves its ``checkpoint.pt`` after this many epochs (see `run`).
 
     Returns
     -------
@@ -90,7 +104,9 @@ def compare(
         `twin`: its final validation error over K_full's), ``savings`` of PRDP against K_full
         (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
         adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
-        ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why.
+        ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why;
+        ``provenance`` (`prdp_petsc.training.provenance.provenance`); with `resume`,
+        ``reused``: the runs read from an earlier comparison.
 
     Raises
     ------
@@ -112,9 +128,9 @@ def compare(
         scene = build_scene(module, preset, seed)
         k_full = find_k_full(scene)
         release(scene)  # its settings are read below, its solvers are not needed
-        # warm-up (imports, PETSc and torch first-call costs) so the first timed run is fair
-        run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False,
-            threads=threads, module=module, parallel=parallel)  # fmt: skip
+        target = epochs or scene.epochs
+        origin = provenance(threads, ranks.size)
+        warmed = False
         coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
         schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
         prefixes = [s.prefix for s in scene.solvers]
@@ -124,6 +140,7 @@ def compare(
         logs = {}
         k_fulls = {"": k_full}
         skipped = {}  # route -> why it does not fit the scene's solvers
+        reused = []  # runs a resumed comparison read instead of training
         if twin:  # full fidelity again, torch seeded differently: the run-to-run noise
             runs.append((TWIN, None))
         for schedule, route in runs:
@@ -143,7 +160,7 @@ def compare(
                             continue
                         finally:
                             release(probe)
-                    torch_seed = None
+                    torch_seed = None  # the run's default: `seed`
                     if schedule == TWIN:
                         schedule, name = f"fixed:{k_full}", f"twin:{k_full}"
                         torch_seed = seed + TWIN_SEED_OFFSET
@@ -151,30 +168,48 @@ def compare(
                         schedule = f"fixed:{k_fulls[route]}" if schedule == "full" else schedule
                         name = schedule if route is None else f"{schedule}@{route}"
                     folder = out / name.replace(":", "_").replace("@", "_on_").replace("/", "-")
+                    settings = {"schedule": schedule, "preset": preset, "seed": seed,
+                                "torch_seed": torch_seed}  # fmt: skip
+                    prdp = _prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full))
+                    done = _finished_run(folder, settings, prdp, target) if resume else None
+                    if done is not None:
+                        logger.info("%s: finished in %s, not trained again", name, folder)
+                        logs[name] = done
+                        reused.append(name)
+                        continue
+                    if not warmed:  # imports, PETSc and torch first-call costs: a fair first run
+                        run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed,
+                            progress=False, threads=threads, module=module,
+                            parallel=parallel)  # fmt: skip
+                        warmed = True
+                    again = resume and _resumable(folder, target)
                     logs[name] = run(
                         scene_file,
-                        schedule,
-                        torch_seed=torch_seed,
-                        preset=preset,
-                        epochs=epochs,
-                        seed=seed,
+                        **settings,
+                        epochs=target,
                         out=folder,
                         progress=progress,
                         threads=threads,
                         module=module,
-                        prdp=_prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full)),
+                        prdp=prdp,
                         parallel=parallel,
+                        checkpoint_every=checkpoint_every,
+                        resume=folder if again else None,
                     )
             except KeyboardInterrupt:
                 # the interrupted run has written what it measured: summarise it too
-                results = folder / "results.json" if folder else None
+                results = folder / RESULTS if folder else None
                 if results is not None and results.is_file():
                     logs[name] = json.loads(results.read_text())
                 interrupted = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
+                interrupted["provenance"] = origin
                 write(out / "summary.json", interrupted)
                 raise
     summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
     summary["parallel"] = ranks.describe()
+    summary["provenance"] = origin
+    if resume:
+        summary["reused"] = reused
     write(out / "summary.json", summary)
     if plots and ranks.root:
         from .plots import plot_compare
@@ -183,6 +218,34 @@ def compare(
         summary["plots"] = plot_compare(drawn, k_fulls, out)
         write_json(out / "summary.json", summary)
     return summary
+
+
+def _finished_run(folder: Path, settings: dict, prdp: dict, epochs: int) -> dict | None:
+    """The results of a run in `folder` that finished `epochs` epochs with `settings`
+    (`run`'s; ``torch_seed`` None is ``seed``) and, for PRDP, `prdp`, else None."""
+    if settings["torch_seed"] is None:
+        settings = {**settings, "torch_seed": settings["seed"]}
+    path = folder / RESULTS
+    if not path.is_file():
+        return None
+    recorded = json.loads(path.read_text())
+    if not recorded.get("finished") or recorded.get("requested_epochs") != epochs:
+        return None
+    if any(recorded.get(key) != value for key, value in settings.items()):
+        return None  # `run` refuses to resume it, or it runs afresh without a checkpoint
+    own = recorded.get("prdp")
+    if own is not None and any(own.get(key) != value for key, value in prdp.items()):
+        return None
+    return recorded
+
+
+def _resumable(folder: Path, epochs: int) -> bool:
+    """Whether `folder` holds a checkpoint of at most `epochs` epochs to continue."""
+    path = folder / RESULTS
+    if not (path.is_file() and (folder / CHECKPOINT).is_file()):
+        return False
+    saved = json.loads(path.read_text()).get("checkpoint") or {}
+    return saved.get("epoch", math.inf) <= epochs
 
 
 def _prdp_for(settings: dict, k_full: int, k_route: int) -> dict:

@@ -2,8 +2,10 @@
 
 ``run`` trains a scene once under a schedule (``"prdp"`` or ``"fixed:K"``) and
 writes ``results.json`` after every epoch, so a run that stops early (a diverged
-solve, Ctrl-C) keeps everything measured so far.  `prdp_petsc.training.compare` builds
-the PRDP-against-K_full comparison on top of it.
+solve, Ctrl-C) keeps everything measured so far, and ``checkpoint.pt``
+(`prdp_petsc.training.checkpoint`), from which ``run(resume=DIR)`` continues it
+exactly and `load_trained` loads the trained model.  `prdp_petsc.training.compare`
+builds the PRDP-against-K_full comparison on top of it.
 """
 
 from __future__ import annotations
@@ -26,13 +28,17 @@ from ..core.results import SolverError
 from ..core.solver import KSPSolver
 from ..errors import InputError, NonFiniteError, stop_reason
 from ..prdp import PRDP
+from .checkpoint import CHECKPOINT, load_checkpoint, restore, save_checkpoint
 from .parallel import Parallel
+from .provenance import provenance
 from .scene import load_scene, preset_config, with_prdp_settings
 
 __all__ = [
+    "RESULTS",
     "build_scene",
     "check_epochs",
     "find_k_full",
+    "load_trained",
     "parse_schedule",
     "release",
     "run",
@@ -42,6 +48,9 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+#: File name of a run's results in its output folder.
+RESULTS = "results.json"
 
 
 def parse_schedule(schedule: str) -> int | None:
@@ -91,8 +100,11 @@ def torch_threads(threads: int) -> Iterator[int]:
 
 
 def _seed_everything(seed: int) -> None:
-    """Seed Python's and torch's global generators (scenes get their own numpy Generator)."""
+    """Seed Python's, numpy's and torch's global generators (the shipped scenes draw
+    their data from a numpy Generator of their own; one that draws from numpy's
+    global state is then reproducible too, and resumes exactly)."""
     random.seed(seed)
+    np.random.seed(seed % 2**32)  # noqa: NPY002 - the legacy global state, for such scenes
     torch.manual_seed(seed)
 
 
@@ -114,9 +126,16 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
     good guess also shortens the full-fidelity baseline.
     """
     ref: KSPSolver = scene.solvers[0]
-    A, b, *guess = scene.probe()
+    system = scene.probe()
+    if not (isinstance(system, tuple) and len(system) == 3):
+        got = f"a {len(system)}-tuple" if isinstance(system, tuple) else type(system).__name__
+        raise TypeError(
+            "Scene.probe must return (A, b, x0), with x0=None where the scene's solves "
+            f"start from zero; got {got}"
+        )
+    A, b, x0 = system
     b = np.atleast_2d(b)
-    x0 = np.atleast_2d(guess[0]) if guess else None
+    x0 = None if x0 is None else np.atleast_2d(x0)
     iterations = []
     with ref.clone(max_it=max_it, rtol=scene.rtol_full) as probe:
         probe.set_operator(A)
@@ -177,12 +196,12 @@ def write_json(path: Path, data: dict) -> None:
 
 
 def run(
-    scene_file,
-    schedule: str = "prdp",
+    scene_file=None,
+    schedule: str | None = None,
     *,
-    preset: str = "quick",
+    preset: str | None = None,
     epochs: int | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     out=None,
     progress: bool = True,
     threads: int = 1,
@@ -190,21 +209,26 @@ def run(
     prdp: dict | None = None,
     parallel: str | None = None,
     torch_seed: int | None = None,
+    checkpoint_every: int = 1,
+    resume=None,
 ) -> dict:
     """Train a scene once; return (and write to ``out/results.json``) the per-epoch log.
 
     Parameters
     ----------
     scene_file : str or Path
-        Scene file (see `prdp_petsc.training.scene`).
+        Scene file (see `prdp_petsc.training.scene`); with `resume`, default: the
+        recorded one.
     schedule : str
-        ``"prdp"`` or ``"fixed:K"``.
+        ``"prdp"`` (the default) or ``"fixed:K"``.
     preset, epochs, seed, torch_seed
-        Preset name; number of epochs (>= 1; default: the scene's); random seed (of
-        the data and, unless `torch_seed` is given, of torch: initial weights, batch
-        order, training noise; `compare`'s ``twin`` changes only `torch_seed`).
+        Preset name (default ``"quick"``); number of epochs (>= 1; default: the
+        scene's); random seed (default 0; of the data and, unless `torch_seed` is
+        given, of torch: initial weights, batch order, training noise; `compare`'s
+        ``twin`` changes only `torch_seed`).
     out : str or Path, optional
-        Output folder for ``results.json``.
+        Output folder for ``results.json`` and ``checkpoint.pt``; with `resume`,
+        default: the `resume` folder.
     progress : bool
         Show a progress bar (epoch, K, validation metric).
     threads : int
@@ -221,7 +245,23 @@ def run(
     parallel : {None, "domain", "batch"}
         Use the ranks of ``MPI.COMM_WORLD`` (start under ``mpiexec``): distributed
         solves, or a split of every mini-batch (`prdp_petsc.training.parallel`).
-        Rank 0 writes ``results.json``; every rank returns the same result.
+        Rank 0 writes ``results.json`` and ``checkpoint.pt``; every rank returns
+        the same result.
+    checkpoint_every : int
+        Save ``out/checkpoint.pt`` (`prdp_petsc.training.checkpoint`) after every
+        this many epochs (>= 1) and after the last one.  A save (``torch.save`` of
+        the parameters, optimizer and random states and the results so far) is not
+        counted in an epoch's ``wall_time``; it matters only where epochs take
+        milliseconds, as on the quick presets: raise it there.
+    resume : str or Path, optional
+        Folder of an earlier run (its ``results.json`` and ``checkpoint.pt``):
+        rebuild its scene with the recorded preset, seeds, schedule and PRDP
+        settings, load the checkpoint and train on to `epochs` (default: the
+        recorded number; a finished run given more continues), appending to its
+        results.  On one thread the epochs equal those of a run that never
+        stopped, bitwise; epochs after the checkpoint that ``results.json`` already
+        held (with ``checkpoint_every > 1``) are trained again.  Every rank of a
+        ``parallel`` run reads the same files.
 
     Returns
     -------
@@ -233,8 +273,13 @@ def run(
         first epoch not completed), ``reason`` (a PETSc reason; ``NON_FINITE`` for a
         NaN or Inf input, loss or metric; ``STRUCTURE``, ``INVALID_INPUT`` for the
         other `prdp_petsc.errors.InputError` kinds; or ``interrupted``) and
-        ``message``; ``rollout``, the per-step error of the
-        trained model, for scenes that define it.
+        ``message``; ``rollout``, the per-step error of the trained model, for
+        scenes that define it; ``requested_epochs``; ``finished`` (True once all
+        of them trained and the rollout is recorded); ``checkpoint`` (``file`` and
+        ``epoch`` of the last save, or None); ``scene_file``; ``provenance``
+        (`prdp_petsc.training.provenance.provenance` of the process that started
+        the run) and, after a resume, ``resumed``: per resume the ``epoch`` it
+        started from and its ``provenance``.
 
     Raises
     ------
@@ -244,28 +289,67 @@ def run(
         a solver outcome, and recording it as one would hide it.
     KeyboardInterrupt
         Re-raised after ``results.json`` records ``stopped: {"reason": "interrupted"}``.
+    FileNotFoundError
+        `resume` names a folder without ``results.json`` or ``checkpoint.pt``.
+    InputError
+        `resume` with a `scene_file`, `schedule`, `preset`, `seed`, `torch_seed` or
+        `prdp` setting other than the recorded one, or with `epochs` fewer than
+        the checkpoint's.
     """
     epochs = check_epochs(epochs)
+    every = positive_int(checkpoint_every, "checkpoint_every")
+    recorded = state = None
+    if resume is not None:
+        recorded = _recorded_run(resume)
+        given = {"schedule": schedule, "preset": preset, "seed": seed, "torch_seed": torch_seed}
+        _check_resume(resume, recorded, scene_file, given, prdp)
+        state = load_checkpoint(Path(resume) / CHECKPOINT)
+        scene_file = scene_file if scene_file is not None else recorded["scene_file"]
+        schedule, preset = recorded["schedule"], recorded["preset"]
+        seed, torch_seed = recorded["seed"], recorded["torch_seed"]
+        epochs = epochs or recorded["requested_epochs"]
+        if epochs < state["epoch"]:
+            raise InputError(
+                f"resume: {resume} holds {state['epoch']} trained epochs, more than "
+                f"epochs={epochs}; give at least {state['epoch']}"
+            )
+        out = resume if out is None else out
+    elif scene_file is None:
+        raise ValueError("run needs a scene_file (or resume=DIR)")
+    schedule = "prdp" if schedule is None else schedule
+    preset = "quick" if preset is None else preset
+    seed = 0 if seed is None else seed
+    torch_seed = seed if torch_seed is None else torch_seed
     fixed_k = parse_schedule(schedule)
     module = module or load_scene(scene_file)
     ranks = Parallel(parallel)
     with torch_threads(threads):
         with ranks.solvers():
             scene = build_scene(module, preset, seed, torch_seed)
+        epochs = epochs or scene.epochs
+        if recorded is not None and recorded["prdp"] is not None:
+            scene.prdp = dict(recorded["prdp"])  # K_full is not searched again
         scene.prdp = {**scene.prdp, **(prdp or {})}
         result = {
             "scene": Path(scene_file).stem,
+            "scene_file": str(Path(scene_file).resolve()),
             "schedule": schedule,
             "preset": preset,
             "seed": seed,
-            "torch_seed": seed if torch_seed is None else torch_seed,
+            "torch_seed": torch_seed,
             "threads": threads,
             "parallel": ranks.describe(),
+            "provenance": provenance(threads, ranks.size),
             "info": scene.info,
             "solvers": [s.describe() for s in scene.solvers],
+            "requested_epochs": epochs,
             "epochs": [],
             "stopped": None,
+            "finished": False,
+            "checkpoint": None,
         }
+        if state is not None:
+            _continue_result(result, state)
         out = Path(out) if out is not None and ranks.root else None
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
@@ -277,11 +361,13 @@ def run(
             ranks.synchronize(scene)
             result["prdp"] = scene.prdp if fixed_k is None else None
             _train(
-                scene, result, fixed_k, epochs or scene.epochs,
-                seed if torch_seed is None else torch_seed, out, progress and ranks.root, ranks,
+                scene, result, fixed_k, epochs, torch_seed, out, progress and ranks.root, ranks,
+                every=every, state=state,
             )  # fmt: skip
-            if scene.rollout is not None and not result["stopped"]:
-                result["rollout"] = ranks.rollout(scene)
+            if not result["stopped"]:
+                if scene.rollout is not None:
+                    result["rollout"] = ranks.rollout(scene)
+                result["finished"] = True
         except KeyboardInterrupt:
             epoch = len(result["epochs"])
             logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
@@ -295,9 +381,107 @@ def run(
             result["solvers"] = [s.describe() for s in scene.solvers]
             result["totals"] = _totals(result["epochs"])
             if out is not None:
-                write_json(out / "results.json", result)
+                write_json(out / RESULTS, result)
             release(scene)
     return result
+
+
+def _recorded_run(folder) -> dict:
+    """The ``results.json`` of a run to resume (FileNotFoundError without one)."""
+    path = Path(folder) / RESULTS
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"no {path}: nothing to resume there (give the --out folder of a run)"
+        )
+    recorded = json.loads(path.read_text())
+    if "scene_file" not in recorded or "requested_epochs" not in recorded:
+        raise InputError(f"{path} was written by an older prdp_petsc: it cannot be resumed")
+    return recorded
+
+
+def _check_resume(folder, recorded: dict, scene_file, given: dict, prdp: dict | None) -> None:
+    """Refuse to resume a run with settings other than its recorded ones."""
+    changed = [
+        f"{name}={value!r} (recorded: {recorded[name]!r})"
+        for name, value in given.items()
+        if value is not None and value != recorded[name]
+    ]
+    if scene_file is not None and Path(scene_file).stem != recorded["scene"]:
+        changed.append(f"scene {Path(scene_file).stem!r} (recorded: {recorded['scene']!r})")
+    settings = recorded["prdp"]  # None for a fixed schedule, which ignores `prdp`
+    changed += [
+        f"prdp {key}={value!r} (recorded: {settings.get(key)!r})"
+        for key, value in (prdp or {}).items()
+        if settings is not None and (key not in settings or settings[key] != value)
+    ]
+    if changed:
+        raise InputError(
+            f"resume: {folder} holds a run with other settings: {', '.join(changed)}; a "
+            "resumed run keeps its scene, preset, seeds and schedule (leave them out, or "
+            "start a new run in another folder)"
+        )
+
+
+def _continue_result(result: dict, state: dict) -> None:
+    """Put the checkpoint's epochs and provenance into a resumed run's `result`."""
+    before = state["result"]
+    if len(before["epochs"]) != state["epoch"]:  # pragma: no cover - a damaged file
+        raise InputError(
+            f"the checkpoint records {len(before['epochs'])} epochs, not {state['epoch']}"
+        )
+    result["epochs"] = list(before["epochs"])
+    result["resumed"] = [
+        *before.get("resumed", []),
+        {"epoch": state["epoch"], "provenance": result["provenance"]},
+    ]
+    result["provenance"] = before["provenance"]
+    result["checkpoint"] = {"file": CHECKPOINT, "epoch": state["epoch"]}
+
+
+def load_trained(folder, *, module=None):
+    """The scene of a finished (or checkpointed) run, with its trained model loaded.
+
+    Rebuilds the scene from ``folder/results.json`` (scene file, preset, seeds),
+    loads ``folder/checkpoint.pt`` (`prdp_petsc.training.checkpoint`: parameters,
+    optimizer and scheduler state) and sets every solver's ``max_it`` to the K of
+    the checkpoint's last epoch, the K its validation ran with.  Random number
+    generators are left alone.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The ``out`` folder of `run` (a ``compare`` run's ``out/<schedule>``).
+    module : module, optional
+        The scene module, instead of importing the recorded scene file.
+
+    Returns
+    -------
+    Scene
+        ``scene.validate()`` gives the run's last recorded ``val_metric`` (bitwise
+        under the recorded ``threads``, see `torch_threads`), and the network or
+        parameters in ``scene.optimizer.param_groups`` are the trained ones.  Call
+        `release` when done with its solvers.
+
+    Examples
+    --------
+    >>> scene = load_trained("results/heat2d/prdp")  # doctest: +SKIP
+    >>> scene.validate()  # doctest: +SKIP
+    """
+    recorded = _recorded_run(folder)
+    state = load_checkpoint(Path(folder) / CHECKPOINT)
+    module = module or load_scene(recorded["scene_file"])
+    scene = build_scene(module, recorded["preset"], recorded["seed"], recorded["torch_seed"])
+    restore(scene, state)
+    trained = state["result"]["epochs"]
+    if trained:
+        for solver in scene.solvers:
+            solver.max_it = trained[-1]["k"]
+    if len(trained) < len(recorded["epochs"]):
+        logger.warning(
+            "%s: the checkpoint holds %d of the %d recorded epochs (checkpoint_every > 1)",
+            folder, len(trained), len(recorded["epochs"]),
+        )  # fmt: skip
+    return scene
 
 
 def _k_cap(scene) -> int | None:
@@ -325,17 +509,34 @@ def release(scene) -> None:
 
 
 def _train(
-    scene, result: dict, fixed_k, epochs: int, torch_seed: int, out, progress: bool, ranks: Parallel
+    scene,
+    result: dict,
+    fixed_k,
+    epochs: int,
+    torch_seed: int,
+    out,
+    progress: bool,
+    ranks: Parallel,
+    *,
+    every: int = 1,
+    state: dict | None = None,
 ) -> None:
-    """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place."""
+    """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place,
+    from a checkpoint's `state` if given, saving one every `every` epochs into `out`."""
     from tqdm.auto import tqdm
 
     generator = torch.Generator().manual_seed(torch_seed)
     controller = PRDP(**scene.prdp) if fixed_k is None else None
+    start = 0
+    if state is not None:
+        restore(scene, state, controller=controller, generator=generator)
+        start = state["epoch"]
     k = fixed_k if fixed_k is not None else controller.k
     bar = tqdm(
-        range(epochs),
+        range(start, epochs),
         desc=f"{result['scene']} {result['schedule']}",
+        initial=start,
+        total=epochs,
         disable=None if progress else True,  # None: tqdm hides itself when not a terminal
         leave=False,
     )
@@ -386,7 +587,14 @@ def _train(
                 k = ranks.agree(controller.update(metric))
             result["totals"] = _totals(result["epochs"])
             if out is not None:
-                write_json(out / "results.json", result)
+                done = epoch + 1
+                if done % every == 0 or done == epochs:
+                    save_checkpoint(
+                        out / CHECKPOINT, scene, epoch=done, k=k, controller=controller,
+                        generator=generator, result=to_json(result),
+                    )  # fmt: skip
+                    result["checkpoint"] = {"file": CHECKPOINT, "epoch": done}
+                write_json(out / RESULTS, result)
     finally:
         bar.close()
 
