@@ -474,3 +474,11 @@ def test_compare_skips_a_route_that_does_not_fit_and_says_so(tiny, tmp_path, cap
     assert "cg/jacobi: skipped, it does not fit the scene's solver" in printed
     assert not any(name.endswith("@cg/jacobi") for name in summary["runs"])  # never trained
     assert "savings" in summary["routes"]["gmres/jacobi"]  # the fitting route ran
+
+
+def test_results_record_the_settings_the_scene_read(tmp_path):
+    result = run(HEAT1D, "fixed:2", preset="quick lr=0.002", epochs=1, out=tmp_path,
+                 progress=False)  # fmt: skip
+    recorded = json.loads((tmp_path / "results.json").read_text())["config"]
+    assert recorded == result["config"] and recorded["lr"] == 0.002
+    assert set(recorded) == set(load_scene(HEAT1D).PRESETS["quick"])

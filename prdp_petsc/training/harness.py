@@ -267,7 +267,8 @@ def run(
     -------
     dict
         ``epochs`` (per epoch: ``k``, ``train_loss``, ``val_metric``, ``wall_time``,
-        ``fwd_iterations``, ``adj_iterations``), ``totals``, ``threads``,
+        ``fwd_iterations``, ``adj_iterations``), ``totals``, ``threads``, ``config``
+        (the preset's settings, as changed by the preset string), ``provenance``,
         ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
         and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
         first epoch not completed), ``reason`` (a PETSc reason; ``NON_FINITE`` for a
@@ -335,6 +336,7 @@ def run(
             "scene_file": str(Path(scene_file).resolve()),
             "schedule": schedule,
             "preset": preset,
+            "config": preset_config(module, preset),  # every setting the scene read
             "seed": seed,
             "torch_seed": torch_seed,
             "threads": threads,
