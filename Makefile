@@ -1,4 +1,5 @@
 # Two commands do all the set-up:  `make demo`  and  `make test`.
+# `make test` runs pytest, builds the documentation (mkdocs --strict), then the MPI tests.
 # Each creates .venv if needed and installs everything first.  The install is
 # recorded in a stamp file keyed on the hash of pyproject.toml, constraints.txt and
 # this Makefile, so a second run skips it and starts in seconds.  Every pip install
@@ -25,10 +26,11 @@ MPIEXEC ?= mpiexec
 # Open MPI refuses root without the first two, and more ranks than cores without the third
 MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1
 
-.PHONY: test demo setup lint bench clean
+.PHONY: test demo setup lint bench docs pages clean
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+	$(MAKE) --no-print-directory docs
 	$(MPI_ENV) timeout 900 $(MPIEXEC) -n 2 $(PY) -m pytest -q -p no:cacheprovider tests/mpi
 
 demo: $(STAMP)
@@ -37,9 +39,18 @@ demo: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m prdp_petsc.cli bench bridge --out $(OUT)
 
+# The documentation site, into site/; any warning (a broken link, a docstring mkdocstrings
+# cannot read) fails the build.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
+
+# docs/results/ and the README's generated fragments, from the recorded data in docs/data/
+pages: $(STAMP)
+	$(PY) -m prdp_petsc.cli pages --out docs/results
+
 lint: $(STAMP)
-	$(VENV)/bin/ruff check prdp_petsc tests demos meshes
-	$(VENV)/bin/ruff format --check prdp_petsc tests demos meshes
+	$(VENV)/bin/ruff check prdp_petsc tests demos meshes docs/examples
+	$(VENV)/bin/ruff format --check prdp_petsc tests demos meshes docs/examples
 
 setup: $(STAMP)
 
@@ -72,10 +83,10 @@ $(STAMP):
 	  fi; \
 	fi; \
 	$(PIP) install -q -c $(CONSTRAINTS) torch; \
-	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[test,dev,mpi]"; \
+	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[test,dev,mpi,docs]"; \
 	$(PY) -c "import petsc4py, torch, skfem, prdp_petsc; from petsc4py import PETSc; \
 	print('>> PETSc', '.'.join(map(str, PETSc.Sys.getVersion())), '| torch', torch.__version__, '| scikit-fem ok')"; \
 	rm -f $(VENV)/.installed-*; touch $@
 
 clean:
-	rm -rf $(VENV) .pytest_cache results
+	rm -rf $(VENV) .pytest_cache results site

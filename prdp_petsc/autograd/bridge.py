@@ -128,7 +128,7 @@ class _ImplicitSolve(torch.autograd.Function):
 
 
 def solve(
-    A,
+    A: sp.spmatrix | ParametricMatrix,
     b: torch.Tensor,
     solver: KSPSolver,
     *,

@@ -38,7 +38,7 @@ class Dirichlet:
         Indices of the Dirichlet degrees of freedom (e.g. ``basis.get_dofs()``).
     """
 
-    def __init__(self, A, boundary):
+    def __init__(self, A: ParametricMatrix | sp.spmatrix, boundary: np.ndarray) -> None:
         n = A.shape[0]
         self.boundary = np.unique(np.asarray(boundary, dtype=np.int64).ravel())
         if self.boundary.size and (self.boundary[0] < 0 or self.boundary[-1] >= n):
@@ -53,7 +53,9 @@ class Dirichlet:
             self.A_II = A[self.interior][:, self.interior].tocsr()
             self.A_IB = A[self.interior][:, self.boundary].tocsr()
 
-    def rhs(self, f: torch.Tensor, g: torch.Tensor, theta=None) -> torch.Tensor:
+    def rhs(
+        self, f: torch.Tensor, g: torch.Tensor, theta: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Interior right-hand side ``f_I − A_IB(θ) g`` (differentiable).
 
         `f` is (n,) or (B, n), `g` is (n_B,) or (B, n_B).  With θ of shape (B, p)
@@ -97,7 +99,7 @@ class Dirichlet:
         g: torch.Tensor,
         solver: KSPSolver,
         *,
-        theta=None,
+        theta: torch.Tensor | None = None,
         mode: str = "implicit",
     ) -> torch.Tensor:
         """Solve with ``u_B = g``; returns the full vector, differentiable in f, g, θ.

@@ -260,9 +260,9 @@ def _check_krylov(solver: KSPSolver, ksp, symmetric, what: str) -> None:
 
 
 def newton_solve(
-    problem,
+    problem: NonlinearProblem,
     u0: torch.Tensor | None,
-    *params,
+    *params: torch.Tensor | np.ndarray | float,
     solver: KSPSolver,
     adjoint_solver: KSPSolver | None = None,
     method: str = "newton",

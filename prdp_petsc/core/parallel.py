@@ -28,9 +28,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import numpy as np
 from petsc4py import PETSc
+
+if TYPE_CHECKING:  # mpi4py is optional (the `mpi` extra)
+    from mpi4py import MPI
 
 __all__ = ["RowLayout", "default_comm", "ownership_range", "use_comm"]
 
@@ -43,7 +47,7 @@ def default_comm() -> PETSc.Comm:
 
 
 @contextmanager
-def use_comm(comm) -> Iterator[PETSc.Comm]:
+def use_comm(comm: PETSc.Comm | MPI.Comm) -> Iterator[PETSc.Comm]:
     """Solvers created in the block (without ``comm=``) live on `comm`.
 
     `comm` is a ``PETSc.Comm`` or an mpi4py communicator.  Collective: every rank
@@ -57,7 +61,7 @@ def use_comm(comm) -> Iterator[PETSc.Comm]:
         _default.pop()
 
 
-def as_petsc_comm(comm) -> PETSc.Comm:
+def as_petsc_comm(comm: PETSc.Comm | MPI.Comm | None) -> PETSc.Comm:
     """`comm` as a ``PETSc.Comm`` (None: `default_comm`); accepts mpi4py communicators."""
     if comm is None:
         return default_comm()

@@ -14,12 +14,16 @@ really is affine in the coefficient.
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InputError, StructureError
 from .parametric import ParametricMatrix, csr_pattern
+
+if TYPE_CHECKING:
+    import skfem
 
 __all__ = ["AFFINE_RTOL", "diffusion_operator", "from_form", "mass_matrix"]
 
@@ -31,7 +35,13 @@ AFFINE_RTOL = 1e-10
 
 
 def from_form(
-    form, basis, coefficient_basis, *, name: str = "kappa", positive: bool = False, **kwargs
+    form: skfem.BilinearForm,
+    basis: skfem.CellBasis,
+    coefficient_basis: skfem.CellBasis,
+    *,
+    name: str = "kappa",
+    positive: bool = False,
+    **kwargs: Any,
 ) -> ParametricMatrix:
     """Build A(θ) from a scikit-fem `BilinearForm` affine in the coefficient ``w[name]``.
 
@@ -155,7 +165,7 @@ def _largest(matrix: sp.spmatrix) -> float:
     return float(np.max(np.abs(matrix.data), initial=0.0))
 
 
-def mass_matrix(basis) -> sp.csr_matrix:
+def mass_matrix(basis: skfem.CellBasis) -> sp.csr_matrix:
     """The scikit-fem mass matrix ``∫ u v`` of `basis`."""
     from skfem.models.poisson import mass
 
@@ -163,7 +173,7 @@ def mass_matrix(basis) -> sp.csr_matrix:
 
 
 def diffusion_operator(
-    basis, coefficient: str = "P0", *, reaction: float = 0.0
+    basis: skfem.CellBasis, coefficient: str = "P0", *, reaction: float = 0.0
 ) -> ParametricMatrix:
     """``−∇·(κ∇u) + r u`` with κ per element (``"P0"``) or per node (``"P1"``).
 

@@ -33,12 +33,17 @@ the unknowns ``len(interior)``, boundary values ``len(boundary)``, α is a scala
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InputError
 from .forms import mass_matrix
 from .parametric import csr_pattern
+
+if TYPE_CHECKING:
+    import skfem
 
 __all__ = ["NonlinearHeat"]
 
@@ -70,7 +75,9 @@ class NonlinearHeat:
     jacobian_symmetric = False
     picard_symmetric = True
 
-    def __init__(self, basis, dt: float, *, dirichlet=None):
+    def __init__(
+        self, basis: skfem.CellBasis, dt: float, *, dirichlet: np.ndarray | None = None
+    ) -> None:
         if not (np.isfinite(dt) and dt > 0):
             raise InputError(f"dt must be finite and > 0, got {dt!r}")
         self.basis = basis
@@ -102,7 +109,9 @@ class NonlinearHeat:
         u = self.expand(u_i, g)
         return {"u": self.basis.interpolate(u), "alpha": float(alpha), "dt": self.dt}
 
-    def residual(self, u_i, u_prev, f, g, alpha) -> np.ndarray:
+    def residual(
+        self, u_i: np.ndarray, u_prev: np.ndarray, f: np.ndarray, g: np.ndarray, alpha: float
+    ) -> np.ndarray:
         """``R(u_I)`` on the unknowns, shape ``(n,)``."""
         u = self.expand(u_i, g)
         if self._p1:
@@ -119,15 +128,29 @@ class NonlinearHeat:
         A = self._forms[name].assemble(self.basis, **self._fields(u_i, g, alpha)).tocsr()
         return A[self.interior][:, getattr(self, columns)].tocsr()
 
-    def jacobian(self, u_i, u_prev, f, g, alpha) -> sp.csr_matrix:
+    def jacobian(
+        self, u_i: np.ndarray, u_prev: np.ndarray, f: np.ndarray, g: np.ndarray, alpha: float
+    ) -> sp.csr_matrix:
         """Newton Jacobian ``∂R/∂u_I`` (non-symmetric: it holds the κ'(u) term)."""
         return self._operator("jacobian", u_i, g, alpha)
 
-    def picard(self, u_i, u_prev, f, g, alpha) -> sp.csr_matrix:
+    def picard(
+        self, u_i: np.ndarray, u_prev: np.ndarray, f: np.ndarray, g: np.ndarray, alpha: float
+    ) -> sp.csr_matrix:
         """Picard operator ``M + Δt K(κ(u))`` on the unknowns (symmetric positive definite)."""
         return self._operator("picard", u_i, g, alpha)
 
-    def vjp(self, u_i, lam, u_prev, f, g, alpha, *, needs=(True, True, True, True)) -> tuple:
+    def vjp(
+        self,
+        u_i: np.ndarray,
+        lam: np.ndarray,
+        u_prev: np.ndarray,
+        f: np.ndarray,
+        g: np.ndarray,
+        alpha: float,
+        *,
+        needs: tuple[bool, bool, bool, bool] = (True, True, True, True),
+    ) -> tuple:
         """``λᵀ ∂R/∂p`` for p = (u_prev, f, g, α); None where `needs` is False.
 
         ``∂R/∂u_prev = −M_I·``, ``∂R/∂f = −Δt M_I·``, ``∂R/∂g = J_IB`` (the full

@@ -144,7 +144,9 @@ class ParametricMatrix:
         values = self.values(theta).copy()  # the cached array is shared and read-only
         return sp.csr_matrix((values, self.indices, self.indptr), shape=self.shape)
 
-    def theta_gradient(self, lam: np.ndarray, x: np.ndarray, *, per_sample=False) -> np.ndarray:
+    def theta_gradient(
+        self, lam: np.ndarray, x: np.ndarray, *, per_sample: bool = False
+    ) -> np.ndarray:
         """``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])`` for ``x = A(θ)⁻¹ b``, ``Aᵀλ = ∂L/∂x``.
 
         Parameters
@@ -193,11 +195,11 @@ class ParametricMatrix:
         excess = (abs(G - mirror) - abs(G).maximum(abs(mirror)) * SYMMETRY_RTOL).tocoo()
         return bool(np.all(excess.data <= DIAGONAL_RTOL * scale[excess.row]))
 
-    def vjp_matvec(self, w: np.ndarray, v: np.ndarray, *, per_sample=False) -> np.ndarray:
+    def vjp_matvec(self, w: np.ndarray, v: np.ndarray, *, per_sample: bool = False) -> np.ndarray:
         """``∂/∂θ ⟨w, A(θ) v⟩ = Gᵀ(w[rows] ⊙ v[cols])``; `per_sample` as in `theta_gradient`."""
         return -self.theta_gradient(w, v, per_sample=per_sample)
 
-    def matvecs(self, values: np.ndarray, v: np.ndarray, *, transpose=False) -> np.ndarray:
+    def matvecs(self, values: np.ndarray, v: np.ndarray, *, transpose: bool = False) -> np.ndarray:
         """``A_i v_i`` (or ``A_iᵀ v_i``) per sample for CSR values (B, nnz) and v (B, m).
 
         One (B, nnz) product and one sparse product that sums it into rows
