@@ -41,8 +41,11 @@ from __future__ import annotations
 
 import prdp_petsc as pp
 from prdp_petsc.training.emulators import heat_emulator_scene
+from prdp_petsc.training.routes import parse_routes
 
-# heat2d's settings on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`)
+# heat2d's settings on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`).
+# ``routes``, the KSP/PC pairs `compare` also runs (``--routes`` overrides them): the
+# step matrix is SPD, so CG with ICC or GAMG (K_full 8 and 5 on ``paper``, Jacobi's 84)
 PRESETS = {
     "quick": {
         "mesh": "box3d",
@@ -64,6 +67,7 @@ PRESETS = {
         "gamma": 0.9,
         "k_init": 16,
         "k_step": 16,
+        "routes": "cg/icc",
     },
     "paper": {
         "mesh": "box3d",
@@ -85,11 +89,13 @@ PRESETS = {
         "gamma": 0.9,
         "k_init": 10,
         "k_step": 20,
+        "routes": "cg/icc,cg/gamg",
     },
 }
 
 
 def build(config: dict, seed: int) -> pp.Scene:
+    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
     mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
     return heat_emulator_scene(
         mesh,

@@ -6,6 +6,14 @@ then reports savings in inner iterations (forward + adjoint) and wall time next
 to the validation errors, and plots error against cost.  Savings count only at
 equal accuracy: the summary flags a PRDP validation error more than
 `ACCURACY_RATIO` times K_full's.
+
+Time to accuracy: every run's ``time_to_full_accuracy`` is the wall time from
+which on its validation error stays within 5 % of full fidelity's final one
+(`prdp_petsc.training.routes.time_to_accuracy`), and ``speedup_vs_best_full``
+divides the least such time of a full-fidelity run (``fixed:K_full`` on the
+scene's solver or on any route) by the least of a reduced one (PRDP, the ``rtol``
+schedule or a coarse constant K, on any route): above 1, training with a reduced
+solver reached full-fidelity accuracy sooner than the best full-fidelity route.
 """
 
 from __future__ import annotations
@@ -16,6 +24,7 @@ import logging
 import math
 from pathlib import Path
 
+from ..core.results import SolverError
 from ..errors import StructureError
 from ..prdp import equal_accuracy_k, savings
 from .checkpoint import CHECKPOINT
@@ -31,12 +40,29 @@ from .harness import (
 )
 from .parallel import Parallel
 from .provenance import provenance
-from .routes import fastest, parse_route, route_options
-from .scene import load_scene
+from .routes import (
+    REACH_FACTOR,
+    accuracy_target,
+    fastest,
+    parse_route,
+    parse_routes,
+    route_options,
+    time_to_accuracy,
+)
+from .scene import load_scene, preset_config
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ACCURACY_RATIO", "compare", "format_table", "stopped_runs", "summarize"]
+__all__ = [
+    "ACCURACY_RATIO",
+    "REDUCED_SCHEDULES",
+    "compare",
+    "format_table",
+    "scene_routes",
+    "speedup_vs_best_full",
+    "stopped_runs",
+    "summarize",
+]
 
 #: Largest PRDP / K_full ratio of final validation errors that still counts as equal accuracy.
 ACCURACY_RATIO = 1.05
@@ -44,6 +70,17 @@ ACCURACY_RATIO = 1.05
 #: The ``twin`` run seeds torch (initial weights, batch order) with ``seed + TWIN_SEED_OFFSET``.
 TWIN_SEED_OFFSET = 1000
 TWIN = "twin"  # compare's schedule name for that run
+
+#: The reduced-fidelity schedules `compare` can run next to full fidelity (``schedules``)
+REDUCED_SCHEDULES = ("prdp", "rtol")
+
+
+def scene_routes(module, preset: str) -> tuple[str, ...]:
+    """The routes a scene declares for `preset`: its preset key ``routes``
+    (`prdp_petsc.training.routes.parse_routes`; ``--set routes=...`` changes it),
+    none where its presets have no such key."""
+    config = preset_config(module, preset)
+    return parse_routes(config["routes"]) if "routes" in config else ()
 
 
 def compare(
@@ -56,7 +93,8 @@ def compare(
     progress: bool = True,
     plots: bool = True,
     threads: int = 1,
-    routes: tuple[str, ...] | list[str] = (),
+    routes: tuple[str, ...] | list[str] | None = None,
+    schedules: tuple[str, ...] | list[str] = ("prdp",),
     parallel: str | None = None,
     twin: bool = False,
     resume: bool = False,
@@ -76,12 +114,23 @@ def compare(
         Show progress bars; write the plots.
     threads : int
         torch threads for every run (restored afterwards); recorded in the summary.
-    routes : sequence of str
-        Other solvers to try, ``"ksp_type/pc_type"`` (e.g. ``"cg/icc"``): PRDP and
+    routes : sequence of str, or str, optional
+        Other solvers to try, ``"ksp_type/pc_type"`` (e.g. ``"cg/icc"``; a string
+        ``"cg/icc,cg/gamg"`` is split as `parse_routes` does): the `schedules` and
         full fidelity (the route's own K_full) run again with those options on every
         solver prefix of the scene (`prdp_petsc.training.routes`), as
-        ``"prdp@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in the summary says
-        which run reached the full-fidelity validation error in the least wall time.
+        ``"prdp@cg/icc"``, ``"rtol@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in
+        the summary says which run reached the full-fidelity validation error in the
+        least wall time.  None (the default): the routes the scene declares in its
+        preset key ``routes`` (`scene_routes`); ``()`` or ``""`` runs none.  A route
+        that does not fit the scene (a `StructureError`: CG on a non-symmetric
+        operator; a `SolverError` of its K_full probe: ILU on a zero diagonal
+        block) is skipped and reported.
+    schedules : sequence of str
+        The reduced-fidelity schedules to run on the scene's solver and on every
+        route, from `REDUCED_SCHEDULES`: ``"prdp"`` (the default) and ``"rtol"``, PRDP
+        moving PETSc's rtol under a generous cap instead of K
+        (`prdp_petsc.training.harness.run`).
     parallel : {None, "domain", "batch"}
         Every run uses the MPI ranks this way (`prdp_petsc.training.parallel`);
         rank 0 writes the files.
@@ -100,13 +149,17 @@ def compare(
     dict
         ``scene``, ``k_full``, ``threads``, ``runs`` (per schedule:
         ``final_val_error``, ``wall_time``, ``fwd_iterations``, ``adj_iterations``,
-        ``k_final``, ``stopped``; with `twin`, also ``twin:K``), ``noise_ratio`` (with
-        `twin`: its final validation error over K_full's), ``savings`` of PRDP against K_full
+        ``k_final``, ``stopped``, ``time_to_full_accuracy``; for the ``rtol``
+        schedule ``rtol``: first and last rtol, level, cap, forward iterations per
+        solve in the first and last epoch; with `twin`, also ``twin:K``),
+        ``speedup_vs_best_full`` and ``speedup`` (`speedup_vs_best_full`),
+        ``noise_ratio`` (with `twin`: its final validation error over K_full's),
+        ``savings`` of PRDP against K_full
         (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
         adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
         ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why;
         ``provenance`` (`prdp_petsc.training.provenance.provenance`); with `resume`,
-        ``reused``: the runs read from an earlier comparison.
+        ``reused``: the runs read from an earlier comparison; ``schedules``.
 
     Raises
     ------
@@ -115,9 +168,19 @@ def compare(
         with ``stopped: {"reason": "interrupted"}``.
     """
     epochs = check_epochs(epochs)
+    schedules = tuple(dict.fromkeys(schedules))
+    if not schedules or any(s not in REDUCED_SCHEDULES for s in schedules):
+        raise ValueError(
+            f"schedules must be some of {', '.join(REDUCED_SCHEDULES)}, got {list(schedules)}"
+        )
+    module = load_scene(scene_file)
+    if routes is None:
+        routes = scene_routes(module, preset)
+    elif isinstance(routes, str):  # "cg/icc,cg/gamg", as the preset key and the CLI write it
+        routes = parse_routes(routes)
+    routes = tuple(dict.fromkeys(routes))
     for route in routes:
         parse_route(route)
-    module = load_scene(scene_file)
     ranks = Parallel(parallel)
     out = Path(out)
     if ranks.root:
@@ -132,10 +195,10 @@ def compare(
         origin = provenance(threads, ranks.size)
         warmed = False
         coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
-        schedules = ["prdp", f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
+        own = [*schedules, f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
         prefixes = [s.prefix for s in scene.solvers]
-        runs = [(schedule, None) for schedule in schedules] + [
-            (schedule, route) for route in routes for schedule in ("prdp", "full")
+        runs = [(schedule, None) for schedule in own] + [
+            (schedule, route) for route in routes for schedule in (*schedules, "full")
         ]
         logs = {}
         k_fulls = {"": k_full}
@@ -154,9 +217,10 @@ def compare(
                         probe = build_scene(module, preset, seed)
                         try:
                             k_fulls[route] = find_k_full(probe)
-                        except StructureError as err:  # e.g. CG on a non-symmetric operator
+                        except (StructureError, SolverError) as err:  # it does not fit
+                            # CG on a non-symmetric operator; ILU on a zero diagonal block
                             logger.warning("route %s skipped: %s", route, err)
-                            skipped[route] = str(err)
+                            skipped[route] = " ".join(str(err).split())
                             continue
                         finally:
                             release(probe)
@@ -170,7 +234,11 @@ def compare(
                     folder = out / name.replace(":", "_").replace("@", "_on_").replace("/", "-")
                     settings = {"schedule": schedule, "preset": preset, "seed": seed,
                                 "torch_seed": torch_seed}  # fmt: skip
-                    prdp = _prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full))
+                    prdp = (
+                        _prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full))
+                        if schedule == "prdp"
+                        else {}  # rtol counts levels; fixed has no controller
+                    )
                     done = _finished_run(folder, settings, prdp, target) if resume else None
                     if done is not None:
                         logger.info("%s: finished in %s, not trained again", name, folder)
@@ -191,7 +259,7 @@ def compare(
                         progress=progress,
                         threads=threads,
                         module=module,
-                        prdp=prdp,
+                        prdp=prdp or None,
                         parallel=parallel,
                         checkpoint_every=checkpoint_every,
                         resume=folder if again else None,
@@ -206,6 +274,7 @@ def compare(
                 write(out / "summary.json", interrupted)
                 raise
     summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
+    summary["schedules"] = list(schedules)
     summary["parallel"] = ranks.describe()
     summary["provenance"] = origin
     if resume:
@@ -272,9 +341,13 @@ def summarize(
     solver; routes add ``routes`` (their K_full and PRDP savings) and ``fastest``.
     A run ``twin:K`` (full fidelity again, torch seeded differently) adds
     ``noise_ratio``, its final validation error over K_full's; it is not a
-    candidate for ``fastest``.  `skipped` maps routes that do not fit the scene's
-    solvers (a `StructureError`: CG on a non-symmetric operator) to the reason;
-    they appear in ``routes`` as ``{"skipped": reason}``.
+    candidate for ``fastest`` nor for the speedup.  `skipped` maps routes that do
+    not fit the scene's solvers (a `StructureError`: CG on a non-symmetric
+    operator) to the reason; they appear in ``routes`` as ``{"skipped": reason}``.
+    Every run gets ``time_to_full_accuracy``
+    (`prdp_petsc.training.routes.time_to_accuracy` against full fidelity's final
+    validation error; None if it never reached it, or without full fidelity), and
+    the summary ``speedup_vs_best_full`` and ``speedup`` (`speedup_vs_best_full`).
     """
     k_fulls = k_full if isinstance(k_full, dict) else {"": k_full}
     k_full = k_fulls[""]
@@ -294,7 +367,14 @@ def summarize(
             "epochs": t["epochs"],
             "stopped": log["stopped"],
         }
+        if log.get("rtol"):  # the rtol schedule: where its tolerance ended, what it cost
+            runs[schedule]["rtol"] = _rtol_summary(log)
+    target = accuracy_target(logs, full_name)
+    for name, r in runs.items():
+        reached = None if target is None else time_to_accuracy(logs[name], target)
+        r["time_to_full_accuracy"] = reached
     summary = {"scene": scene, "k_full": k_full, "threads": threads, "runs": runs}
+    summary.update(speedup_vs_best_full(logs, k_fulls))
     twin, full = logs.get(twin_name), logs.get(full_name)
     if twin and full and not (twin["stopped"] or full["stopped"]):
         summary["noise_ratio"] = _ratio(
@@ -320,6 +400,106 @@ def summarize(
     if k_full in constant and len(constant) > 1:
         summary["equal_accuracy_k"] = equal_accuracy_k(constant, k_full, ACCURACY_RATIO - 1)
     return summary
+
+
+def _rtol_summary(log: dict) -> dict:
+    """The ``rtol`` schedule of run `log`: first and last rtol, level, cap, and the mean
+    forward iterations per solve in its first and last epoch (None without epochs)."""
+    plan, epochs = log["rtol"], log["epochs"]
+
+    def per_solve(epoch):
+        return epoch["fwd_iterations"] / epoch["fwd_solves"] if epoch["fwd_solves"] else None
+
+    return {
+        "init": plan["rtol_init"],
+        "final": epochs[-1]["rtol"] if epochs else None,
+        "level": epochs[-1]["rtol_level"] if epochs else None,
+        "levels": plan["levels"],
+        "max_it": plan["max_it"],
+        "max_it_factor": plan["max_it_factor"],
+        "k_full": plan["k_full"],
+        "fwd_per_solve_first": per_solve(epochs[0]) if epochs else None,
+        "fwd_per_solve_last": per_solve(epochs[-1]) if epochs else None,
+    }
+
+
+def _kind(name: str, k_fulls: dict) -> str:
+    """``"full"`` (``fixed:K_full`` of its route), ``"twin"``, or ``"reduced"`` (PRDP,
+    ``rtol``, a coarse constant K) for a run named ``schedule[@route]``."""
+    schedule, _, route = name.partition("@")
+    if schedule.startswith(f"{TWIN}:"):
+        return TWIN
+    fixed = schedule.startswith("fixed:") and schedule[6:].isdigit()
+    if fixed and int(schedule[6:]) == k_fulls.get(route):
+        return "full"
+    return "reduced"
+
+
+def speedup_vs_best_full(logs: dict, k_fulls: dict | int) -> dict:
+    """How much sooner the fastest reduced run reached full-fidelity accuracy.
+
+    The target is `accuracy_target` of the scene's own solver at K_full
+    (``fixed:K_full``), each run's time `time_to_accuracy`.  The best full-fidelity
+    time is the least over ``fixed:K_full`` and every route's ``fixed:K@route`` at
+    its own K_full; the best reduced time the least over PRDP, the ``rtol`` schedule
+    and coarse constant Ks on any route.  A twin is neither.
+
+    Parameters
+    ----------
+    logs : dict
+        ``{run name: log}`` as `run` returns them, named as `compare` names runs.
+    k_fulls : dict or int
+        ``{route: K_full}`` with ``""`` for the scene's own solver (or that one int).
+
+    Returns
+    -------
+    dict
+        ``speedup_vs_best_full``: best full time / best reduced time (above 1: the
+        reduced run was faster), or None; ``speedup``: ``target_val_error``,
+        ``reference`` (the full-fidelity run that sets the target), ``full`` and
+        ``full_seconds`` (the fastest full-fidelity run and its time), ``reduced`` and
+        ``reduced_seconds`` (likewise, None where none reached), and, where the
+        speedup is None, ``unavailable``: why, in words.
+    """
+    k_fulls = k_fulls if isinstance(k_fulls, dict) else {"": k_fulls}
+    reference = f"fixed:{k_fulls['']}"
+    target = accuracy_target(logs, reference)
+    detail = {"target_val_error": target, "reference": reference}
+    best = {}
+    for kind in ("full", "reduced"):
+        times = {
+            name: time_to_accuracy(log, target)
+            for name, log in logs.items()
+            if _kind(name, k_fulls) == kind and target is not None
+        }
+        reached = {name: t for name, t in times.items() if t is not None}
+        name = min(reached, key=reached.get) if reached else None
+        detail[kind], detail[f"{kind}_seconds"] = name, reached.get(name)
+        best[kind] = times
+    why = None
+    stop = (logs.get(reference) or {}).get("stopped")
+    if target is None:
+        why = f"{reference} (full fidelity, the target) did not run"
+    elif stop:
+        why = (
+            f"{reference} (full fidelity, the target) stopped at epoch {stop['epoch']} "
+            f"({stop['reason']}): no full-fidelity accuracy to reach"
+        )
+    elif detail["full"] is None:
+        why = f"no full-fidelity run reached its own final validation error ({target:.4e})"
+    elif not best["reduced"]:
+        why = "no reduced run (PRDP, rtol, coarse K) ran"
+    elif detail["reduced"] is None:
+        why = (
+            f"no reduced run ({', '.join(best['reduced'])}) reached full-fidelity accuracy: "
+            f"validation error <= {REACH_FACTOR} x {reference}'s final, {target:.4e}, "
+            "from some epoch on to the end"
+        )
+    if why:
+        detail["unavailable"] = why
+        return {"speedup_vs_best_full": None, "speedup": detail}
+    ratio = _ratio(detail["full_seconds"], detail["reduced_seconds"])
+    return {"speedup_vs_best_full": ratio, "speedup": detail}
 
 
 def _savings(logs: dict, prdp_name: str, full_name: str) -> dict:
@@ -389,16 +569,23 @@ def stopped_runs(summary: dict) -> list[str]:
 
 
 def format_table(summary: dict) -> str:
-    """Plain-text table of a comparison summary, with its savings line and warnings."""
+    """Plain-text table of a comparison summary, with its savings line and warnings.
+
+    Column ``reach s``: the run's ``time_to_full_accuracy`` (— where it never
+    reached full-fidelity accuracy); the line ``speedup vs best full fidelity`` gives
+    ``speedup_vs_best_full`` with the two runs it compares, or why there is none.
+    """
 
     def cell(value, width: int, spec: str = "") -> str:
         return ("—" if value is None else format(value, spec)).rjust(width)
 
     width = max([12, *(len(name) + 2 for name in summary["runs"])])
+    # summaries written before time_to_full_accuracy existed keep their old table
+    reach = any("time_to_full_accuracy" in r for r in summary["runs"].values())
     lines = [
         f"scene {summary['scene']}   K_full = {summary['k_full']}",
         f"{'schedule':<{width}}{'val error':>12}{'K final':>9}{'inner its':>12}{'wall s':>9}"
-        f"{'solver %':>10}  stopped",
+        f"{'solver %':>10}" + (f"{'reach s':>9}" if reach else "") + "  stopped",
     ]
     for name, r in summary["runs"].items():
         its = (r["fwd_iterations"] or 0) + (r["adj_iterations"] or 0)
@@ -410,9 +597,14 @@ def format_table(summary: dict) -> str:
         )
         lines.append(
             f"{name:<{width}}{cell(r['final_val_error'], 12, '.4e')}{cell(r['k_final'], 9)}"
-            f"{its:>12}{cell(r['wall_time'], 9, '.2f')}{cell(share, 10, '.1f')}  "
+            f"{its:>12}{cell(r['wall_time'], 9, '.2f')}{cell(share, 10, '.1f')}"
+            + (cell(r.get("time_to_full_accuracy"), 9, ".2f") if reach else "")
+            + "  "
             + (f"{stop['reason']} at epoch {stop['epoch']}" if stop else "no")
         )
+    for name, r in summary["runs"].items():
+        if "rtol" in r:
+            lines.append(_rtol_line(name, r["rtol"]))
     if "savings" in summary:
         s = summary["savings"]
         lines.append(
@@ -472,14 +664,39 @@ def format_table(summary: dict) -> str:
                 else "no run reached it"
             )
         )
-        main = ["prdp", f"fixed:{summary['k_full']}"] + [
-            name
-            for route, r in summary.get("routes", {}).items()
-            if "skipped" not in r
-            for name in (f"prdp@{route}", f"fixed:{r['k_full']}@{route}")
-        ]
-        for name in main:
-            if name in best["seconds_to_target"]:
-                t = best["seconds_to_target"][name]
-                lines.append(f"  {name}: " + ("not reached" if t is None else f"{t:.2f} s"))
+        if not reach:  # an older summary: the times per run, as the column would give them
+            main = ["prdp", f"fixed:{summary['k_full']}"] + [
+                name
+                for route, r in summary.get("routes", {}).items()
+                if "skipped" not in r
+                for name in (f"prdp@{route}", f"fixed:{r['k_full']}@{route}")
+            ]
+            for name in main:
+                if name in best["seconds_to_target"]:
+                    t = best["seconds_to_target"][name]
+                    lines.append(f"  {name}: " + ("not reached" if t is None else f"{t:.2f} s"))
+    if "speedup" in summary:
+        lines.append(_speedup_line(summary["speedup_vs_best_full"], summary["speedup"]))
     return "\n".join(lines)
+
+
+def _speedup_line(ratio: float | None, detail: dict) -> str:
+    """The table's line for `speedup_vs_best_full`."""
+    if ratio is None:
+        return f"speedup vs best full fidelity: none, {detail['unavailable']}"
+    return (
+        f"speedup vs best full fidelity: {ratio:.2f}x ({detail['full']} reached full-fidelity "
+        f"accuracy, val error <= {detail['target_val_error']:.4e}, in "
+        f"{detail['full_seconds']:.2f} s; {detail['reduced']} in {detail['reduced_seconds']:.2f} s)"
+    )
+
+
+def _rtol_line(name: str, r: dict) -> str:
+    """The table's line for an ``rtol`` run: tolerances, cap, iterations per solve."""
+    first, last = r["fwd_per_solve_first"], r["fwd_per_solve_last"]
+    its = "" if first is None else f"; forward iterations per solve {first:.1f} -> {last:.1f}"
+    final = "—" if r["final"] is None else f"{r['final']:.0e} (level {r['level']} of {r['levels']})"
+    return (
+        f"{name}: PETSc's rtol test under max_it = {r['max_it']} "
+        f"({r['max_it_factor']} x K_full {r['k_full']}), rtol {r['init']:.0e} -> {final}{its}"
+    )

@@ -1,11 +1,11 @@
 """Training harness: K schedules, cost accounting, K_full, one training run.
 
-``run`` trains a scene once under a schedule (``"prdp"`` or ``"fixed:K"``) and
-writes ``results.json`` after every epoch, so a run that stops early (a diverged
-solve, Ctrl-C) keeps everything measured so far, and ``checkpoint.pt``
-(`prdp_petsc.training.checkpoint`), from which ``run(resume=DIR)`` continues it
-exactly and `load_trained` loads the trained model.  `prdp_petsc.training.compare`
-builds the PRDP-against-K_full comparison on top of it.
+``run`` trains a scene once under a schedule (`parse_schedule`: ``"prdp"``,
+``"fixed:K"`` or ``"rtol"``) and writes ``results.json`` after every epoch, so a run
+that stops early (a diverged solve, Ctrl-C) keeps everything measured so far, and
+``checkpoint.pt`` (`prdp_petsc.training.checkpoint`), from which ``run(resume=DIR)``
+continues it exactly and `load_trained` loads the trained model.
+`prdp_petsc.training.compare` builds the PRDP-against-K_full comparison on top of it.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -27,7 +28,7 @@ import torch
 from ..core.results import SolverError
 from ..core.solver import KSPSolver
 from ..errors import InputError, NonFiniteError, stop_reason
-from ..prdp import PRDP
+from ..prdp import PRDP, rtol_from_level
 from .checkpoint import CHECKPOINT, load_checkpoint, restore, save_checkpoint
 from .parallel import Parallel
 from .provenance import provenance
@@ -35,6 +36,10 @@ from .scene import load_scene, preset_config, with_prdp_settings
 
 __all__ = [
     "RESULTS",
+    "RTOL_FACTOR",
+    "RTOL_INIT",
+    "RTOL_MAX_IT_FACTOR",
+    "Schedule",
     "build_scene",
     "check_epochs",
     "find_k_full",
@@ -53,18 +58,55 @@ logger = logging.getLogger(__name__)
 RESULTS = "results.json"
 
 
-def parse_schedule(schedule: str) -> int | None:
-    """``"prdp"`` → None, ``"fixed:K"`` → K."""
-    if schedule == "prdp":
-        return None
-    if schedule.startswith("fixed:"):
+#: The ``rtol`` schedule's first relative tolerance (refinement level 0) ...
+RTOL_INIT = 1e-1
+#: ... and the factor per refinement: a decade per level (`prdp_petsc.rtol_from_level`)
+RTOL_FACTOR = 1e-1
+#: The ``rtol`` schedule caps every solve at this many times K_full (PETSc's rtol test
+#: stops it first; the cap only bounds a solve that would not converge)
+RTOL_MAX_IT_FACTOR = 10
+
+
+class Schedule(NamedTuple):
+    """A parsed schedule: ``kind`` ``"prdp"``, ``"fixed"`` or ``"rtol"``; ``k`` for fixed."""
+
+    kind: str
+    k: int | None = None
+
+
+def parse_schedule(schedule: str) -> Schedule:
+    """``"prdp"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`; ValueError else.
+
+    ``"prdp"`` raises the iteration cap K (``max_it``, with ``rtol = atol = 0``) as
+    `prdp_petsc.PRDP` decides; ``"fixed:K"`` keeps it at K; ``"rtol"`` is PRDP moving
+    PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖`` under a
+    generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol = ``rtol_from_level(level,
+    RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and the same controller's
+    plateau test raises the level by one (see `run`).
+    """
+    if schedule in ("prdp", "rtol"):
+        return Schedule(schedule)
+    if isinstance(schedule, str) and schedule.startswith("fixed:"):
         try:
             k = int(schedule.split(":", 1)[1])
         except ValueError:
             k = 0
         if k >= 1:
-            return k
-    raise ValueError(f"schedule must be 'prdp' or 'fixed:K' with K >= 1, got {schedule!r}")
+            return Schedule("fixed", k)
+    raise ValueError(f"schedule must be 'prdp', 'rtol' or 'fixed:K' with K >= 1, got {schedule!r}")
+
+
+def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR):
+    """Refinements from `rtol_init` until `rtol_from_level` reaches `rtol_full` (>= 0).
+
+    The ``rtol`` schedule stops refining there: a tighter rtol than the scene's own
+    definition of a converged solve buys nothing, as K past K_full does not.
+    """
+    rtol_init = max(rtol_init, rtol_full)
+    level = 0
+    while rtol_from_level(level, rtol_init, factor, rtol_full) > rtol_full * (1 + 1e-9):
+        level += 1
+    return level
 
 
 def positive_int(value, name: str) -> int:
@@ -220,7 +262,14 @@ def run(
         Scene file (see `prdp_petsc.training.scene`); with `resume`, default: the
         recorded one.
     schedule : str
-        ``"prdp"`` (the default) or ``"fixed:K"``.
+        ``"prdp"`` (the default), ``"fixed:K"`` or ``"rtol"`` (`parse_schedule`).
+        ``"rtol"`` runs every scene solver with PETSc's rtol test (``‖r‖ ≤ rtol ‖b‖``,
+        ``atol`` 0) under ``max_it`` = `RTOL_MAX_IT_FACTOR` × K_full, and rtol =
+        ``rtol_from_level(level, RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``
+        (0.1, 0.01, ... down to the scene's own tolerance): a `prdp_petsc.PRDP` with
+        the scene's plateau settings and ``k_init = k_step = k_min = 1`` raises the
+        level (``controller.level``) by one where it would raise K, and stops at
+        the level that reaches ``rtol_full`` (`rtol_levels`).
     preset, epochs, seed, torch_seed
         Preset name (default ``"quick"``); number of epochs (>= 1; default: the
         scene's); random seed (default 0; of the data and, unless `torch_seed` is
@@ -236,6 +285,8 @@ def run(
         The default 1 keeps wall times honest on a shared machine.
     prdp : dict, optional
         Settings of `prdp_petsc.PRDP` that replace the scene's; recorded in results.
+        For ``"rtol"`` its ``k_init``, ``k_step``, ``k_min`` and ``k_max`` count
+        rtol levels and are set by the schedule.
         Unless they (or the scene) set ``k_max``, a PRDP run caps K at K_full
         (`find_k_full`, one converged solve of the scene's probe): refining past
         full fidelity buys nothing, and a validation error that rises for another
@@ -267,7 +318,11 @@ def run(
     -------
     dict
         ``epochs`` (per epoch: ``k``, ``train_loss``, ``val_metric``, ``wall_time``,
-        ``fwd_iterations``, ``adj_iterations``), ``totals``, ``threads``, ``config``
+        ``fwd_iterations``, ``adj_iterations``, the iterations PETSc ran; under
+        ``"rtol"`` also ``rtol``, ``rtol_level``, ``fwd_solves`` and ``adj_solves``,
+        with ``k`` the cap), ``totals``; under ``"rtol"``, ``rtol`` (``rtol_init``,
+        ``factor``, ``rtol_min``, ``levels``, ``k_full``, ``max_it_factor``,
+        ``max_it``); ``threads``, ``config``
         (the preset's settings, as changed by the preset string), ``provenance``,
         ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
         and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
@@ -321,7 +376,7 @@ def run(
     preset = "quick" if preset is None else preset
     seed = 0 if seed is None else seed
     torch_seed = seed if torch_seed is None else torch_seed
-    fixed_k = parse_schedule(schedule)
+    plan = parse_schedule(schedule)
     module = module or load_scene(scene_file)
     ranks = Parallel(parallel)
     with torch_threads(threads):
@@ -356,14 +411,19 @@ def run(
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
         try:
-            if fixed_k is None and "k_max" not in scene.prdp:  # past K_full buys nothing
+            if plan.kind == "prdp" and "k_max" not in scene.prdp:  # past K_full buys nothing
                 with ranks.solvers():
                     scene.prdp["k_max"] = _k_cap(scene)
+            if plan.kind == "rtol":
+                with ranks.solvers():
+                    result["rtol"] = _rtol_plan(scene, recorded)
+                levels = result["rtol"]["levels"]  # the controller's K is the level + 1
+                scene.prdp.update(k_init=1, k_step=1, k_min=1, k_max=levels + 1)
             ranks.check_solvers(scene)
             ranks.synchronize(scene)
-            result["prdp"] = scene.prdp if fixed_k is None else None
+            result["prdp"] = scene.prdp if plan.kind != "fixed" else None
             _train(
-                scene, result, fixed_k, epochs, torch_seed, out, progress and ranks.root, ranks,
+                scene, result, plan, epochs, torch_seed, out, progress and ranks.root, ranks,
                 every=every, state=state,
             )  # fmt: skip
             if not result["stopped"]:
@@ -446,7 +506,8 @@ def load_trained(folder, *, module=None):
     Rebuilds the scene from ``folder/results.json`` (scene file, preset, seeds),
     loads ``folder/checkpoint.pt`` (`prdp_petsc.training.checkpoint`: parameters,
     optimizer and scheduler state) and sets every solver's ``max_it`` to the K of
-    the checkpoint's last epoch, the K its validation ran with.  Random number
+    the checkpoint's last epoch, the K its validation ran with (and, after the
+    ``rtol`` schedule, ``rtol`` to that epoch's).  Random number
     generators are left alone.
 
     Parameters
@@ -478,12 +539,37 @@ def load_trained(folder, *, module=None):
     if trained:
         for solver in scene.solvers:
             solver.max_it = trained[-1]["k"]
+            if "rtol" in trained[-1]:  # the rtol schedule's last tolerance
+                solver.rtol = trained[-1]["rtol"]
     if len(trained) < len(recorded["epochs"]):
         logger.warning(
             "%s: the checkpoint holds %d of the %d recorded epochs (checkpoint_every > 1)",
             folder, len(trained), len(recorded["epochs"]),
         )  # fmt: skip
     return scene
+
+
+def _rtol_plan(scene, recorded: dict | None) -> dict:
+    """The ``rtol`` schedule's levels and cap (a resumed run keeps its recorded ones)."""
+    if recorded is not None and recorded.get("rtol"):
+        return dict(recorded["rtol"])
+    rtol_init = max(RTOL_INIT, scene.rtol_full)
+    try:
+        k_full = find_k_full(scene)
+    except SolverError as err:
+        raise SolverError(
+            f"the rtol schedule caps its solves at {RTOL_MAX_IT_FACTOR} x K_full, but {err}",
+            reason=err.reason,
+        ) from err
+    return {
+        "rtol_init": rtol_init,
+        "factor": RTOL_FACTOR,
+        "rtol_min": scene.rtol_full,
+        "levels": rtol_levels(scene.rtol_full, rtol_init, RTOL_FACTOR),
+        "k_full": k_full,
+        "max_it_factor": RTOL_MAX_IT_FACTOR,
+        "max_it": RTOL_MAX_IT_FACTOR * k_full,
+    }
 
 
 def _k_cap(scene) -> int | None:
@@ -513,7 +599,7 @@ def release(scene) -> None:
 def _train(
     scene,
     result: dict,
-    fixed_k,
+    plan: Schedule,
     epochs: int,
     torch_seed: int,
     out,
@@ -528,12 +614,14 @@ def _train(
     from tqdm.auto import tqdm
 
     generator = torch.Generator().manual_seed(torch_seed)
-    controller = PRDP(**scene.prdp) if fixed_k is None else None
+    controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
+    levels = result.get("rtol") if plan.kind == "rtol" else None
     start = 0
     if state is not None:
         restore(scene, state, controller=controller, generator=generator)
         start = state["epoch"]
-    k = fixed_k if fixed_k is not None else controller.k
+    k = plan.k if plan.kind == "fixed" else levels["max_it"] if levels else controller.k
+    level = controller.level if levels else None  # rtol: the controller's K counts levels
     bar = tqdm(
         range(start, epochs),
         desc=f"{result['scene']} {result['schedule']}",
@@ -544,8 +632,14 @@ def _train(
     )
     try:
         for epoch in bar:
+            rtol = None
+            if levels:  # PRDP's level as PETSc's rtol (the adjoint follows unless set apart)
+                rtol = rtol_from_level(level, levels["rtol_init"], levels["factor"],
+                                       levels["rtol_min"])  # fmt: skip
             for s in scene.solvers:
                 s.max_it = k
+                if rtol is not None:
+                    s.rtol = rtol
                 s.reset_stats()
             t0 = time.perf_counter()
             try:
@@ -572,21 +666,30 @@ def _train(
                 sum(s.adjoint_iterations for s in stats),
                 sum(s.forward_time + s.adjoint_time for s in stats),
             )
-            result["epochs"].append(
-                {
-                    "epoch": epoch,
-                    "k": k,
-                    "train_loss": float(np.mean(losses)) if losses else math.nan,
-                    "val_metric": metric,
-                    "wall_time": wall,
-                    "fwd_iterations": fwd,
-                    "adj_iterations": adj,
-                    "solver_time": solver_time,
-                }
-            )
-            bar.set_postfix(K=k, val=f"{metric:.3e}")
+            record = {
+                "epoch": epoch,
+                "k": k,
+                "train_loss": float(np.mean(losses)) if losses else math.nan,
+                "val_metric": metric,
+                "wall_time": wall,
+                "fwd_iterations": fwd,
+                "adj_iterations": adj,
+                "solver_time": solver_time,
+            }
+            if rtol is not None:  # what the tolerance bought: solves and real iterations
+                fwd_solves, adj_solves, _ = ranks.totals(
+                    sum(s.forward_solves for s in stats), sum(s.adjoint_solves for s in stats), 0.0
+                )
+                record.update(rtol=rtol, rtol_level=level, fwd_solves=fwd_solves,
+                              adj_solves=adj_solves)  # fmt: skip
+            result["epochs"].append(record)
+            bar.set_postfix(K=k, val=f"{metric:.3e}", **({"rtol": f"{rtol:.0e}"} if rtol else {}))
             if controller is not None:
-                k = ranks.agree(controller.update(metric))
+                following = ranks.agree(controller.update(metric))
+                if levels:  # rtol: the level moves, the cap stays
+                    level = following - controller.k_min
+                else:
+                    k = following
             result["totals"] = _totals(result["epochs"])
             if out is not None:
                 done = epoch + 1
@@ -622,4 +725,5 @@ def _totals(log: list[dict]) -> dict:
         "final_val_error": log[-1]["val_metric"],
         "best_val_error": min(e["val_metric"] for e in log),
         "k_final": log[-1]["k"],
+        **({"rtol_final": log[-1]["rtol"]} if "rtol" in log[-1] else {}),
     }

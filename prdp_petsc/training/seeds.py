@@ -10,7 +10,11 @@ each seed and summarises the ratios on a log scale, where "PRDP is 10 % worse" a
   (treating the seeds as independent draws);
 * the same for the twin's ratios: the spread two equally valid runs show;
 * the mean, smallest and largest saving in inner iterations and wall time, and on
-  how many seeds PRDP met the per-seed test (`ACCURACY_RATIO`).
+  how many seeds PRDP met the per-seed test (`ACCURACY_RATIO`);
+* the geometric mean and 95 % interval of each seed's ``speedup_vs_best_full``
+  (`prdp_petsc.training.compare.speedup_vs_best_full`: the fastest full-fidelity
+  route's time to full-fidelity accuracy over the fastest reduced run's), and on
+  how many seeds it reached `SPEEDUP_GOAL`.
 
 Decisions, written down: the per-seed test stays the verdict of each `compare`; this
 summary adds the evidence a single seed cannot give.  Its reading of the interval:
@@ -20,7 +24,11 @@ order, so their ratio is a paired comparison; the twin changes both and so bound
 the noise from above.  A seed whose PRDP or K_full run stopped (diverged, invalid
 input) has no ratio: it counts as a seed that did not meet the test and stays out of
 the statistics, which say how many seeds they rest on.  With ``routes``, each seed's
-table reports them; the summary covers the scene's own solver only.
+table reports them; the error ratios cover the scene's own solver only, the speedup
+every route and schedule.  A seed without a speedup (no reduced run reached
+full-fidelity accuracy) is a failure: it is named with its reason, stays out of the
+speedup's statistics (a ratio that does not exist has no logarithm) and counts as
+short of `SPEEDUP_GOAL`.
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ from .harness import write_json
 from .parallel import Parallel
 
 __all__ = [
+    "SPEEDUP_GOAL",
     "compare_seeds",
     "format_seeds",
     "parse_seeds",
@@ -40,6 +49,10 @@ __all__ = [
     "ratio_statistics",
     "seeds_figure",
 ]
+
+
+#: The speedup over the best full-fidelity route a reduced run should reach (2: twice as fast)
+SPEEDUP_GOAL = 2.0
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -98,10 +111,13 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
     Keyword arguments go to `compare`.  Writes ``out/seeds.json`` after every seed
     (so an interrupted study keeps what it measured) and returns it: ``scene``,
     ``seeds``, ``per_seed`` (K_full, final errors, PRDP ratio, twin ratio,
-    savings, per-seed verdict) and, over the seeds whose PRDP and K_full runs
-    both finished, ``prdp_ratio`` and ``twin_ratio`` (`ratio_statistics`),
+    savings, per-seed verdict, ``speedup_vs_best_full`` with the two runs it
+    compares or ``speedup_unavailable``) and, over the seeds whose PRDP and K_full
+    runs both finished, ``prdp_ratio`` and ``twin_ratio`` (`ratio_statistics`),
     ``savings`` (`iterations`, `wall_time`: mean, min, max) and ``equal_accuracy``
-    (count of seeds that met the per-seed test).
+    (count of seeds that met the per-seed test); ``speedup`` (`ratio_statistics`
+    of the seeds' speedups, with ``failures``: the seeds without one, and
+    ``goal_met``: how many seeds reached `SPEEDUP_GOAL`).
     """
     if not seeds:
         raise ValueError("compare_seeds needs at least one seed")
@@ -122,7 +138,13 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             "twin_val_error": runs.get(f"twin:{k}", {}).get("final_val_error"),
             "prdp_k_final": runs.get("prdp", {}).get("k_final"),
             "stopped": stopped_runs(summary),
+            "speedup_vs_best_full": summary.get("speedup_vs_best_full"),
         }
+        detail = summary.get("speedup") or {}
+        if row["speedup_vs_best_full"] is None:
+            row["speedup_unavailable"] = detail.get("unavailable", "compare gave no speedup")
+        else:
+            row["speedup_full"], row["speedup_reduced"] = detail["full"], detail["reduced"]
         if "savings" in summary:
             row.update(
                 prdp_ratio=summary["val_error_ratio"],
@@ -208,6 +230,7 @@ def plot_seeds(result: dict, out) -> str | None:
 def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
     done = [r for r in per_seed if "prdp_ratio" in r]
     result = {"scene": scene, "seeds": seeds, "per_seed": per_seed, "accuracy": ACCURACY_RATIO}
+    result.update(_speedups(per_seed))
     if not done:
         return result
     result["prdp_ratio"] = ratio_statistics([r["prdp_ratio"] for r in done])
@@ -220,6 +243,29 @@ def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
     result["equal_accuracy"] = sum(r["equal_accuracy"] for r in done)
     result["compared"] = len(done)
     return result
+
+
+def _speedups(per_seed: list[dict]) -> dict:
+    """``speedup``: statistics of the seeds' speedups, failures named (see the module)."""
+    if not any("speedup_vs_best_full" in r for r in per_seed):
+        return {}  # rows of an older comparison
+    values = [
+        r["speedup_vs_best_full"] for r in per_seed if r.get("speedup_vs_best_full") is not None
+    ]
+    failures = [
+        {"seed": r["seed"], "reason": r.get("speedup_unavailable", "no speedup")}
+        for r in per_seed
+        if r.get("speedup_vs_best_full") is None
+    ]
+    out = ratio_statistics(values) if values else {"geometric_mean": None, "interval": None}
+    out.update(
+        n=len(values),
+        seeds=len(per_seed),
+        failures=failures,
+        goal=SPEEDUP_GOAL,
+        goal_met=sum(v >= SPEEDUP_GOAL for v in values),
+    )
+    return {"speedup": out}
 
 
 def _verdict(interval: list[float] | None, accuracy: float) -> str | None:
@@ -235,15 +281,23 @@ def _verdict(interval: list[float] | None, accuracy: float) -> str | None:
 
 
 def format_seeds(result: dict) -> str:
-    """Plain-text table of `compare_seeds`: one row per seed, then the summary lines."""
+    """Plain-text table of `compare_seeds`: one row per seed, then the summary lines.
+
+    Column ``speedup``: the seed's ``speedup_vs_best_full`` (— where there is none);
+    results written before it existed keep their old table.
+    """
+    has_speedup = "speedup" in result
     lines = [
         f"scene {result['scene']}   seeds {', '.join(map(str, result['seeds']))}",
         f"{'seed':>4}{'K_full':>8}{'PRDP err':>12}{'full err':>12}{'twin err':>12}"
-        f"{'PRDP/full':>11}{'twin/full':>11}{'its saved':>11}{'wall saved':>12}{'K final':>9}",
+        f"{'PRDP/full':>11}{'twin/full':>11}{'its saved':>11}{'wall saved':>12}{'K final':>9}"
+        + (f"{'speedup':>9}" if has_speedup else ""),
     ]
     for r in result["per_seed"]:
+        speedup = _num(r.get("speedup_vs_best_full"), 9, ".2f") if has_speedup else ""
         if "prdp_ratio" not in r:
-            lines.append(f"{r['seed']:>4}{r['k_full']:>8}  {r['savings_unavailable']}")
+            why = r["savings_unavailable"] + (f"; speedup {speedup.strip()}" if speedup else "")
+            lines.append(f"{r['seed']:>4}{r['k_full']:>8}  {why}")
             continue
         twin = r.get("twin_ratio")
         lines.append(
@@ -251,10 +305,11 @@ def format_seeds(result: dict) -> str:
             f"{r['full_val_error']:>12.4e}{_num(r['twin_val_error'], 12, '.4e')}"
             f"{r['prdp_ratio']:>11.3f}{_num(twin, 11, '.3f')}"
             f"{100 * r['iterations_saved']:>10.1f}%{100 * r['wall_time_saved']:>11.1f}%"
-            f"{_num(r['prdp_k_final'], 9, '')}"
+            f"{_num(r['prdp_k_final'], 9, '')}{speedup}"
         )
+    speedup = _speedup_lines(result.get("speedup"))
     if "prdp_ratio" not in result:
-        return "\n".join(lines + ["no seed gave PRDP and K_full over the same epochs"])
+        return "\n".join([*lines, "no seed gave PRDP and K_full over the same epochs", *speedup])
     s = result["savings"]
     lines.append(
         f"savings over {result['compared']} seeds: inner iterations "
@@ -272,7 +327,23 @@ def format_seeds(result: dict) -> str:
     verdict = _verdict(result["prdp_ratio"].get("interval"), result["accuracy"])
     if verdict:
         lines.append(verdict)
-    return "\n".join(lines)
+    return "\n".join(lines + speedup)
+
+
+def _speedup_lines(stats: dict | None) -> list[str]:
+    """Lines of the seeds' ``speedup_vs_best_full``: statistics, goal, failures."""
+    if not stats:
+        return []
+    if stats["n"]:
+        lines = [_ratio_line("speedup vs best full fidelity", stats)]
+    else:
+        lines = ["speedup vs best full fidelity: on no seed did a reduced run reach it"]
+    lines.append(
+        f"speedup >= {stats['goal']:g} on {stats['goal_met']} of {stats['seeds']} seeds"
+        + (f" ({len(stats['failures'])} without a speedup)" if stats["failures"] else "")
+    )
+    lines += [f"  seed {f['seed']}: no speedup, {f['reason']}" for f in stats["failures"]]
+    return lines
 
 
 def _num(value, width: int, spec: str) -> str:
