@@ -33,6 +33,12 @@ records a 20-step curve); the exact steps are Newton with a PETSc LU solve to �
 rollout error stays near 0.4, that of the identity map is about 1), but K still shows:
 at K = 1 the error settles near 0.48, from K ≈ 4 on near 0.39.
 
+Warm starts across epochs (``warm_start_epochs: True``; default False): each training
+sample's Newton loop starts from that sample's capped result of the last epoch
+(`prdp_petsc.autograd.WarmStarts`) instead of from ûⁿ⁺¹, so the two capped Newton
+steps of every epoch continue where the last epoch's stopped; the gradient is the
+implicit one at the returned iterate either way (the start receives none).
+
 Presets: ``quick`` (tests; seconds) and ``paper`` (about 20 s per run on this
 project's 2-core machine).  At K_full the inner GMRES iterations take about a third
 of an epoch (R and J are assembled element by element, the MeshNet and the Newton
@@ -51,10 +57,15 @@ import torch
 from petsc4py import PETSc
 
 import prdp_petsc as pp
+from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.training.networks import MeshNet
 from prdp_petsc.training.rollout import rollout_errors
+from prdp_petsc.training.routes import parse_routes
 from prdp_petsc.training.scene import shuffled_batches
 
+# ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
+# Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG:
+# K_full 13 and 6 on ``paper`` against GMRES + Jacobi's 36.
 PRESETS = {
     "quick": {
         "mesh": "lshape",
@@ -72,8 +83,10 @@ PRESETS = {
         "batch": 6,
         "lr": 3e-3,
         "gamma": 0.97,
+        "warm_start_epochs": False,
         "k_init": 1,
         "k_step": 1,
+        "routes": "gmres/ilu",
     },
     "paper": {
         "mesh": "lshape",
@@ -91,8 +104,10 @@ PRESETS = {
         "batch": 8,
         "lr": 3e-3,
         "gamma": 0.97,
+        "warm_start_epochs": False,
         "k_init": 1,
         "k_step": 1,
+        "routes": "gmres/ilu,gmres/gamg",
     },
 }
 
@@ -149,6 +164,7 @@ def trajectories(heat, u0: np.ndarray, steps: int, alpha: float) -> np.ndarray:
 
 
 def build(config: dict, seed: int) -> pp.Scene:
+    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
     mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
     basis = skfem.Basis(mesh, skfem.ElementTriP1())
     heat = pp.NonlinearHeat(basis, config["dt"], dirichlet=basis.get_dofs())
@@ -174,21 +190,26 @@ def build(config: dict, seed: int) -> pp.Scene:
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
     interior_t = torch.from_numpy(interior)
     newton = {"solves": 0, "steps": 0}  # running totals, written with the results
+    starts = WarmStarts() if config["warm_start_epochs"] else None
 
-    def newton_step(u_hat: torch.Tensor) -> torch.Tensor:
-        """Newton_K(û): the capped step from û (also the initial guess), differentiable in û."""
+    def newton_step(u_hat: torch.Tensor, sample: int) -> torch.Tensor:
+        """Newton_K(û): the capped step from û, differentiable in û; the Newton loop starts
+        from û, or with warm starts from this sample's result of the last epoch."""
         u_prev = torch.zeros(N, dtype=torch.float64).index_copy(0, interior_t, u_hat)
+        u0 = u_hat.detach() if starts is None else starts.guess(sample, fill=u_hat)
         sol = pp.newton_solve(
-            heat, u_hat.detach(), u_prev, zero_f, zero_g, alpha,
+            heat, u0, u_prev, zero_f, zero_g, alpha,
             solver=solver, max_newton=config["max_newton"], rtol=1e-10,
         )  # fmt: skip
         newton["solves"] += 1
         newton["steps"] += sol.iterations
+        if starts is not None:
+            starts.store(sample, sol.value)
         return sol.value
 
     def loss(idx):
         u1_hat = net(train_in[idx])
-        u2_hat = torch.stack([newton_step(u) for u in u1_hat])
+        u2_hat = torch.stack([newton_step(u, i) for u, i in zip(u1_hat, idx.tolist(), strict=True)])
         return ((u2_hat - train_out[idx]) ** 2).sum(-1).mean() / scale**2
 
     def rollout():

@@ -47,6 +47,12 @@ third of the time, so validation stays a small, equal share of every run.  The
 harness also records the per-step normalised velocity error ‖(û, v̂) − (u, v)‖/‖(u, v)‖
 of a ``rollout_steps``-step rollout (≥ 20).
 
+Warm starts across epochs (``warm_start_epochs: True``; default False): every
+training solve starts from that window's solution of the same unroll step in the last
+epoch (`prdp_petsc.autograd.WarmStarts`, keyed by step and window) instead of from
+zero, so the capped GMRES continues where the last epoch's stopped; validation
+solves (to ``rtol_full``) and K_full's probe still start from zero.
+
 Variants (config keys): ``solver_grad: False`` detaches the solver from the graph
 (the second step's solve sees a constant input: the reference's effective
 gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
@@ -78,8 +84,10 @@ import numpy as np
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.fem import mac
 from prdp_petsc.training.networks import ConvResNet
+from prdp_petsc.training.routes import parse_routes
 from prdp_petsc.training.scene import shuffled_batches
 
 _BASE = {
@@ -98,6 +106,14 @@ _BASE = {
     "rtol_full": 1e-5,
     "k_init": 8,
     "k_step": 8,
+    "warm_start_epochs": False,
+    # the KSP/PC pairs `compare` also runs (``--routes`` overrides them): none.  The
+    # operator is not symmetric (CG, ICC refused) and has a zero pressure block: ILU
+    # fails on it, Jacobi stalls (GMRES) or diverges (BiCGStab), and the unpreconditioned
+    # alternatives are no faster (K_full on ``paper``: BiCGStab 744, TFQMR 397, GMRES(8)
+    # 436).  The route that pays, a fieldsplit Schur complement PC (the docstring, `SCHUR`),
+    # needs sub-options a ``ksp/pc`` route does not carry: give them as PETSc options.
+    "routes": "",
 }
 
 PRESETS = {
@@ -173,9 +189,13 @@ def reference_data(n: int, count: int, steps: int, dt: float, nu: float, seed: i
 
 
 class Corrector:
-    """The hybrid step s ↦ P_K(s) + C(P_K(s)) with its solver and network."""
+    """The hybrid step s ↦ P_K(s) + C(P_K(s)) with its solver and network.
 
-    def __init__(self, config: dict, net: torch.nn.Module):
+    With `warm_starts` (a `WarmStarts`), a solve given ``keys`` (one per state) starts
+    from the solutions stored under them and stores its own.
+    """
+
+    def __init__(self, config: dict, net: torch.nn.Module, warm_starts: WarmStarts | None = None):
         self.n, self.dt = config["n"], config["dt"]
         self.A = mac.ns_operator(self.n, self.dt, config["nu"])
         W = mac.wind_matrix(self.n).tocoo()
@@ -185,6 +205,7 @@ class Corrector:
         ).coalesce()
         self.scale = torch.from_numpy(mac.rhs_scale(self.n, self.dt))
         self.net = net
+        self.warm_starts = warm_starts
 
     def theta(self, state: torch.Tensor) -> torch.Tensor:
         """Picard parameters θ = [a⁺; a⁻], a = W s, of states (B, 3n²) (differentiable)."""
@@ -194,26 +215,36 @@ class Corrector:
         positive = torch.relu(a)
         return torch.cat([positive, a - positive], dim=1)
 
-    def solve(self, state: torch.Tensor, solver: pp.KSPSolver) -> torch.Tensor:
-        """The capped solve P_K(s): operator and right-hand side both from s."""
-        return pp.solve(self.A, state * self.scale, solver, theta=self.theta(state))
+    def solve(self, state: torch.Tensor, solver: pp.KSPSolver, keys=None) -> torch.Tensor:
+        """The capped solve P_K(s): operator and right-hand side both from s (from the
+        warm starts of `keys`, if any)."""
+        starts = self.warm_starts if keys is not None else None
+        x0 = None if starts is None else starts.guess(keys)
+        x = pp.solve(self.A, state * self.scale, solver, theta=self.theta(state), x0=x0)
+        if starts is not None:
+            starts.store(keys, x)
+        return x
 
     def correct(self, coarse: torch.Tensor) -> torch.Tensor:
         n = self.n
         return coarse + self.net(coarse.reshape(-1, 3, n, n)).reshape(coarse.shape)
 
-    def __call__(self, state: torch.Tensor, solver: pp.KSPSolver) -> torch.Tensor:
-        return self.correct(self.solve(state, solver))
+    def __call__(self, state: torch.Tensor, solver: pp.KSPSolver, keys=None) -> torch.Tensor:
+        return self.correct(self.solve(state, solver, keys))
 
 
-def unrolled_loss(hybrid, solver, windows, *, unroll: int = 2, solver_grad: bool = True):
+def unrolled_loss(
+    hybrid, solver, windows, *, unroll: int = 2, solver_grad: bool = True, samples=None
+):
     """Summed MSE of an `unroll`-step corrected rollout from ``windows[0]`` (B, 3n²)
-    against ``windows[1:]``; ``solver_grad=False`` detaches each solve's input."""
+    against ``windows[1:]``; ``solver_grad=False`` detaches each solve's input.
+    `samples` (the windows' indices) key the warm starts of step t as ``(t, index)``."""
     state, total = windows[0], 0.0
     for t in range(1, unroll + 1):
         if not solver_grad:
             state = state.detach()  # the solve sees a constant: no physics gradient
-        state = hybrid(state, solver)
+        keys = None if samples is None else [(t, i) for i in samples]
+        state = hybrid(state, solver, keys)
         total = total + ((state - windows[t]) ** 2).mean()
     return total
 
@@ -248,11 +279,12 @@ def setup(config: dict, seed: int) -> dict:
     else:  # the training solver run to rtol_full
         full = solver.clone(max_it=100_000, rtol=config["rtol_full"])
     net = ConvResNet(3, 3, hidden=config["hidden"], blocks=config["blocks"])
-    hybrid = Corrector(config, net)
+    hybrid = Corrector(config, net, WarmStarts() if config["warm_start_epochs"] else None)
     return {"train": train, "val": val, "solver": solver, "full": full, "hybrid": hybrid}
 
 
 def build(config: dict, seed: int) -> pp.Scene:
+    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
     n = config["n"]
     parts = setup(config, seed)
     train, val, solver, full, hybrid = (
@@ -275,7 +307,8 @@ def build(config: dict, seed: int) -> pp.Scene:
                 s = train[t, idx].clone()
                 noise = torch.randn(s.shape, dtype=s.dtype) * config["noise"] * velocity_std
                 s.view(len(idx), 3, -1)[:, :2] += noise.view(len(idx), 3, -1)[:, :2]
-                losses.append(((hybrid(s, solver) - train[t + 1, idx]) ** 2).mean())
+                keys = [(t, i) for i in idx.tolist()]
+                losses.append(((hybrid(s, solver, keys) - train[t + 1, idx]) ** 2).mean())
             return sum(losses)
         return unrolled_loss(
             hybrid,
@@ -283,6 +316,7 @@ def build(config: dict, seed: int) -> pp.Scene:
             train[:, idx],
             unroll=config["unroll"],
             solver_grad=config["solver_grad"],
+            samples=idx.tolist(),
         )
 
     def rollout_states(steps: int) -> torch.Tensor:

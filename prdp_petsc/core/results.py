@@ -38,11 +38,28 @@ class SolveInfo:
         when PETSc computed none: ``-ksp_norm_type none``, ``preonly``, or
         Richardson with a PC that runs its own sweeps (SOR), whose tolerances
         PETSc then ignores.  Never 0.0 for "not computed".
+    rate : float or None
+        Geometric mean residual reduction per iteration, ``(‖r_K‖/‖r_0‖)^(1/K)``
+        from the KSP's residual history (in its norm type); None where PETSc
+        computed no norm or ran no iteration.
+    pc_age : int
+        Operator value changes since the preconditioner this solve used was set
+        up (0: a fresh PC; > 0 only with ``KSPSolver(pc_lag=N)``, N > 1).
+    k_equivalent : float or None
+        On a reused PC (``pc_age > 0``): the iterations the stale PC needs to
+        reduce the residual as far as the fresh PC does in this solve's K,
+        ``K · log(rate_fresh) / log(rate)`` with ``rate_fresh`` measured on the
+        solves right after the last set-up (``inf`` when the stale PC reduces
+        nothing); ≥ K when the stale PC is worse.  None on a fresh PC, or where a
+        rate is unknown.
     """
 
     iterations: int
     reason: str
     residual_norm: float | None
+    rate: float | None = None
+    pc_age: int = 0
+    k_equivalent: float | None = None
 
     @property
     def residual_computed(self) -> bool:
@@ -113,6 +130,19 @@ class CallInfo:
         return np.array([s.residual_computed for s in self.samples], dtype=bool)
 
     @property
+    def pc_ages(self) -> np.ndarray:
+        """`SolveInfo.pc_age` per sample, ``(B,)`` int."""
+        return np.array([s.pc_age for s in self.samples], dtype=np.int64)
+
+    @property
+    def k_equivalents(self) -> np.ndarray:
+        """`SolveInfo.k_equivalent` per sample, ``(B,)``; NaN where None (fresh PC or
+        no rate)."""
+        return np.array(
+            [np.nan if s.k_equivalent is None else s.k_equivalent for s in self.samples]
+        )
+
+    @property
     def converged(self) -> bool:
         """True when every sample converged (`SolveInfo.converged`)."""
         return bool(self.samples) and all(s.converged for s in self.samples)
@@ -127,7 +157,12 @@ class CallInfo:
 
 @dataclass
 class SolverStats:
-    """Counters of forward and adjoint work since the last `KSPSolver.reset_stats`."""
+    """Counters of forward and adjoint work since the last `KSPSolver.reset_stats`.
+
+    ``pc_setups`` counts the preconditioner set-ups the solves caused (a PC shared
+    by the forward and adjoint KSPs once), ``pc_quality_rebuilds`` those of them
+    that ``KSPSolver(pc_lag=N)``'s quality guard forced before the lag ran out.
+    """
 
     forward_solves: int = 0
     forward_iterations: int = 0
@@ -136,6 +171,8 @@ class SolverStats:
     adjoint_iterations: int = 0
     adjoint_time: float = 0.0
     operator_updates: int = 0
+    pc_setups: int = 0
+    pc_quality_rebuilds: int = 0
 
     def record(self, kind: str, solves: int, iterations: int, seconds: float) -> None:
         """Add one call's work to the ``forward`` or ``adjoint`` counters."""

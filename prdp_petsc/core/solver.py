@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from petsc4py import PETSc
@@ -20,6 +21,7 @@ from petsc4py import PETSc
 from ..errors import InputError, NonFiniteError
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
+from .lag import PCLag
 from .nullspace import attach_nullspaces, check_nullspaces, normalize_nullspace
 from .operator import OperatorMat
 from .options import PushedOptions
@@ -28,6 +30,10 @@ from .results import CallInfo, SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings
 from .step import SolveStep
 from .structure import check_structure
+
+if TYPE_CHECKING:  # mpi4py is optional (the `mpi` extra)
+    import scipy.sparse as sp
+    from mpi4py import MPI
 
 __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
@@ -80,6 +86,22 @@ class KSPSolver:
         `prdp_petsc.core.structure`) on an operator known to be non-symmetric, with
         a `prdp_petsc.errors.StructureError` naming an alternative (default True).
         ``False`` is the expert's opt-out.
+    pc_lag : int
+        Set the preconditioner up again only every `pc_lag`-th time the operator's
+        values change (PETSc's ``KSPSetReusePreconditioner`` in between), as SNES's
+        ``-snes_lag_preconditioner``; a new Mat (pattern, size) always gets a new
+        PC.  1 (default): a new PC at every change.  The adjoint KSP follows the
+        same rule; sharing the forward PC (the default), it sees the same age.
+        Every solve's `SolveInfo` records ``pc_age`` and, on a reused PC,
+        ``k_equivalent`` (see `prdp_petsc.core.lag`).
+    pc_lag_tol : float
+        Quality guard of `pc_lag` (≥ 1, default 1.2): when a call on a reused PC
+        reduces the residual per iteration so much less than the fresh PC did that
+        it needs more than `pc_lag_tol` times the iterations
+        (``log rate_fresh / log rate``), the PC is set up before the next solve,
+        counted in ``stats.pc_quality_rebuilds`` and logged (INFO).  A call that
+        fails on a reused PC (`SolverError`: a stale GAMG may be indefinite for CG)
+        runs again on a fresh PC (logged as a warning; counted the same way).
     comm : PETSc.Comm or mpi4py communicator, optional
         Communicator of the KSPs and of the Mat made from a scipy operator
         (default: `prdp_petsc.core.parallel.default_comm`, i.e. ``COMM_SELF``
@@ -113,6 +135,15 @@ class KSPSolver:
     transpose": True})`` solves such an adjoint with an explicit Aᵀ instead.
     Free the PETSc objects with `destroy` or a ``with`` block.
 
+    With ``pc_lag > 1`` the solver sets PETSc's reuse flag before every solve
+    (``-{prefix}ksp_reuse_preconditioner`` is then overridden); with 1 it leaves
+    the flag alone.  A reused PC changes the iterates of a capped solve, not the
+    answer of a converged one.  The quality measure is a residual reduction rate in
+    the KSP's norm type (preconditioned for left-preconditioned CG/GMRES), and it
+    varies with the right-hand side and K: the guard errs towards an extra set-up,
+    never towards a worse solve going unreported.  A caller's Mat edited in place
+    (the same Mat passed again) is not seen as a change; PETSc sets its PC up again.
+
     Every call reports every sample: ``last_forward`` and ``last_adjoint`` are the
     `CallInfo` of the last forward and adjoint call (iterations, reason and
     residual per sample; a residual PETSc did not compute is None, never 0), and
@@ -131,13 +162,16 @@ class KSPSolver:
         atol: float = 0.0,
         adjoint: AdjointSettings | dict | None = None,
         divtol: float | None = None,
-        nullspace=None,
-        transpose_nullspace=None,
+        nullspace: str | np.ndarray | None = None,
+        transpose_nullspace: str | np.ndarray | None = None,
         symmetric: bool | None = None,
         check_structure: bool = True,
-        comm=None,
-    ):
+        pc_lag: int = 1,
+        pc_lag_tol: float = 1.2,
+        comm: PETSc.Comm | MPI.Comm | None = None,
+    ) -> None:
         self.comm = as_petsc_comm(comm)
+        self._lag = PCLag(pc_lag, pc_lag_tol)
         #: options, prefixes and tolerances (`prdp_petsc.core.configuration.Configuration`)
         self.config = Configuration(options, prefix, max_it, rtol, atol, adjoint, divtol)
         self.declared_symmetric = symmetric
@@ -187,6 +221,17 @@ class KSPSolver:
         return self._op.symmetric
 
     @property
+    def pc_lag(self) -> int:
+        """Set the PC up every `pc_lag`-th operator value change (1: at every change)."""
+        return self._lag.lag
+
+    @property
+    def pc_lag_tol(self) -> float:
+        """Quality guard of `pc_lag`: the most ``log rate_fresh / log rate`` a reused
+        PC may show before it is set up again."""
+        return self._lag.tol
+
+    @property
     def operator_version(self) -> int:
         """Increases whenever the operator (or its values) changes; compare to skip work."""
         return self._op.version
@@ -199,6 +244,7 @@ class KSPSolver:
         """Create and configure both KSPs on `comm`, fully or not at all."""
         self._items = self.config.option_items()
         self._setup_version = {"forward": -1, "adjoint": -1}
+        self._lag.reset()  # new KSPs: every PC is set up at its first solve
         self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
         ksp = adj = None
         pushed = PushedOptions(self._items, watch=True)
@@ -207,7 +253,8 @@ class KSPSolver:
             ksp.setOptionsPrefix(self.prefix)
             adj = PETSc.KSP().create(comm=comm)
             adj.setOptionsPrefix(self.adjoint_prefix)
-            if self.config.shares_pc():
+            self._shared_pc = self.config.shares_pc()
+            if self._shared_pc:
                 adj.setPC(ksp.getPC())
             with pushed:
                 ksp.setFromOptions()
@@ -224,7 +271,7 @@ class KSPSolver:
         self.config.apply(ksp, adj)
         logger.debug("KSPs %r, %r built", self.prefix, self.adjoint_prefix)
 
-    def setup(self, comm=None) -> None:
+    def setup(self, comm: PETSc.Comm | None = None) -> None:
         """Rebuild the KSPs on `comm` if its size differs from theirs (else nothing to do).
 
         Called when an operator on another communicator arrives; `comm` (the
@@ -335,13 +382,16 @@ class KSPSolver:
             "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
             "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
             "ranks": self.ksp.getComm().getSize(),
+            "pc_lag": self.pc_lag,
+            "pc_lag_tol": self.pc_lag_tol,
         }
 
-    def clone(self, **changes) -> KSPSolver:
+    def clone(self, **changes: Any) -> KSPSolver:
         """A new solver with the same settings, some of them changed.
 
         Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces, the
-        symmetry declaration, the structure check and the communicator are copied;
+        symmetry declaration, the structure check, the PC lag and the communicator
+        are copied;
         keyword arguments (any of `KSPSolver`'s) replace them.
         """
         kwargs = {
@@ -350,6 +400,8 @@ class KSPSolver:
             "transpose_nullspace": self.transpose_nullspace,
             "symmetric": self.declared_symmetric,
             "check_structure": self.check_structure,
+            "pc_lag": self.pc_lag,
+            "pc_lag_tol": self.pc_lag_tol,
             "comm": self.comm,
             **changes,
         }
@@ -375,8 +427,11 @@ class KSPSolver:
         permutation), e.g. to measure its memory besides PETSc's Mat."""
         return self._op.arrays()
 
-    def set_operator(self, A, *, symmetric: bool | None = None) -> None:
-        """Set the matrix; the PC is set up again only if its values changed.
+    def set_operator(
+        self, A: sp.spmatrix | PETSc.Mat | tuple, *, symmetric: bool | None = None
+    ) -> None:
+        """Set the matrix; the PC is set up again only if its values changed (and then
+        only every `pc_lag`-th time).
 
         Parameters
         ----------
@@ -394,7 +449,9 @@ class KSPSolver:
         change = self._op.update(A, symmetric)
         if change == "new":
             self._attach(self._op.mat)
+            self._lag.operator_changed(new_mat=True)
         elif change == "values":
+            self._lag.operator_changed()
             self.stats.operator_updates += 1
             if self.nullspace is not None:
                 check_nullspaces(self._op.mat)
@@ -452,6 +509,8 @@ class KSPSolver:
         if layout.distributed and not layout.replicated:  # each rank holds a part of b
             exponents = layout.agree_max(exponents)
         check = self._unchecked[kind]
+        slot = "forward" if self._shared_pc else kind  # a shared PC has one age
+        age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
         t0 = time.perf_counter()
         iterations = 0
         # the options are in PETSc's database while it may read them: at the PC set-up
@@ -464,8 +523,26 @@ class KSPSolver:
             try:
                 for i in range(len(batch)):
                     iterations += step(batch[i], out[i], int(exponents[i]))
+            except SolverError as err:
+                if age == 0:
+                    raise
+                # failed on a reused PC (a stale GAMG can be indefinite): run the call
+                # again on a fresh one; a failure then is the operator's own
+                logger.warning(
+                    "%s solve failed on a PC %d operator changes old (%s); set up again",
+                    kind,
+                    age,
+                    err.reason,
+                )
+                if len(step.infos) > i:  # the failed row's own work counts too
+                    iterations += step.infos[i].iterations
+                self._lag.mark_stale(slot)
+                age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
+                step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
+                for i in range(len(batch)):
+                    iterations += step(batch[i], out[i], int(exponents[i]))
             finally:
-                self._record(kind, step)
+                self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
         self._setup_version[kind] = self._op.version
         if check:
             self._unchecked[kind] = False
@@ -500,10 +577,10 @@ class KSPSolver:
             ksp.setUp()  # KSPSolve would; now the blocks' KSPs exist
             check_structure(ksp, symmetric, kind, set_up=True)
 
-    def _record(self, kind: str, step: SolveStep) -> None:
-        call = CallInfo(kind, tuple(step.infos))
+    def _record(self, kind: str, infos: list[SolveInfo]) -> None:
+        call = CallInfo(kind, tuple(infos))
         setattr(self, f"last_{kind}", call)
-        self.last = step.info()
+        self.last = infos[-1] if infos else None
 
     def reset_stats(self) -> None:
         """Zero the counters in `stats`."""

@@ -13,10 +13,25 @@ from petsc4py import PETSc
 from . import safeguards
 from .results import SolveInfo, SolverError, reason_name
 
-__all__ = ["SolveStep"]
+__all__ = ["SolveStep", "reduction_rate"]
 
 _MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
 _NO_NORM = PETSc.KSP.NormType.NONE
+
+
+def reduction_rate(history: np.ndarray) -> float | None:
+    """Geometric mean residual reduction per iteration, ``(h[-1]/h[0])^(1/(len(h)-1))``.
+
+    `history` is a KSP's residual history of one solve (``KSPGetResidualHistory``:
+    the initial norm, then one per iteration).  None without an iteration or
+    without a positive finite initial norm; 0.0 for an exact solve.
+    """
+    if history.size < 2 or not (np.isfinite(history[0]) and history[0] > 0):
+        return None
+    ratio = float(history[-1] / history[0])
+    if not np.isfinite(ratio):
+        return None
+    return ratio ** (1.0 / (history.size - 1))
 
 
 class SolveStep:
@@ -86,11 +101,13 @@ class SolveStep:
         Richardson+SOR), and ``KSPGetResidualNorm``'s 0 means nothing.
         """
         ksp = self.ksp
-        computed = ksp.getNormType() != _NO_NORM and ksp.getConvergenceHistory().size > 0
+        history = ksp.getConvergenceHistory()
+        computed = ksp.getNormType() != _NO_NORM and history.size > 0
         return SolveInfo(
             ksp.getIterationNumber(),
             reason_name(ksp.getConvergedReason()),
             float(np.ldexp(ksp.getResidualNorm(), exponent)) if computed else None,
+            reduction_rate(history) if computed else None,
         )
 
     def _verify(self, reason: int, exponent: int) -> int:
