@@ -9,11 +9,18 @@ Sub-commands::
     prdp-petsc run --resume DIR [--epochs N] [--threads T] [PETSc options]
     prdp-petsc compare SCENE_FILE [--preset ...] [--set KEY=VALUE ...] [--epochs N]
                    [--seed S | --seeds 0-3] [--threads T] [--routes cg/icc,cg/gamg]
-                   [--parallel domain|batch] [--checkpoint-every N] [--resume]
+                   [--schedules prdp,rtol] [--parallel domain|batch]
+                   [--checkpoint-every N] [--resume]
                    --out DIR [PETSc options]
-    prdp-petsc bench bridge --out DIR
-    prdp-petsc work-precision PROBLEM --out DIR
+    prdp-petsc bench bridge|mpi --out DIR
+    prdp-petsc work-precision PROBLEM --out DIR [--k-max K] [--routes cg/gamg,...]
     prdp-petsc stability --out DIR
+    prdp-petsc pages --out docs/results
+    prdp-petsc --version
+
+Every sub-command follows the same conventions: PETSc options (below) start PETSc,
+``--debug`` shows the traceback of an error (otherwise one line, exit status 1), a
+usage error exits 2, and a concept has one spelling (``--routes a,b``, ``--k-max``).
 
 Arguments that start with a single ``-`` and are not ours are PETSc options
 (``-heat_ksp_type cg -heat_ksp_monitor -log_view``): PETSc starts with them
@@ -149,7 +156,7 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
                 help="continue the run in DIR from its checkpoint.pt, with its recorded "
                 "scene, preset, seeds and schedule, to --epochs (default: the recorded)",
             )
-            p.add_argument("--schedule", default=None, help="prdp | fixed:K (default prdp)")
+            p.add_argument("--schedule", default=None, help="prdp | fixed:K | rtol (default prdp)")
             p.add_argument(
                 "--k-max",
                 type=_k_max,
@@ -167,9 +174,18 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
             p.add_argument(
                 "--routes",
                 type=_routes,
-                default=(),
+                default=None,
                 help="other solvers to run PRDP and full fidelity with, comma-separated "
-                "ksp_type/pc_type (e.g. cg/icc,cg/gamg); the summary names the fastest",
+                "ksp_type/pc_type (e.g. cg/icc,cg/gamg); the summary names the fastest "
+                "(default: the routes the scene's preset declares; --routes '' runs none)",
+            )
+            p.add_argument(
+                "--schedules",
+                type=_schedules,
+                default=("prdp",),
+                help="reduced-fidelity schedules to run on every route, comma-separated: "
+                "prdp (PRDP on the iteration cap K; the default) and rtol (PRDP on PETSc's "
+                "rtol under a generous cap)",
             )
     return parser
 
@@ -213,6 +229,15 @@ def _routes(text: str) -> tuple[str, ...]:
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
     return routes
+
+
+def _schedules(text: str) -> tuple[str, ...]:
+    """The names of ``--schedules``; `compare` checks them (importing it here would
+    start PETSc before `init_petsc`)."""
+    schedules = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    if not schedules:
+        raise argparse.ArgumentTypeError(f"expected e.g. prdp,rtol, got {text!r}")
+    return schedules
 
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -375,6 +400,7 @@ def _compare_options(args) -> dict:
         "progress": not args.no_progress,
         "threads": args.threads,
         "routes": args.routes,
+        "schedules": args.schedules,
         "parallel": args.parallel,
         "resume": args.resume,
         "checkpoint_every": args.checkpoint_every,
@@ -454,8 +480,35 @@ def _scene_command(parser: argparse.ArgumentParser, argv: list[str], scene_file=
             parser.error("run: --out DIR is required (unless --resume DIR)")
     init_petsc(petsc)
     scene = scene_file if scene_file is not None else args.scene
+    _check_arguments(parser, args, scene)
     out = args.out or resume
     return _guarded(lambda: _run_scene_command(args, scene), args.debug, out, args)
+
+
+def _check_arguments(parser: argparse.ArgumentParser, args, scene) -> None:
+    """A malformed ``--schedule``, a preset the scene does not have or a ``--set`` it
+    cannot take is a usage error (exit 2), found before anything trains.  Checked after
+    PETSc started: the scene and the harness import it."""
+    from .training.harness import parse_schedule
+
+    if getattr(args, "schedule", None) is not None:
+        try:
+            parse_schedule(args.schedule)
+        except ValueError as err:
+            parser.error(f"--schedule: {err}")
+    preset = _preset(args, None)
+    if scene is None or preset is None:
+        return
+    from .training.scene import load_scene, preset_config
+
+    try:
+        module = load_scene(scene)
+    except (FileNotFoundError, AttributeError):
+        return  # reported by the command itself, with the file's name
+    try:
+        preset_config(module, preset)
+    except ValueError as err:
+        parser.error(f"--preset/--set: {err}")
 
 
 def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
@@ -468,15 +521,30 @@ def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
     return _scene_command(_scene_parser(scene_arg=False), argv, scene_file)
 
 
+def _tool_command(name: str, argv: list[str]) -> int:
+    """``prdp-petsc bench|work-precision|stability|pages ...``: the same conventions as
+    ``run``: PETSc options start PETSc, the tool's own parser reads the rest (``--debug``
+    included: an error prints one line unless it is given), usage errors exit 2."""
+    ours, petsc = split_petsc_options(argv)
+    debug = argparse.ArgumentParser(add_help=False)
+    debug.add_argument("--debug", action="store_true")
+    init_petsc(petsc)
+    tool = importlib.import_module(_TOOLS[name])
+    return _guarded(lambda: tool.main(ours), debug.parse_known_args(ours)[0].debug)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``prdp-petsc`` console script."""
     apply_warning_options()
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if argv[:1] == ["--version"]:
+        from . import __version__
+
+        print(f"prdp-petsc {__version__}")
+        return 0
     if argv and argv[0] in _TOOLS:
-        debug = "--debug" in argv
-        rest = [a for a in argv[1:] if a != "--debug"]
-        return _guarded(lambda: importlib.import_module(_TOOLS[argv[0]]).main(rest), debug)
+        return _tool_command(argv[0], argv[1:])
     parser = _scene_parser(prog="prdp-petsc")
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()

@@ -78,9 +78,10 @@ def test_run_is_deterministic(tmp_path):
 
 
 def test_parse_schedule():
-    assert parse_schedule("prdp") is None
-    assert parse_schedule("fixed:7") == 7
-    for bad in ("fixed:0", "fixed:x", "adaptive"):
+    assert parse_schedule("prdp") == ("prdp", None)
+    assert parse_schedule("rtol") == ("rtol", None)
+    assert parse_schedule("fixed:7") == ("fixed", 7) and parse_schedule("fixed:7").k == 7
+    for bad in ("fixed:0", "fixed:x", "adaptive", "rtol:3"):
         with pytest.raises(ValueError):
             parse_schedule(bad)
 
@@ -318,8 +319,35 @@ def test_cli_errors_print_one_line(tmp_path, capsys):
     assert "FileNotFoundError" in err and "no_such_scene.py" in err and "--debug" in err
     with pytest.raises(FileNotFoundError):
         main(["run", missing, "--out", str(tmp_path / "out"), "--debug"])
-    rc = main(["run", str(HEAT1D), "--schedule", "fixed:x", "--out", str(tmp_path / "o")])
-    assert rc == 1 and "schedule must be" in capsys.readouterr().err
+    # usage errors exit 2, before anything trains, like argparse's own
+    for bad in (["--schedule", "fixed:x"], ["--preset", "nope"], ["--set", "lr=abc"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["run", str(HEAT1D), *bad, "--out", str(tmp_path / "o")])
+        assert exit_info.value.code == 2
+        assert bad[0] in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_version_and_tools_share_the_conventions(tmp_path, capsys):
+    import prdp_petsc
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"prdp-petsc {prdp_petsc.__version__}"
+    with pytest.raises(SystemExit) as exit_info:  # a tool's usage error: 2
+        main(["stability", "--cases", "nope", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    # a tool's error: one line and 1, the traceback with --debug
+    with pytest.raises(SystemExit) as exit_info:  # --k-max 0 was silently 256
+        main(["work-precision", "poisson", "--quick", "--out", str(tmp_path), "--k-max", "0"])
+    assert exit_info.value.code == 2
+    capsys.readouterr()
+    argv = ["work-precision", "poisson", "--quick", "--out", str(tmp_path), "--k-max", "2"]
+    argv += ["--routes", "cg/no_such_pc"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--debug" in err
+    with pytest.raises(ValueError):
+        main([*argv, "--debug"])
 
 
 def test_cli_compare_with_stopped_runs_exits_nonzero(tiny, tmp_path, capsys):
@@ -391,9 +419,13 @@ def test_table_shows_stopped_runs_and_why_savings_are_missing():
     assert rows["prdp"].endswith("DIVERGED_DTOL at epoch 2")
     assert rows["fixed:10"].endswith("no")
     assert rows["fixed:1"].split()[1:5] == ["—", "—", "0", "—"]
-    assert table.splitlines()[-1] == (
+    assert table.splitlines()[-2] == (
         "PRDP vs K_full: no savings: prdp stopped at epoch 2 (DIVERGED_DTOL); "
         "savings need prdp and fixed:10 over the same epochs"
+    )
+    # neither stopped run reaches full-fidelity accuracy: no speedup, and why
+    assert table.splitlines()[-1].startswith(
+        "speedup vs best full fidelity: none, no reduced run (prdp, fixed:1) reached"
     )
 
 

@@ -43,7 +43,8 @@ def test_work_precision_main(tmp_path):
     wall time, so it is not asserted.
     """
     pairs = ["cg/gamg", "cg/sor", "cg/jacobi", "richardson/jacobi"]
-    argv = ["poisson", "--quick", "--out", str(tmp_path), "--kmax", "32", "--pairs", *pairs]
+    routes = ",".join(pairs)
+    argv = ["poisson", "--quick", "--out", str(tmp_path), "--k-max", "32", "--routes", routes]
     assert workprecision.main(argv) == 0
     data = json.loads((tmp_path / "work_precision_poisson.json").read_text())
     assert (tmp_path / "work_precision_poisson.png").stat().st_size > 10_000

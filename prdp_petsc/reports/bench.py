@@ -277,6 +277,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--ksp-type", default="cg", help="KSP type of every solve (cg)")
     p.add_argument("--pc-type", default="jacobi", help="PC type of every solve (jacobi)")
     p.add_argument("--threads", type=_positive, default=1, help="torch threads (default 1)")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     return p
 
 

@@ -761,6 +761,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("name", help="data set name, e.g. heat2d")
         parser.add_argument("--data", default="docs/data", help="data folder (docs/data)")
         parser.add_argument("--images", default="docs/images", help="plot folder (docs/images)")
+        parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
         parser.add_argument("command", nargs=argparse.REMAINDER, help="-- COMMAND ...")
         args = parser.parse_args(argv[1:])
         command = args.command[1:] if args.command[:1] == ["--"] else args.command
@@ -778,6 +779,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--readme", default="README.md", help="README whose fragments to rewrite ('' for none)"
     )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     args = parser.parse_args(argv)
     written = generate(args.out, data=args.data, images=args.images, readme=args.readme or None)
     print(f"pages: {len(written)} files -> {args.out}")

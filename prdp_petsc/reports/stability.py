@@ -358,6 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quick", action="store_true", help="small meshes (seconds)")
     parser.add_argument("--cases", nargs="*", choices=sorted(CASES), help="run only these")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     rows = run_cases(args.quick, args.cases)

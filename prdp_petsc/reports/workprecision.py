@@ -355,8 +355,20 @@ def plot(result: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``prdp-petsc work-precision PROBLEM --out DIR [--quick] [--kmax K]``."""
+    """``prdp-petsc work-precision PROBLEM --out DIR [--quick] [--k-max K] [--routes R,...]``."""
+    from ..training.routes import parse_routes
     from .problems import PROBLEMS, build_problem
+
+    def k_max(text: str) -> int:
+        if not text.isdigit() or int(text) < 1:
+            raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+        return int(text)
+
+    def routes(text: str) -> tuple[str, ...]:
+        try:
+            return parse_routes(text)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
 
     parser = argparse.ArgumentParser(
         prog="prdp-petsc work-precision",
@@ -366,16 +378,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("problem", choices=sorted(PROBLEMS))
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quick", action="store_true", help="small mesh and K range")
-    parser.add_argument("--kmax", type=int, default=None, help="largest K (power of two)")
-    parser.add_argument("--pairs", nargs="*", help="only these KSP/PC pairs, e.g. cg/gamg")
+    parser.add_argument("--k-max", type=k_max, default=None, help="largest K (power of two)")
+    parser.add_argument(
+        "--routes", type=routes, default=(), help="only these KSP/PC pairs, e.g. cg/gamg,cg/icc"
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     args = parser.parse_args(argv)
-    kmax = args.kmax or (256 if args.quick else 2048)
+    kmax = args.k_max or (256 if args.quick else 2048)
     ks = [2**i for i in range(int(np.log2(kmax)) + 1)]
     t0 = time.perf_counter()
     problem = build_problem(args.problem, quick=args.quick)
-    pairs = None
-    if args.pairs:
-        pairs = [tuple(p.split("/")) for p in args.pairs]
+    pairs = [tuple(r.split("/")) for r in args.routes] or None
     result = sweep(problem, ks, pairs, passes=2 if args.quick else 3)
     result["seconds"] = time.perf_counter() - t0
     result["quick"] = args.quick
