@@ -71,14 +71,18 @@ On ``paper`` and ``large`` the reference data take minutes (direct solves on the
 2N grid); they are cached per process, so ``compare`` builds them once.
 
 Run ``python demos/ns2d.py compare --preset paper --out results/ns2d``;
-``python demos/ns2d.py adjoint PRESET`` prints the adjoint figures (cost per step,
-gradient against the detached one).
+``python demos/ns2d.py adjoint --preset paper --k 8 64 256`` (or ``prdp-petsc scene
+demos/ns2d.py adjoint ...``) prints the adjoint figures (cost per step, gradient against
+the converged and the detached one).
 """
 
 from __future__ import annotations
 
+import argparse
 import functools
 import math
+import sys
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -88,7 +92,7 @@ from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.fem import mac
 from prdp_petsc.training.networks import ConvResNet
 from prdp_petsc.training.routes import parse_routes
-from prdp_petsc.training.scene import shuffled_batches
+from prdp_petsc.training.scene import preset_config, shuffled_batches
 
 _BASE = {
     "dt": 0.1,
@@ -390,7 +394,7 @@ def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -
         (``rel_to_detached``), and the cosine with the converged one.
     """
     torch.manual_seed(seed)
-    config = dict(PRESETS[preset])
+    config = preset_config(sys.modules[__name__], preset)  # "paper n=32": a preset, changed
     parts = setup(config, seed)
     train, solver, hybrid = parts["train"], parts["solver"], parts["hybrid"]
     params = list(hybrid.net.parameters())
@@ -454,16 +458,32 @@ def format_adjoint_report(report: dict) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
-    import sys
+def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    """Print the adjoint figures of one training batch (`adjoint_report`), on one thread."""
+    parser.add_argument("--preset", default="quick", help="preset (default quick)")
+    parser.add_argument(
+        "--k",
+        type=int,
+        nargs="+",
+        default=[8, 64],
+        metavar="K",
+        help="the capped Ks (GMRES iterations) to differentiate with (default 8 64)",
+    )
 
-    if sys.argv[1:2] == ["adjoint"]:  # python demos/ns2d.py adjoint PRESET [K ...]
+    def run(args: argparse.Namespace) -> int:
+        if min(args.k) < 1:
+            parser.error(f"--k: every K must be >= 1, got {args.k}")
         torch.set_num_threads(1)
-        preset = sys.argv[2] if len(sys.argv) > 2 else "quick"
-        ks = tuple(int(k) for k in sys.argv[3:]) or (8, 64)
-        print(format_adjoint_report(adjoint_report(preset, ks)))
-        raise SystemExit(0)
+        print(format_adjoint_report(adjoint_report(args.preset, tuple(args.k))))
+        return 0
 
+    return run
+
+
+COMMANDS = {"adjoint": adjoint_command}
+
+
+if __name__ == "__main__":
     from prdp_petsc.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -26,7 +26,8 @@ Presets: ``quick`` (refine 0: 1 485 nodes, 2 808 elements; tests) and ``paper``
 (refine 1: 5 777 nodes, 11 232 elements).
 
 Run ``python demos/poisson_field.py compare --preset paper --routes cg/gamg --out results/pf``;
-``python demos/poisson_field.py plot paper fields.png`` draws true against recovered κ.
+``python demos/poisson_field.py plot --preset paper --out fields.png`` (or ``prdp-petsc
+scene demos/poisson_field.py plot ...``) draws true against recovered κ.
 ``config["mode"]`` picks implicit (PETSc adjoint) or unrolled (the CG iteration in
 torch) gradients.
 
@@ -52,6 +53,9 @@ cost and keeps every iterate for the backward).
 """
 
 from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -251,14 +255,24 @@ def plot_fields(theta, out_png) -> None:
     plt.close(fig)
 
 
+def plot_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    """Recover κ with PRDP on a preset and draw it against the true κ (`plot_fields`)."""
+    parser.add_argument("--preset", default="quick", help="preset (default quick)")
+    parser.add_argument(
+        "--out", default="poisson_field.png", help="the PNG to write (default poisson_field.png)"
+    )
+
+    def run(args: argparse.Namespace) -> int:
+        plot_fields(recover(args.preset), args.out)
+        return 0
+
+    return run
+
+
+COMMANDS = {"plot": plot_command}
+
+
 if __name__ == "__main__":
-    import sys
-
-    if sys.argv[1:2] == ["plot"]:  # python demos/poisson_field.py plot PRESET OUT.png
-        preset, out_png = sys.argv[2:4] + ["quick", "poisson_field.png"][len(sys.argv[2:4]) :]
-        plot_fields(recover(preset), out_png)
-        raise SystemExit(0)
-
     from prdp_petsc.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -12,6 +12,7 @@ Sub-commands::
                    [--schedules prdp,rtol] [--parallel domain|batch]
                    [--checkpoint-every N] [--resume]
                    --out DIR [PETSc options]
+    prdp-petsc scene SCENE_FILE [NAME [ARGS ...]] [--debug] [PETSc options]
     prdp-petsc bench bridge|mpi --out DIR
     prdp-petsc work-precision PROBLEM --out DIR [--k-max K] [--routes cg/gamg,...]
     prdp-petsc stability --out DIR
@@ -39,6 +40,13 @@ number), appending to its ``results.json``; ``compare --resume`` reads the runs 
 or a split of every mini-batch (see `prdp_petsc.training.parallel`).  An error on
 one rank then aborts all of them (``MPI_Abort``) instead of leaving them waiting.
 
+``scene SCENE_FILE NAME [ARGS ...]`` runs a command the scene file declares in
+``COMMANDS`` (`prdp_petsc.training.scene`), such as ``prdp-petsc scene demos/ns2d.py
+adjoint --preset quick --k 8 64``; ``python demos/ns2d.py adjoint ...`` is the same
+command.  Without NAME it lists them (``python demos/ns2d.py -h`` too).  Each command
+parses its own arguments (``prdp-petsc scene demos/ns2d.py adjoint -h``); an argument
+``--preset`` is checked against the scene's presets like ``run``'s.
+
 Exit status: 0 on success; 1 if a run stopped early (diverged solve, invalid
 input) or on an error, which prints one line (``--debug`` shows the traceback);
 2 for a usage error; 130 after Ctrl-C (the results written so far stay).
@@ -55,11 +63,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import json
 import logging
 import re
 import sys
 import warnings
+from pathlib import Path
 
 # Nothing here imports PETSc (or torch) at module level: `init_petsc` must run first.
 
@@ -512,12 +522,20 @@ def _check_arguments(parser: argparse.ArgumentParser, args, scene) -> None:
 
 
 def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
-    """Entry point of ``python demos/<scene>.py [run|compare] ...`` (default: compare)."""
+    """Entry point of ``python demos/<scene>.py [run|compare|NAME] ...`` (default:
+    compare); NAME is one of the scene's ``COMMANDS``, listed by ``-h``."""
     apply_warning_options()
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] not in ("run", "compare", "-h", "--help"):
-        argv.insert(0, "compare")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    prog = Path(scene_file).name
+    if argv[:1] in (["-h"], ["--help"]):
+        _scene_parser(prog=prog, scene_arg=False).print_help()
+        print()
+        return _extra_command(scene_file, [], prog)
+    if argv and not argv[0].startswith("-") and argv[0] not in _SCENE_FILE_COMMANDS:
+        return _extra_command(scene_file, argv, prog, also=_SCENE_FILE_COMMANDS)
+    if not argv or argv[0] not in _SCENE_FILE_COMMANDS:
+        argv.insert(0, "compare")
     return _scene_command(_scene_parser(scene_arg=False), argv, scene_file)
 
 
@@ -526,11 +544,113 @@ def _tool_command(name: str, argv: list[str]) -> int:
     ``run``: PETSc options start PETSc, the tool's own parser reads the rest (``--debug``
     included: an error prints one line unless it is given), usage errors exit 2."""
     ours, petsc = split_petsc_options(argv)
-    debug = argparse.ArgumentParser(add_help=False)
-    debug.add_argument("--debug", action="store_true")
     init_petsc(petsc)
     tool = importlib.import_module(_TOOLS[name])
-    return _guarded(lambda: tool.main(ours), debug.parse_known_args(ours)[0].debug)
+    return _guarded(lambda: tool.main(ours), _debug_flag(ours))
+
+
+def _debug_flag(argv: list[str]) -> bool:
+    """Whether `argv` asks for tracebacks (``--debug``), before its own parser reads it."""
+    debug = argparse.ArgumentParser(add_help=False)
+    debug.add_argument("--debug", action="store_true")
+    return debug.parse_known_args(argv)[0].debug
+
+
+_SCENE_FILE_COMMANDS = ("run", "compare")  # what every scene file's __main__ takes
+
+
+def _extra_command(scene_file: str, argv: list[str], prog: str, also: tuple = ()) -> int:
+    """``prdp-petsc scene SCENE_FILE [NAME ...]`` and ``python SCENE_FILE NAME ...``: the
+    scene's command NAME from its ``COMMANDS`` (without NAME, their list), with the
+    conventions of ``run``: PETSc options start PETSc (before the scene is imported:
+    it imports PETSc), an error prints one line unless ``--debug``, usage errors exit 2.
+    `prog` is how the usage names the scene (``prdp-petsc scene demos/ns2d.py``); `also`
+    names the other commands that reach the scene there (for the error of a wrong NAME)."""
+    ours, petsc = split_petsc_options(argv)
+    init_petsc(petsc)
+    return _guarded(lambda: _dispatch_extra(scene_file, ours, prog, also), _debug_flag(ours))
+
+
+def _dispatch_extra(scene_file: str, argv: list[str], prog: str, also: tuple) -> int:
+    from .training.scene import load_scene, preset_config
+
+    module = load_scene(scene_file)
+    commands = _scene_commands(module)
+    name = Path(scene_file).name
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_format_commands(name, commands, prog))
+        return 0
+    usage = argparse.ArgumentParser(prog=prog, usage="%(prog)s NAME [ARGS ...]")
+    if argv[0] not in commands:
+        known = ", ".join([*also, *commands]) or "none (it defines no COMMANDS)"
+        if argv[0].startswith("-"):
+            usage.error(f"give the command NAME before its options; {name}'s commands: {known}")
+        usage.error(f"unknown command {argv[0]!r}; {name}'s commands: {known}")
+    configure = commands[argv[0]]
+    parser = argparse.ArgumentParser(
+        prog=f"{prog} {argv[0]}",
+        description=inspect.getdoc(configure),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    command = configure(parser)
+    if not callable(command):
+        raise TypeError(
+            f"{name}: COMMANDS[{argv[0]!r}] must return the function that runs the parsed "
+            f"arguments, got {type(command).__name__}"
+        )
+    args = parser.parse_args(argv[1:])
+    if isinstance(getattr(args, "preset", None), str):  # checked as run's --preset is
+        try:
+            preset_config(module, args.preset)
+        except ValueError as err:
+            parser.error(f"--preset: {err}")
+    status = command(args)
+    return 0 if status is None else status
+
+
+def _scene_commands(module) -> dict:
+    """The scene's ``COMMANDS``, checked: names that are words (not ``run`` or
+    ``compare``) mapped to functions."""
+    commands = getattr(module, "COMMANDS", {})
+    where = Path(module.__file__).name
+    if not isinstance(commands, dict):
+        raise TypeError(f"{where}: COMMANDS must be a dict, got {type(commands).__name__}")
+    for key, value in commands.items():
+        if not (isinstance(key, str) and re.fullmatch(r"[a-z][a-z0-9_-]*", key)):
+            raise ValueError(f"{where}: COMMANDS: {key!r} is not a command name (a-z, 0-9, _, -)")
+        if key in _SCENE_FILE_COMMANDS:
+            raise ValueError(f"{where}: COMMANDS: {key!r} is the harness's; name it otherwise")
+        if not callable(value):
+            raise TypeError(f"{where}: COMMANDS[{key!r}] must be a function, got {value!r}")
+    return commands
+
+
+def _format_commands(name: str, commands: dict, prog: str) -> str:
+    if not commands:
+        return f"{name} defines no commands of its own (COMMANDS); run and compare take any scene"
+    lines = [f"commands of {name} ({prog} NAME -h for the arguments of one):"]
+    width = max(map(len, commands))
+    for key, configure in commands.items():
+        summary = (inspect.getdoc(configure) or "").split("\n", 1)[0]
+        lines.append(f"  {key:<{width}}  {summary}")
+    return "\n".join(lines)
+
+
+def _scene_file_command(argv: list[str]) -> int:
+    """``prdp-petsc scene SCENE_FILE [NAME [ARGS ...]]``."""
+    parser = argparse.ArgumentParser(
+        prog="prdp-petsc scene",
+        usage="%(prog)s SCENE_FILE [NAME [ARGS ...]] [--debug] [PETSc options]",
+        description="Run the command NAME that SCENE_FILE declares in COMMANDS "
+        "(prdp_petsc.training.scene); without NAME, list them.",
+    )
+    if argv[:1] in (["-h"], ["--help"]):
+        parser.print_help()
+        return 0
+    if not argv or argv[0].startswith("-"):
+        parser.error("give a SCENE_FILE, e.g. demos/ns2d.py")
+    return _extra_command(argv[0], argv[1:], f"prdp-petsc scene {argv[0]}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -545,10 +665,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if argv and argv[0] in _TOOLS:
         return _tool_command(argv[0], argv[1:])
+    if argv and argv[0] == "scene":
+        return _scene_file_command(argv[1:])
     parser = _scene_parser(prog="prdp-petsc")
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
-        print("\nother commands: " + ", ".join(_TOOLS))
+        print("\nother commands: scene, " + ", ".join(_TOOLS))
         return 0
     return _scene_command(parser, argv)
 

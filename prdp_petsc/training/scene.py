@@ -13,6 +13,17 @@ A scene file (the shipped ones live in ``demos/``) defines
     (no ``config.get(key, default)``): so ``--set key=value`` reaches it on any
     preset, and the results record it.  Code that several scenes share lives in
     the library (`prdp_petsc.training.emulators`), not in a scene another imports.
+``COMMANDS`` (optional)
+    ``{"adjoint": adjoint_command, ...}``: the scene's own commands besides ``run``
+    and ``compare`` (a report, a plot), run by ``prdp-petsc scene SCENE_FILE NAME
+    [args]`` and ``python SCENE_FILE NAME [args]`` (`prdp_petsc.cli`).  Each function
+    is called with an ``argparse.ArgumentParser`` whose ``prog`` names the command
+    and which has ``--debug``; it adds its arguments and returns the function that
+    runs the parsed ``argparse.Namespace`` and returns the exit status.  The first
+    line of its docstring is the command's summary.  The command line does the rest
+    as for ``run``: PETSc options start PETSc, an error prints one line, a usage
+    error exits 2, and an argument ``--preset`` is checked against ``PRESETS`` (the
+    command reads it with `preset_config`).
 
 A preset name may carry changed settings, ``"paper modes=32 k_step=10"``
 (`preset_config`; the command line's ``--set modes=32``): each value takes the type
