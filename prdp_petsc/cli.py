@@ -251,13 +251,20 @@ def _schedules(text: str) -> tuple[str, ...]:
 
 
 def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
-    """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``)."""
+    """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``).
+
+    Everything after a bare ``--`` is ours, untouched: the command that
+    ``prdp-petsc pages record NAME -- COMMAND`` runs keeps its own PETSc options.
+    """
     from .core.options import is_number  # plain Python: does not import PETSc
 
     ours, petsc = [], []
     i = 0
     while i < len(argv):
         tok = argv[i]
+        if tok == "--":
+            ours.extend(argv[i:])
+            break
         if (
             tok.startswith("-")
             and not tok.startswith("--")
@@ -352,8 +359,9 @@ def init_petsc(options: list[str]) -> None:
 
 
 def _run_scene_command(args, scene_file: str) -> int:
-    from .training.compare import compare, format_table, stopped_runs
+    from .training.compare import compare
     from .training.harness import run
+    from .training.summary import format_table, stopped_runs
 
     if args.command == "run":
         result = run(

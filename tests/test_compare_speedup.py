@@ -13,13 +13,7 @@ from prdp_petsc import rtol_from_level
 from prdp_petsc.cli import _scene_parser
 from prdp_petsc.errors import SolverError
 from prdp_petsc.prdp import PRDP
-from prdp_petsc.training.compare import (
-    compare,
-    format_table,
-    scene_routes,
-    speedup_vs_best_full,
-    summarize,
-)
+from prdp_petsc.training.compare import compare, scene_routes
 from prdp_petsc.training.harness import (
     RTOL_FACTOR,
     RTOL_INIT,
@@ -32,6 +26,7 @@ from prdp_petsc.training.harness import (
 from prdp_petsc.training.routes import parse_routes, time_to_accuracy
 from prdp_petsc.training.scene import load_scene
 from prdp_petsc.training.seeds import _aggregate, compare_seeds, format_seeds
+from prdp_petsc.training.summary import format_table, speedup_vs_best_full, summarize
 
 DEMOS = Path(__file__).resolve().parent.parent / "demos"
 HEAT1D, HEAT2D = DEMOS / "heat1d.py", DEMOS / "heat2d.py"

@@ -8,12 +8,13 @@ import torch
 from _core import fd_poisson
 from petsc4py import PETSc
 
-from prdp_petsc.training.compare import compare, format_table
+from prdp_petsc.training.compare import compare
 from prdp_petsc.training.harness import build_scene, run
 from prdp_petsc.training.networks import MeshNet, ResidualMLP, _EdgeSum, _Pattern
 from prdp_petsc.training.rollout import rollout_errors
 from prdp_petsc.training.routes import fastest, parse_route, route_options
 from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.summary import format_table
 
 HEAT2D = Path(__file__).resolve().parent.parent / "demos" / "heat2d.py"
 

@@ -12,7 +12,7 @@ each seed and summarises the ratios on a log scale, where "PRDP is 10 % worse" a
 * the mean, smallest and largest saving in inner iterations and wall time, and on
   how many seeds PRDP met the per-seed test (`ACCURACY_RATIO`);
 * the geometric mean and 95 % interval of each seed's ``speedup_vs_best_full``
-  (`prdp_petsc.training.compare.speedup_vs_best_full`: the fastest full-fidelity
+  (`prdp_petsc.training.summary.speedup_vs_best_full`: the fastest full-fidelity
   route's time to full-fidelity accuracy over the fastest reduced run's), and on
   how many seeds it reached `SPEEDUP_GOAL`.
 
@@ -36,9 +36,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from .compare import ACCURACY_RATIO, compare, format_table, stopped_runs
+from .compare import compare
 from .harness import write_json
 from .parallel import Parallel
+from .summary import ACCURACY_RATIO, format_table, stopped_runs
 
 __all__ = [
     "SPEEDUP_GOAL",
