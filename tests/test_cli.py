@@ -252,3 +252,14 @@ def test_an_error_in_a_scene_command_prints_one_line_unless_debug(tmp_path, caps
     scene.write_text(SCENE_WITH_A_FAILING_COMMAND.replace('{"fail"', '{"run"'))
     assert cli.main(["scene", str(scene)]) == 1  # the harness's names are refused
     assert "COMMANDS: 'run' is the harness's" in capsys.readouterr().err
+
+
+def test_petsc_options_after_a_bare_double_dash_belong_to_the_inner_command():
+    from prdp_petsc.cli import split_petsc_options
+
+    argv = ["record", "x", "--", "compare", "s.py", "-fwd_pc_type", "gamg", "--out", "o"]
+    assert split_petsc_options(argv) == (argv, [])
+    assert split_petsc_options(["run", "s.py", "-ksp_monitor", "--out", "o"]) == (
+        ["run", "s.py", "--out", "o"],
+        ["-ksp_monitor"],
+    )
