@@ -96,6 +96,11 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
         "heat2d": "compare",
         "stability": "stability",
         "work_precision_heat3d": "work-precision",
+        "heat2d_speedup": "seeds",
+        "heat3d_speedup": "seeds",
+        "heat_nonlinear_speedup": "seeds",
+        "ns2d_large_speedup": "seeds",
+        "ns2d_large_schur_speedup": "seeds",
     }
     for ds in sets:
         p = ds.provenance
