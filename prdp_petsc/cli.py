@@ -507,7 +507,7 @@ def _check_arguments(parser: argparse.ArgumentParser, args, scene) -> None:
     """A malformed ``--schedule``, a preset the scene does not have or a ``--set`` it
     cannot take is a usage error (exit 2), found before anything trains.  Checked after
     PETSc started: the scene and the harness import it."""
-    from .training.harness import parse_schedule
+    from .training.schedules import parse_schedule
 
     if getattr(args, "schedule", None) is not None:
         try:

@@ -14,17 +14,10 @@ from prdp_petsc.cli import _scene_parser
 from prdp_petsc.errors import SolverError
 from prdp_petsc.prdp import PRDP
 from prdp_petsc.training.compare import compare, scene_routes
-from prdp_petsc.training.harness import (
-    RTOL_FACTOR,
-    RTOL_INIT,
-    RTOL_MAX_IT_FACTOR,
-    load_trained,
-    release,
-    rtol_levels,
-    run,
-)
+from prdp_petsc.training.harness import load_trained, release, run
 from prdp_petsc.training.routes import parse_routes, time_to_accuracy
 from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.schedules import RTOL_FACTOR, RTOL_INIT, RTOL_MAX_IT_FACTOR, rtol_levels
 from prdp_petsc.training.seeds import _aggregate, compare_seeds, format_seeds
 from prdp_petsc.training.summary import format_table, speedup_vs_best_full, summarize
 

@@ -10,8 +10,9 @@ from petsc4py import PETSc
 
 from prdp_petsc.cli import main
 from prdp_petsc.training.compare import compare
-from prdp_petsc.training.harness import build_scene, find_k_full, parse_schedule, run, to_json
+from prdp_petsc.training.harness import build_scene, find_k_full, run, to_json
 from prdp_petsc.training.scene import load_scene
+from prdp_petsc.training.schedules import parse_schedule
 from prdp_petsc.training.summary import format_table, summarize
 
 HEAT1D = Path(__file__).resolve().parent.parent / "demos" / "heat1d.py"

@@ -20,7 +20,6 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -33,18 +32,21 @@ from .checkpoint import CHECKPOINT, load_checkpoint, restore, save_checkpoint
 from .parallel import Parallel
 from .provenance import provenance
 from .scene import load_scene, preset_config, with_prdp_settings
+from .schedules import (
+    RTOL_FACTOR,
+    RTOL_INIT,
+    RTOL_MAX_IT_FACTOR,
+    Schedule,
+    parse_schedule,
+    rtol_levels,
+)
 
 __all__ = [
     "RESULTS",
-    "RTOL_FACTOR",
-    "RTOL_INIT",
-    "RTOL_MAX_IT_FACTOR",
-    "Schedule",
     "build_scene",
     "check_epochs",
     "find_k_full",
     "load_trained",
-    "parse_schedule",
     "release",
     "run",
     "to_json",
@@ -56,57 +58,6 @@ logger = logging.getLogger(__name__)
 
 #: File name of a run's results in its output folder.
 RESULTS = "results.json"
-
-
-#: The ``rtol`` schedule's first relative tolerance (refinement level 0) ...
-RTOL_INIT = 1e-1
-#: ... and the factor per refinement: a decade per level (`prdp_petsc.rtol_from_level`)
-RTOL_FACTOR = 1e-1
-#: The ``rtol`` schedule caps every solve at this many times K_full (PETSc's rtol test
-#: stops it first; the cap only bounds a solve that would not converge)
-RTOL_MAX_IT_FACTOR = 10
-
-
-class Schedule(NamedTuple):
-    """A parsed schedule: ``kind`` ``"prdp"``, ``"fixed"`` or ``"rtol"``; ``k`` for fixed."""
-
-    kind: str
-    k: int | None = None
-
-
-def parse_schedule(schedule: str) -> Schedule:
-    """``"prdp"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`; ValueError else.
-
-    ``"prdp"`` raises the iteration cap K (``max_it``, with ``rtol = atol = 0``) as
-    `prdp_petsc.PRDP` decides; ``"fixed:K"`` keeps it at K; ``"rtol"`` is PRDP moving
-    PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖`` under a
-    generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol = ``rtol_from_level(level,
-    RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and the same controller's
-    plateau test raises the level by one (see `run`).
-    """
-    if schedule in ("prdp", "rtol"):
-        return Schedule(schedule)
-    if isinstance(schedule, str) and schedule.startswith("fixed:"):
-        try:
-            k = int(schedule.split(":", 1)[1])
-        except ValueError:
-            k = 0
-        if k >= 1:
-            return Schedule("fixed", k)
-    raise ValueError(f"schedule must be 'prdp', 'rtol' or 'fixed:K' with K >= 1, got {schedule!r}")
-
-
-def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR):
-    """Refinements from `rtol_init` until `rtol_from_level` reaches `rtol_full` (>= 0).
-
-    The ``rtol`` schedule stops refining there: a tighter rtol than the scene's own
-    definition of a converged solve buys nothing, as K past K_full does not.
-    """
-    rtol_init = max(rtol_init, rtol_full)
-    level = 0
-    while rtol_from_level(level, rtol_init, factor, rtol_full) > rtol_full * (1 + 1e-9):
-        level += 1
-    return level
 
 
 def positive_int(value, name: str) -> int:

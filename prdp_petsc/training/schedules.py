@@ -1,0 +1,73 @@
+"""K schedules of a training run: ``"prdp"``, ``"fixed:K"`` and ``"rtol"``.
+
+``prdp`` lets `prdp_petsc.PRDP` raise the iteration cap K (``max_it``, with
+``rtol = atol = 0``); ``fixed:K`` keeps K; ``rtol`` is the same controller moving
+PETSc's own relative tolerance instead, one refinement level at a time
+(`prdp_petsc.rtol_from_level`), under a generous cap.  The harness
+(`prdp_petsc.training.harness.run`) applies them.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from ..prdp import rtol_from_level
+
+__all__ = [
+    "RTOL_FACTOR",
+    "RTOL_INIT",
+    "RTOL_MAX_IT_FACTOR",
+    "Schedule",
+    "parse_schedule",
+    "rtol_levels",
+]
+
+#: The ``rtol`` schedule's first relative tolerance (refinement level 0) ...
+RTOL_INIT = 1e-1
+#: ... and the factor per refinement: a decade per level (`prdp_petsc.rtol_from_level`)
+RTOL_FACTOR = 1e-1
+#: The ``rtol`` schedule caps every solve at this many times K_full (PETSc's rtol test
+#: stops it first; the cap only bounds a solve that would not converge)
+RTOL_MAX_IT_FACTOR = 10
+
+
+class Schedule(NamedTuple):
+    """A parsed schedule: ``kind`` ``"prdp"``, ``"fixed"`` or ``"rtol"``; ``k`` for fixed."""
+
+    kind: str
+    k: int | None = None
+
+
+def parse_schedule(schedule: str) -> Schedule:
+    """``"prdp"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`; ValueError else.
+
+    ``"prdp"`` raises the iteration cap K (``max_it``, with ``rtol = atol = 0``) as
+    `prdp_petsc.PRDP` decides; ``"fixed:K"`` keeps it at K; ``"rtol"`` is PRDP moving
+    PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖`` under a
+    generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol = ``rtol_from_level(level,
+    RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and the same controller's
+    plateau test raises the level by one (see `run`).
+    """
+    if schedule in ("prdp", "rtol"):
+        return Schedule(schedule)
+    if isinstance(schedule, str) and schedule.startswith("fixed:"):
+        try:
+            k = int(schedule.split(":", 1)[1])
+        except ValueError:
+            k = 0
+        if k >= 1:
+            return Schedule("fixed", k)
+    raise ValueError(f"schedule must be 'prdp', 'rtol' or 'fixed:K' with K >= 1, got {schedule!r}")
+
+
+def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR):
+    """Refinements from `rtol_init` until `rtol_from_level` reaches `rtol_full` (>= 0).
+
+    The ``rtol`` schedule stops refining there: a tighter rtol than the scene's own
+    definition of a converged solve buys nothing, as K past K_full does not.
+    """
+    rtol_init = max(rtol_init, rtol_full)
+    level = 0
+    while rtol_from_level(level, rtol_init, factor, rtol_full) > rtol_full * (1 + 1e-9):
+        level += 1
+    return level
