@@ -1,5 +1,6 @@
 # Two commands do all the set-up:  `make demo`  and  `make test`.
-# `make test` runs pytest, builds the documentation (mkdocs --strict), then the MPI tests.
+# `make test` runs pytest, builds the documentation (mkdocs --strict), then the MPI tests
+# (all of tests/mpi on two ranks, the owned-layout tests also on three).
 # Each creates .venv if needed and installs everything first.  The install is
 # recorded in a stamp file keyed on the hash of pyproject.toml, constraints.txt and
 # this Makefile, so a second run skips it and starts in seconds.  Every pip install
@@ -32,6 +33,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 	$(MAKE) --no-print-directory docs
 	$(MPI_ENV) timeout 900 $(MPIEXEC) -n 2 $(PY) -m pytest -q -p no:cacheprovider tests/mpi
+	$(MPI_ENV) timeout 600 $(MPIEXEC) -n 3 $(PY) -m pytest -q -p no:cacheprovider tests/mpi/test_owned.py
 
 demo: $(STAMP)
 	$(PY) -m prdp_petsc.cli compare demos/heat2d.py --preset paper --routes cg/icc --out $(OUT)/heat2d

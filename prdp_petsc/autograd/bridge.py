@@ -24,8 +24,10 @@ from ..core.operator import frozen_csr
 from ..core.results import CallInfo, SolverError
 from ..core.solver import KSPSolver
 from ..errors import InputError
+from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .once import once_differentiable
+from .owned import owned_matvec, owned_solve
 from .tensors import as_numpy, check_vector
 
 __all__ = ["matvec", "solve"]
@@ -128,7 +130,7 @@ class _ImplicitSolve(torch.autograd.Function):
 
 
 def solve(
-    A: sp.spmatrix | ParametricMatrix,
+    A: sp.spmatrix | ParametricMatrix | DistributedParametricMatrix,
     b: torch.Tensor,
     solver: KSPSolver,
     *,
@@ -140,8 +142,11 @@ def solve(
 
     Parameters
     ----------
-    A : scipy.sparse matrix or ParametricMatrix
-        The operator; a `ParametricMatrix` is evaluated at `theta`.
+    A : scipy.sparse matrix, ParametricMatrix or DistributedParametricMatrix
+        The operator; a `ParametricMatrix` is evaluated at `theta`.  A
+        `~prdp_petsc.fem.distributed.DistributedParametricMatrix` selects the
+        *owned* layout: `b`, `theta`, `x0` and x hold this rank's rows and
+        parameters only, and the call is collective (`prdp_petsc.autograd.owned`).
     b : torch.Tensor, float64, shape (n,) or (B, n)
         Right-hand side(s).  With one θ (or a scipy A) the batch shares one
         operator and one PC setup.
@@ -205,6 +210,12 @@ def solve(
         raise InputError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
     if not isinstance(solver, KSPSolver):
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
+    if isinstance(A, DistributedParametricMatrix):
+        if x0 is None:
+            return owned_solve(A, b, solver, theta, mode)
+        if x0.shape != b.shape:
+            raise InputError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
+        return x0 + solve(A, b - matvec(A, x0, theta=theta), solver, theta=theta, mode=mode)
     P, csr = _operator(A, theta)
     check_vector(as_numpy(b, "b"), csr[3][0], "b")
     if P is not None:
@@ -279,12 +290,18 @@ class _MatVec(torch.autograd.Function):
         return grad_v, grad_theta, None, None
 
 
-def matvec(A: ParametricMatrix, v: torch.Tensor, *, theta: torch.Tensor) -> torch.Tensor:
+def matvec(
+    A: ParametricMatrix | DistributedParametricMatrix, v: torch.Tensor, *, theta: torch.Tensor
+) -> torch.Tensor:
     """Differentiable ``A(θ) v`` (used for Dirichlet lifting).
 
     v is (m,) or (B, m) with one θ (p,); with θ of shape (B, p) (one operator per
-    sample) v must be (B, m) and sample i gives ``A(θ_i) v_i``.
+    sample) v must be (B, m) and sample i gives ``A(θ_i) v_i``.  For a
+    `~prdp_petsc.fem.distributed.DistributedParametricMatrix` v holds this rank's
+    entries of the column space and the result its rows (collective).
     """
+    if isinstance(A, DistributedParametricMatrix):
+        return owned_matvec(A, v, theta)
     if not isinstance(A, ParametricMatrix):
         raise TypeError("matvec expects a ParametricMatrix; for a constant matrix use torch")
     values = A.values(as_numpy(theta, "theta"))  # validates θ

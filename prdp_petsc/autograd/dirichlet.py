@@ -10,6 +10,11 @@ degrees of freedom B and unknowns I, the interior solve is
 in f, g and θ: the gradient with respect to g is ``−A_IBᵀ λ`` from the same
 adjoint solve, computed by autograd through `prdp_petsc.autograd.bridge.matvec`.
 θ of shape (B, p) gives every sample its own operator (``A_II(θ_i)``, ``A_IB(θ_i)``).
+
+With a `prdp_petsc.fem.distributed.DistributedParametricMatrix` (the owned layout)
+every rank eliminates its own boundary rows: f, g, θ and the solution hold this
+rank's entries, and the interior and boundary dofs are numbered contiguously per
+rank (`DistributedParametricMatrix.dirichlet_blocks`).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import torch
 
 from ..core.solver import KSPSolver
 from ..errors import InputError
+from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .bridge import ConstMatVec, matvec, solve
 from .tensors import as_numpy, check_vector
@@ -32,13 +38,28 @@ class Dirichlet:
 
     Parameters
     ----------
-    A : ParametricMatrix or scipy.sparse matrix
+    A : ParametricMatrix, DistributedParametricMatrix or scipy.sparse matrix
         The full operator (all degrees of freedom).
     boundary : array of int
-        Indices of the Dirichlet degrees of freedom (e.g. ``basis.get_dofs()``).
+        Indices of the Dirichlet degrees of freedom (e.g. ``basis.get_dofs()``); for
+        a `DistributedParametricMatrix` global indices, of which each rank uses
+        those it owns (``part.boundary_vertices()``).
+
+    Attributes
+    ----------
+    interior, boundary : ndarray
+        Indices of the unknowns and of the Dirichlet dofs: in the owned layout
+        their positions among this rank's rows, so ``g`` has ``len(boundary)``
+        entries on each rank.
     """
 
-    def __init__(self, A: ParametricMatrix | sp.spmatrix, boundary: np.ndarray) -> None:
+    def __init__(
+        self, A: ParametricMatrix | DistributedParametricMatrix | sp.spmatrix, boundary: np.ndarray
+    ) -> None:
+        if isinstance(A, DistributedParametricMatrix):  # collective
+            self.A_II, self.A_IB, self.interior, self.boundary = A.dirichlet_blocks(boundary)
+            self.n = A.local_shape[0]
+            return
         n = A.shape[0]
         self.boundary = np.unique(np.asarray(boundary, dtype=np.int64).ravel())
         if self.boundary.size and (self.boundary[0] < 0 or self.boundary[-1] >= n):
@@ -66,7 +87,7 @@ class Dirichlet:
         check_vector(as_numpy(f, "f"), self.n, "f")
         check_vector(as_numpy(g, "g"), len(self.boundary), "g")
         f_i = f[..., torch.from_numpy(self.interior).to(f.device)]
-        if not isinstance(self.A_IB, ParametricMatrix):
+        if not isinstance(self.A_IB, ParametricMatrix | DistributedParametricMatrix):
             return f_i - ConstMatVec.apply(g, self.A_IB).to(f.device)
         if isinstance(theta, torch.Tensor) and theta.ndim == 2:  # one operator per sample
             batch = len(theta)
@@ -81,7 +102,7 @@ class Dirichlet:
 
     def _check_theta(self, theta) -> None:
         """θ is required for a ParametricMatrix and refused otherwise, as in `solve`."""
-        if isinstance(self.A_II, ParametricMatrix):
+        if isinstance(self.A_II, ParametricMatrix | DistributedParametricMatrix):
             if theta is None:
                 raise InputError("A is a ParametricMatrix: pass its parameters as theta=")
         elif theta is not None:

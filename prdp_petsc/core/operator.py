@@ -8,9 +8,17 @@ this rank's rows of the full CSR matrix every rank passes: see
 PETSc sets the preconditioner up again only when the values really changed.
 Symmetry decides which maths the adjoint runs, so it is declared by the caller
 where known, otherwise tested entry against mirror whenever the values change.
+
+An `OwnedCSR` holds only this rank's rows of a distributed matrix (the *owned*
+layout of `prdp_petsc.core.parallel`); it becomes an MPIAIJ Mat built from those
+rows alone, and later values with the same pattern are set the same way.  Every
+rank then decides together (one small ``MPI_Allreduce``) whether the Mat is new,
+has new values or is unchanged, since each of those steps is collective.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -18,9 +26,9 @@ from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
 from .parallel import ownership_range
-from .sparsity import csr_symmetric, transpose_permutation
+from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 
-__all__ = ["OperatorMat", "as_csr", "frozen_csr"]
+__all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr"]
 
 
 def as_csr(A) -> tuple:
@@ -57,6 +65,55 @@ def frozen_csr(A) -> tuple:
         arr.flags.writeable = False
         out.append(arr)
     return (*out, shape)
+
+
+@dataclass(frozen=True, eq=False)
+class OwnedCSR:
+    """This rank's rows of a distributed sparse matrix: the owned layout's operator.
+
+    Parameters
+    ----------
+    indptr : ndarray
+        Row pointers of the owned rows (``local_shape[0] + 1`` entries).
+    indices : ndarray
+        *Global* column indices, sorted within each row.
+    data : ndarray, shape (nnz,)
+        Values (finite).
+    shape : tuple of int
+        Global shape (M, N).
+    local_shape : tuple of int
+        ``(m, n)``: rows this rank owns, and entries of x it owns (the column
+        block of the same rank); the ranks' blocks follow each other in rank order.
+    comm : PETSc.Comm
+        Communicator of the distributed matrix.
+    symmetric : bool, optional
+        Declared structure; None: PETSc tests it (``MatIsSymmetric``) whenever the
+        values change, which transposes the matrix.
+
+    Notes
+    -----
+    The arrays are the caller's and are not copied: a `KSPSolver` recognises the
+    same `indptr` and `indices` objects as an unchanged pattern, and compares the
+    values with its own copy.  `prdp_petsc.fem.distributed.DistributedParametricMatrix`
+    makes these.
+    """
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+    shape: tuple
+    local_shape: tuple
+    comm: PETSc.Comm
+    symmetric: bool | None = None
+
+    def __post_init__(self):
+        m = self.local_shape[0]
+        if len(self.indptr) != m + 1 or len(self.data) != len(self.indices):
+            raise InputError(
+                f"OwnedCSR: indptr needs {m + 1} entries and data one per column index"
+            )
+        if not np.all(np.isfinite(self.data)):
+            raise NonFiniteError("A has NaN or Inf entries")
 
 
 class OperatorMat:
@@ -97,6 +154,8 @@ class OperatorMat:
         ``"new"`` (a new Mat), ``"values"`` (new values in the same Mat),
         ``"symmetry"`` (only the caller's symmetry declaration) or ``"same"``.
         """
+        if isinstance(A, OwnedCSR):
+            return self._update_owned(A, A.symmetric if symmetric is None else symmetric)
         if isinstance(A, PETSc.Mat):
             if A is self.mat:
                 return "same"
@@ -145,6 +204,46 @@ class OperatorMat:
         self._mark_symmetry(symmetric)
         self.version += 1
         return "new"
+
+    def _update_owned(self, A: OwnedCSR, symmetric: bool | None) -> str:
+        """`update` for this rank's rows of a distributed matrix (decided collectively)."""
+        same_pattern = (
+            self._pattern is not None
+            and self._pattern[2] == ("owned", A.shape, A.local_shape)
+            and (
+                (self._source[0] is A.indptr and self._source[1] is A.indices)
+                or (
+                    np.array_equal(self._pattern[0], A.indptr)
+                    and np.array_equal(self._pattern[1], A.indices)
+                )
+            )
+        )
+        same_values = same_pattern and np.array_equal(A.data, self._values)
+        same_pattern, same_values = _all_ranks(A.comm, same_pattern, same_values)
+        if same_values:
+            self._data = A.data
+            return self._redeclare(symmetric)
+        if same_pattern:
+            self.mat.setValuesCSR(self._pattern[0], self._pattern[1], A.data)
+            self.mat.assemble()
+        else:
+            self.destroy()
+            ip = np.asarray(A.indptr, dtype=PETSc.IntType)
+            ix = np.asarray(A.indices, dtype=PETSc.IntType)
+            self._pattern = (ip, ix, ("owned", A.shape, A.local_shape))
+            (m, n), (M, N) = A.local_shape, A.shape
+            self.mat = PETSc.Mat().createAIJ(
+                size=((m, M), (n, N)), csr=(ip, ix, A.data), comm=A.comm
+            )
+            self.mat.assemble()
+            self._owned = True
+            self.replicated = False
+        self._source = (A.indptr, A.indices)
+        self._values = np.array(A.data, dtype=np.float64, copy=True)
+        self._data = A.data
+        self._mark_symmetry(symmetric)
+        self.version += 1
+        return "values" if same_pattern else "new"
 
     def _local_rows(self, data: np.ndarray) -> tuple:
         """This rank's rows of the CSR pattern and of `data` (all of them on one rank)."""
@@ -202,7 +301,10 @@ class OperatorMat:
     def _mark_symmetry(self, symmetric: bool | None) -> None:
         """Test A = Aᵀ entry against mirror (unless declared) and tell PETSc."""
         self._declared = symmetric
-        if symmetric is None:
+        if symmetric is None and not self.replicated:  # this rank's rows only: ask PETSc
+            scale = self.mat.norm(PETSc.NormType.INFINITY)
+            symmetric = self.mat.isSymmetric(DIAGONAL_RTOL * scale)
+        elif symmetric is None:
             ip, ix, shape = self._pattern
             symmetric = self._tperm is not None and csr_symmetric(
                 ip, ix, self._values, shape, self._tperm
@@ -223,3 +325,14 @@ class OperatorMat:
         self.mat = None
         self._owned = False
         self._pattern = self._source = self._values = self._tperm = self._data = None
+
+
+def _all_ranks(comm: PETSc.Comm, *flags: bool) -> list[bool]:
+    """Each of `flags` and-ed over the ranks of `comm` (one ``MPI_Allreduce``)."""
+    if comm.getSize() == 1:
+        return [bool(f) for f in flags]
+    from mpi4py import MPI  # the owned layout on several ranks needs mpi4py
+
+    values = np.array(flags, dtype=np.int8)
+    comm.tompi4py().Allreduce(MPI.IN_PLACE, values, op=MPI.MIN)
+    return [bool(v) for v in values]

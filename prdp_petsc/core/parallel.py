@@ -16,9 +16,12 @@ Two layouts of the vectors a solver takes and returns exist:
     gathered to every rank after it (``VecScatterCreateToAll``).  So the torch
     tensors, losses and gradients on the ranks are the same as in a serial run.
 ``owned``
-    The operator is the caller's own distributed PETSc Mat: vectors hold the
-    rank's own rows only (PETSc's convention), nothing is gathered.  This is the
-    layout for problems too large to replicate.
+    The operator is the caller's own distributed PETSc Mat, or an
+    `~prdp_petsc.core.operator.OwnedCSR` of this rank's rows (what
+    `~prdp_petsc.fem.distributed.DistributedParametricMatrix` assembles from a
+    partitioned mesh): vectors hold the rank's own rows only (PETSc's
+    convention), nothing is gathered.  This is the layout for problems too large
+    to replicate.
 
 The layout follows from the operator the solver is given; on one process both
 are the same.

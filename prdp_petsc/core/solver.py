@@ -23,7 +23,7 @@ from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
 from .lag import PCLag
 from .nullspace import attach_nullspaces, check_nullspaces, normalize_nullspace
-from .operator import OperatorMat
+from .operator import OperatorMat, OwnedCSR
 from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, SolveInfo, SolverError, SolverStats
@@ -428,15 +428,17 @@ class KSPSolver:
         return self._op.arrays()
 
     def set_operator(
-        self, A: sp.spmatrix | PETSc.Mat | tuple, *, symmetric: bool | None = None
+        self, A: sp.spmatrix | PETSc.Mat | OwnedCSR | tuple, *, symmetric: bool | None = None
     ) -> None:
         """Set the matrix; the PC is set up again only if its values changed (and then
         only every `pc_lag`-th time).
 
         Parameters
         ----------
-        A : scipy.sparse matrix, PETSc.Mat or tuple ``(indptr, indices, data, shape)``
-            A PETSc Mat is used as given (any communicator, e.g. distributed).
+        A : scipy.sparse matrix, PETSc.Mat, OwnedCSR or tuple ``(indptr, indices, data, shape)``
+            A PETSc Mat is used as given (any communicator, e.g. distributed); an
+            `~prdp_petsc.core.operator.OwnedCSR` (this rank's rows only) becomes an
+            MPIAIJ Mat of those rows.  Both give the owned layout.
         symmetric : bool, optional
             Whether A = Aᵀ, if the caller knows (e.g. `ParametricMatrix.is_symmetric`);
             the solver's own `symmetric` declaration wins.  Otherwise a CSR operator

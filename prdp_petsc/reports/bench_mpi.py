@@ -15,7 +15,15 @@
 ``epoch``
     Training epochs of a scene (default ``demos/heat3d.py``, preset ``paper``, at
     its K_full = 96) under ``--parallel domain`` and ``--parallel batch``; the median
-    epoch wall time after the first (warm-up) epoch, and the speed-up.
+    epoch wall time after the first (warm-up) epoch, and the speed-up.  ``--epochs 0``
+    leaves it out.
+
+``--layout`` picks how the solve benchmark holds its data (`prdp_petsc.core.parallel`):
+``replicated`` (default) assembles the whole operator on every rank; ``owned`` has rank
+0 build and split the mesh (METIS, `prdp_petsc.fem.partition`), every rank assemble its
+own piece (`prdp_petsc.fem.distributed`) and hold its own rows, with the misfit summed
+over the ranks.  ``--cube N`` replaces ``box3d`` by the tetrahedral unit cube with N
+points per axis (``skfem.MeshTet.init_tensor``: N³ unknowns; N = 101 gives 1 030 301).
 
 Timings are only meaningful on an otherwise idle machine, with one torch thread
 per rank (set here); the record includes the load average.
@@ -53,12 +61,21 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="folder for bench_mpi.json")
     p.add_argument("--ranks", default="1,2", help="rank counts to compare (1,2)")
     p.add_argument("--refine", type=int, default=2, help="refinements of box3d (2: 58 575 nodes)")
+    p.add_argument(
+        "--cube", type=int, default=0, help="tetrahedral unit cube, N points per axis (N³ nodes)"
+    )
+    p.add_argument(
+        "--layout", choices=["replicated", "owned"], default="replicated",
+        help="data layout of the solve benchmark (replicated)",
+    )  # fmt: skip
     p.add_argument("--k", type=int, default=200, help="K of the capped 3D solve (200)")
     p.add_argument("--repeats", type=int, default=5, help="timed solves after one warm-up (5)")
     p.add_argument("--scene", default="demos/heat3d.py", help="scene of the epoch benchmark")
     p.add_argument("--preset", default="paper")
     p.add_argument("--schedule", default="fixed:96", help="K schedule of the epochs (K_full)")
-    p.add_argument("--epochs", type=int, default=3, help="epochs per run (the first is warm-up)")
+    p.add_argument(
+        "--epochs", type=int, default=3, help="epochs per run, the first warm-up (0: no epochs)"
+    )
     p.add_argument("--mpiexec", default=os.environ.get("MPIEXEC", "mpiexec"))
     p.add_argument("--timeout", type=float, default=3600, help="seconds per mpiexec (3600)")
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
@@ -93,41 +110,72 @@ def _distinct_nbytes(arrays) -> int:
     return total
 
 
+def _mesh(args):
+    """The benchmark's mesh: refined box3d, or the unit cube with ``--cube`` points per axis."""
+    if args.cube:
+        from skfem import MeshTet
+
+        axis = np.linspace(0.0, 1.0, args.cube)
+        return MeshTet.init_tensor(axis, axis, axis)
+    from prdp_petsc.fem.meshes import load_mesh
+
+    return load_mesh("box3d", args.refine)
+
+
+def _u0(points: np.ndarray) -> np.ndarray:
+    x, y, z = points
+    return np.exp(-20 * ((x - 0.3) ** 2 + (y - 0.6) ** 2 + (z - 0.5) ** 2))
+
+
+def _timed(comm, repeats: int, forward, backward) -> tuple[list, list]:
+    """Times of `forward` and `backward` (its output in), each between barriers."""
+    fwd, bwd = [], []
+    for _ in range(repeats + 1):  # the first: warm-up (Mat creation, PC set-up)
+        comm.barrier()
+        t0 = time.perf_counter()
+        out = forward()
+        comm.barrier()
+        t1 = time.perf_counter()
+        backward(out)
+        comm.barrier()
+        fwd.append(t1 - t0)
+        bwd.append(time.perf_counter() - t1)
+    return fwd, bwd
+
+
 def _solve_worker(args) -> dict:
+    return _owned_solve_worker(args) if args.layout == "owned" else _replicated_solve_worker(args)
+
+
+def _replicated_solve_worker(args) -> dict:
     import torch
     from petsc4py import PETSc
     from skfem import Basis, ElementTetP1
 
     import prdp_petsc as pp
-    from prdp_petsc.fem.meshes import load_mesh
     from prdp_petsc.reports.problems import mean_edge_length
 
     torch.set_num_threads(1)
     comm = PETSc.COMM_WORLD
     t0 = time.perf_counter()
-    mesh = load_mesh("box3d", args.refine)
+    mesh = _mesh(args)
     basis = Basis(mesh, ElementTetP1())
     dt = 10.0 * mean_edge_length(mesh) ** 2  # Δt κ / h² = 10
     A = dt * pp.diffusion_operator(basis) + pp.mass_matrix(basis)
-    x, y, z = mesh.p
-    u0 = np.exp(-20 * ((x - 0.3) ** 2 + (y - 0.6) ** 2 + (z - 0.5) ** 2))
+    u0 = _u0(mesh.p)
     b = torch.from_numpy(pp.mass_matrix(basis) @ u0)
     assembly = time.perf_counter() - t0
     theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
     target = torch.from_numpy(u0)
     solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=args.k, comm=comm)
-    forward, backward = [], []
-    for _ in range(args.repeats + 1):  # the first: warm-up (Mat creation, PC set-up)
-        comm.barrier()
-        t0 = time.perf_counter()
-        u = pp.solve(A, b, solver, theta=theta)
-        comm.barrier()
-        t1 = time.perf_counter()
+
+    def backward(u):
         (0.5 * ((u - target) ** 2).sum()).backward()
-        comm.barrier()
-        forward.append(t1 - t0)
-        backward.append(time.perf_counter() - t1)
         theta.grad = None
+
+    forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),
+                               backward)  # fmt: skip
+    u = pp.solve(A, b, solver, theta=theta)
     mat = solver.mat
     replicated = _distinct_nbytes(
         [A.indptr, A.indices, A.a0, A.G.data, A.G.indices, A.G.indptr]
@@ -135,6 +183,7 @@ def _solve_worker(args) -> dict:
         + [b.numpy(), u.detach().numpy()]
     )
     return {
+        "layout": "replicated",
         "unknowns": int(A.shape[0]),
         "nnz": int(A.nnz),
         "parameters": int(A.n_params),
@@ -146,6 +195,70 @@ def _solve_worker(args) -> dict:
         "rows_per_rank": mat.getLocalSize()[0],
         "petsc_mat_mb_per_rank": _mat_mb(mat),
         "replicated_arrays_mb_per_rank": replicated / 2**20,
+        "peak_rss_mb_per_rank": _peak_rss_mb(),
+    }
+
+
+def _owned_solve_worker(args) -> dict:
+    """The solve of `_replicated_solve_worker` in the owned layout: rank 0 builds and
+    splits the mesh, every rank assembles and holds its own piece only."""
+    import torch
+    from petsc4py import PETSc
+    from skfem import Basis, ElementTetP1
+
+    import prdp_petsc as pp
+    from prdp_petsc.reports.problems import mean_edge_length
+
+    torch.set_num_threads(1)
+    comm = PETSc.COMM_WORLD
+    world = comm.tompi4py()
+    t0 = time.perf_counter()
+    mesh = _mesh(args) if comm.getRank() == 0 else None
+    dt = world.bcast(10.0 * mean_edge_length(mesh) ** 2 if mesh is not None else None, root=0)
+    part = pp.PartitionedMesh.distribute(mesh, comm)
+    del mesh
+    partition = time.perf_counter() - t0
+    basis = Basis(part.mesh, ElementTetP1())
+    M = pp.mass_matrix(basis)
+    A = pp.DistributedParametricMatrix.from_local(dt * pp.diffusion_operator(basis) + M, part)
+    u0 = _u0(part.mesh.p)
+    rows = part.owned_vertices  # the owned rows are complete: M u0 on them is exact
+    b = torch.from_numpy((M @ u0)[:rows])
+    target = torch.from_numpy(u0[:rows])
+    del M
+    assembly = time.perf_counter() - t0
+    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=args.k, comm=comm)
+
+    def backward(u):
+        pp.sum_over_ranks(0.5 * ((u - target) ** 2).sum(), comm).backward()
+        theta.grad = None
+
+    forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),
+                               backward)  # fmt: skip
+    u = pp.solve(A, b, solver, theta=theta)
+    mat = solver.mat
+    P = A.local
+    local = _distinct_nbytes(
+        [P.indptr, P.indices, P.a0, P.G.data, P.G.indices, P.G.indptr, P.rows]
+        + [A.values(theta.detach().numpy()), *solver.host_arrays()]
+        + [b.numpy(), u.detach().numpy(), target.numpy()]
+    )
+    nnz = world.allreduce(int(P.nnz))
+    return {
+        "layout": "owned",
+        "unknowns": int(A.shape[0]),
+        "nnz": nnz,
+        "parameters": int(A.params.size),
+        "k": args.k,
+        "iterations": solver.last.iterations,
+        "partition_s": partition,
+        "assembly_s": assembly,
+        "forward_s": float(np.median(forward[1:])),
+        "backward_s": float(np.median(backward[1:])),
+        "rows_per_rank": mat.getLocalSize()[0],
+        "petsc_mat_mb_per_rank": _mat_mb(mat),
+        "owned_arrays_mb_per_rank": local / 2**20,
         "peak_rss_mb_per_rank": _peak_rss_mb(),
     }
 
@@ -196,6 +309,7 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
         record = Path(tmp) / "record.json"
         cmd = [args.mpiexec, "-n", str(ranks), sys.executable, "-m", __name__]
         cmd += ["--worker", worker, "--json", str(record), "--refine", str(args.refine)]
+        cmd += ["--cube", str(args.cube), "--layout", args.layout]
         cmd += ["--k", str(args.k), "--repeats", str(args.repeats), "--scene", args.scene]
         cmd += ["--preset", args.preset, "--schedule", args.schedule, "--epochs", str(args.epochs)]
         if mode:
@@ -230,13 +344,23 @@ def main(argv: list[str]) -> int:
     for key in ("forward_s", "backward_s"):
         for p, s in _speedups(solve, key).items():
             solve[p][f"speedup_{key[:-2]}"] = s
-    epoch = {"1": _launch(args, 1, "epoch", "serial")}
-    for p in ranks[1:]:
-        for mode in ("domain", "batch"):
-            epoch[f"{p}-{mode}"] = _launch(args, p, "epoch", mode)
-    for record in epoch.values():
-        record["speedup"] = epoch["1"]["epoch_s"] / record["epoch_s"]
-    result = {"benchmark": "mpi", "machine": machine_info(), "solve": solve, "epoch": epoch}
+    epoch = {}
+    if args.epochs > 0:
+        epoch = {"1": _launch(args, 1, "epoch", "serial")}
+        for p in ranks[1:]:
+            for mode in ("domain", "batch"):
+                epoch[f"{p}-{mode}"] = _launch(args, p, "epoch", mode)
+        for record in epoch.values():
+            record["speedup"] = epoch["1"]["epoch_s"] / record["epoch_s"]
+    result = {
+        "benchmark": "mpi",
+        "layout": args.layout,
+        "mesh": f"cube {args.cube}" if args.cube else f"box3d refine {args.refine}",
+        "command": ["prdp-petsc", "bench", "mpi", *argv],
+        "machine": machine_info(),
+        "solve": solve,
+        "epoch": epoch,
+    }
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "bench_mpi.json"
     path.write_text(json.dumps(result, indent=1))
@@ -249,24 +373,32 @@ def format_report(result: dict) -> str:
     """The two tables of ``bench mpi`` as Markdown."""
     solve = result["solve"]
     first = next(iter(solve.values()))
+    layout = result.get("layout", "replicated")
+    mesh = result.get("mesh", "box3d")
     lines = [
-        f"3D solve: box3d P1, {first['unknowns']} unknowns, CG + Jacobi, K = {first['k']}",
+        f"3D solve: {mesh} P1, {first['unknowns']} unknowns, CG + Jacobi, K = {first['k']}, "
+        f"{layout} layout",
         "",
         "| ranks | forward s | backward s | speed-up fwd / bwd | rows per rank | "
-        "PETSc Mat MB per rank | replicated MB per rank | peak RSS MB per rank |",
+        f"PETSc Mat MB per rank | {layout} arrays MB per rank | peak RSS MB per rank |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for p, r in solve.items():
+        arrays = r.get("owned_arrays_mb_per_rank") or r["replicated_arrays_mb_per_rank"][:1]
         lines.append(
             f"| {p} | {r['forward_s']:.3f} | {r['backward_s']:.3f} | "
             f"{r['speedup_forward']:.2f} / {r['speedup_backward']:.2f} | "
             f"{', '.join(map(str, r['rows_per_rank']))} | "
             + ", ".join(f"{m:.0f}" for m in r["petsc_mat_mb_per_rank"])
-            + f" | {r['replicated_arrays_mb_per_rank'][0]:.0f} | "
+            + " | "
+            + ", ".join(f"{m:.0f}" for m in arrays)
+            + " | "
             + ", ".join(f"{m:.0f}" for m in r["peak_rss_mb_per_rank"])
             + " |"
         )
     epoch = result["epoch"]
+    if not epoch:
+        return "\n".join(lines)
     first = epoch["1"]
     lines += [
         "",

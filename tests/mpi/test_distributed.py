@@ -173,16 +173,22 @@ def test_owned_layout_with_a_callers_distributed_mat():
     assert all_ranks(_rel(x, expected) <= 1e-10)
 
 
-def test_bench_mpi_solve_worker_records_the_split():
+@pytest.mark.parametrize("layout", ["replicated", "owned"])
+def test_bench_mpi_solve_worker_records_the_split(layout):
     """``bench mpi``'s 3D solve on the unrefined box: rows split, K iterations, memory."""
     from types import SimpleNamespace
 
     from prdp_petsc.reports.bench_mpi import _solve_worker
 
-    record = _solve_worker(SimpleNamespace(refine=0, k=15, repeats=1))
+    args = SimpleNamespace(refine=0, cube=0, k=15, repeats=1, layout=layout)
+    record = _solve_worker(args)
     rows = COMM.allgather(record["rows_per_rank"])
+    assert all_ranks(record["layout"] == layout and record["unknowns"] == 1195)
     assert all_ranks(sum(rows) == record["unknowns"] and record["iterations"] == 15)
     assert all_ranks(0 < record["petsc_mat_mb_per_rank"] < record["peak_rss_mb_per_rank"])
+    if layout == "owned":  # each rank holds its own piece: less than the whole
+        owned = COMM.allgather(record["owned_arrays_mb_per_rank"])
+        assert all_ranks(all(0 < m for m in owned))
 
 
 def test_sequential_only_pc_names_its_parallel_form():

@@ -1,0 +1,179 @@
+"""The torch bridge in the owned layout: every rank's tensors hold its own rows only.
+
+With a `prdp_petsc.fem.distributed.DistributedParametricMatrix` operator,
+`prdp_petsc.solve`, `prdp_petsc.matvec` and `prdp_petsc.Dirichlet` take and return
+this rank's rows (and its own θ) as torch tensors; they come here.  The maths is
+the replicated bridge's: forward ``KSPSolve``, backward one transpose solve
+``Aᵀλ = g``, ``∂L/∂b = λ``, ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``; only the ghost
+values of x and the ghost elements' share of ∂L/∂θ cross between ranks (PETSc
+ghost exchanges, `prdp_petsc.core.ghosts`).
+
+A loss of owned tensors is a sum over the ranks: `sum_over_ranks` adds the ranks'
+parts with one ``MPI_Allreduce``, and its backward hands the (rank-independent)
+upstream gradient to every rank's part unchanged, which is the derivative of a
+sum.  Every call here is collective: all ranks run the same solves, products and
+backward passes in the same order.  Parameters that every rank holds alike (a
+network whose output feeds owned rows) get only this rank's share of their
+gradient from a backward pass; their gradients must then be summed over the
+ranks (``MPI_Allreduce``) before the optimizer steps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..core.parallel import as_petsc_comm
+from ..core.solver import KSPSolver
+from ..errors import InputError
+from ..fem.distributed import DistributedParametricMatrix
+from .once import once_differentiable
+from .tensors import as_numpy
+
+__all__ = ["owned_matvec", "owned_solve", "sum_over_ranks"]
+
+
+def _agree_shape(P: DistributedParametricMatrix, tensor: torch.Tensor, n: int, name: str):
+    """`InputError` on every rank unless `tensor` is ``(n,)`` or ``(B, n)`` on every rank."""
+    bad = tensor.ndim not in (1, 2) or tensor.shape[-1] != n
+    if _any_rank(P.comm, bad):
+        raise InputError(
+            f"{name} must hold each rank's own rows, shape ({n},) or (batch, {n}) here; "
+            f"got {tuple(tensor.shape)} on this rank (some rank's shape is wrong)"
+        )
+
+
+def _any_rank(comm, flag: bool) -> bool:
+    if comm.getSize() == 1:
+        return bool(flag)
+    from mpi4py import MPI
+
+    return bool(comm.tompi4py().allreduce(bool(flag), op=MPI.LOR))
+
+
+class _OwnedSolve(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, b, theta, P, csr, solver):
+        solver.set_operator(csr)
+        x = torch.from_numpy(solver.solve(b.detach().cpu().numpy())).to(b.device)
+        ctx.P, ctx.csr, ctx.solver = P, csr, solver
+        ctx.version = solver.operator_version
+        if ctx.needs_input_grad[1]:
+            ctx.save_for_backward(x)
+        return x
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_x):
+        need_b, need_theta = ctx.needs_input_grad[:2]
+        if not (need_b or need_theta):
+            return None, None, None, None, None
+        solver = ctx.solver
+        if solver.operator_version != ctx.version:  # another solve replaced the operator
+            solver.set_operator(ctx.csr)
+        lam = solver.solve_transpose(grad_x.detach().cpu().numpy())
+        grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
+        grad_theta = None
+        if need_theta:
+            (x,) = ctx.saved_tensors
+            gt = ctx.P.theta_gradient(lam, x.detach().cpu().numpy())
+            grad_theta = torch.from_numpy(gt).to(grad_x.device)
+        return grad_b, grad_theta, None, None, None
+
+
+def owned_solve(
+    A: DistributedParametricMatrix,
+    b: torch.Tensor,
+    solver: KSPSolver,
+    theta: torch.Tensor | None,
+    mode: str,
+) -> torch.Tensor:
+    """`prdp_petsc.solve` for a `DistributedParametricMatrix` (collective).
+
+    `b` holds this rank's rows, ``(m,)`` or ``(B, m)`` (a batch sharing θ), `theta`
+    this rank's parameters ``(p,)``; x holds this rank's rows of the solution.
+    Implicit mode only.
+    """
+    if mode != "implicit":
+        raise InputError("the owned layout runs implicit (adjoint) gradients only")
+    if theta is None:
+        raise InputError("A is a DistributedParametricMatrix: pass its parameters as theta=")
+    _agree_shape(A, b, A.local_shape[0], "b")
+    as_numpy(b, "b", finite=False)  # float64; NaN or Inf is refused by the solver on all ranks
+    csr = A.owned_csr(as_numpy(theta, "theta", finite=False))  # validated on all ranks
+    return _OwnedSolve.apply(b, theta, A, csr, solver)
+
+
+class _OwnedMatVec(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, v, theta, P, values):
+        ctx.P, ctx.values = P, values
+        ctx.save_for_backward(v, theta)
+        return torch.from_numpy(P.matvec(values, v.detach().cpu().numpy())).to(v.device)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_y):
+        v, _ = ctx.saved_tensors
+        g = grad_y.detach().cpu().numpy()
+        grad_v = grad_theta = None
+        if ctx.needs_input_grad[0]:
+            grad_v = torch.from_numpy(ctx.P.rmatvec(ctx.values, g)).to(grad_y.device)
+        if ctx.needs_input_grad[1]:
+            gt = ctx.P.vjp_matvec(g, v.detach().cpu().numpy())
+            grad_theta = torch.from_numpy(gt).to(grad_y.device)
+        return grad_v, grad_theta, None, None
+
+
+def owned_matvec(
+    A: DistributedParametricMatrix, v: torch.Tensor, theta: torch.Tensor
+) -> torch.Tensor:
+    """`prdp_petsc.matvec` for a `DistributedParametricMatrix`: this rank's entries of v
+    (its column block) in, its rows of ``A(θ) v`` out (collective)."""
+    _agree_shape(A, v, A.local_shape[1], "v")
+    as_numpy(v, "v")
+    values = A.values(as_numpy(theta, "theta", finite=False))
+    return _OwnedMatVec.apply(v, theta, A, values)
+
+
+class _SumOverRanks(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, t, comm):
+        total = t.detach().cpu().numpy().astype(np.float64, copy=True)
+        if comm.getSize() > 1:
+            from mpi4py import MPI
+
+            comm.tompi4py().Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+        return torch.from_numpy(total).to(dtype=t.dtype, device=t.device)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        return grad, None
+
+
+def sum_over_ranks(t: torch.Tensor, comm) -> torch.Tensor:
+    """Differentiable sum of `t` (any shape, the same on every rank) over the ranks.
+
+    Parameters
+    ----------
+    t : torch.Tensor
+        This rank's part, e.g. ``(x - x_obs).square().sum()`` over its own rows.
+    comm : PETSc.Comm or mpi4py communicator
+        The ranks to sum over, e.g. the operator's (``A.comm``).  Required: a loss
+        runs outside the ``use_comm`` block a scene is built in.
+
+    Returns
+    -------
+    torch.Tensor
+        The same total on every rank (one ``MPI_Allreduce``, float64 sum).  Its
+        gradient reaches each rank's part unchanged: every rank back-propagates
+        the same total, whose derivative by each part is one.
+
+    Notes
+    -----
+    Collective, in the forward and nowhere in the backward (no message).  The
+    sum's order of addition differs from a serial sum's: results agree to
+    round-off, not bitwise.
+    """
+    return _SumOverRanks.apply(t, as_petsc_comm(comm))
