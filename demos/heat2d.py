@@ -35,6 +35,11 @@ modes N drops are those the step damps most.  Validation metric: the mean
 normalised error of a 10-step autoregressive rollout of N on held-out initial
 conditions; the harness also records a 30-step rollout curve.
 
+Multi-step training (``unroll`` = m, 1 in every preset): the chain s ← P_K(B N(s))
+runs m times from each training state uₜ, and the loss sums the misfits of its
+states against the exact uₜ₊₂, …, uₜ₊₂ₘ (`heat_emulator_scene`); m = 1 is the
+one-step chain above.
+
 Presets: ``quick`` (tests), ``paper`` (5 457 unknowns, Δt κ/h² ≈ 1.2) and
 ``stiff`` (Δt κ/h² ≈ 6e3: damped Jacobi needs thousands of iterations, CG +
 ICC about 70 — there the PC choice decides).  ``paper_mlp`` is ``paper`` with the
@@ -73,6 +78,7 @@ PRESETS = {
         "n_val": 4,
         "val_steps": 10,
         "rollout_steps": 20,
+        "unroll": 1,
         "epochs": 8,
         "batch": 8,
         "lr": 3e-2,
@@ -95,6 +101,7 @@ PRESETS = {
         "n_val": 8,
         "val_steps": 10,
         "rollout_steps": 30,
+        "unroll": 1,
         "epochs": 20,
         "batch": 16,
         "lr": 2e-2,
@@ -117,6 +124,7 @@ PRESETS = {
         "n_val": 8,
         "val_steps": 10,
         "rollout_steps": 20,
+        "unroll": 1,
         "epochs": 10,
         "batch": 16,
         "lr": 2e-2,
@@ -150,6 +158,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         n_val=config["n_val"],
         val_steps=config["val_steps"],
         rollout_steps=config["rollout_steps"],
+        unroll=config["unroll"],
         epochs=config["epochs"],
         batch=config["batch"],
         lr=config["lr"],

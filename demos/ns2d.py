@@ -62,13 +62,32 @@ K = 64 (8 restart cycles; ``large_k64`` also refines by 64) instead of one cycle
 ``paper_k64`` trained 48 epochs (``--epochs 48``) reaches full fidelity's validation
 error (README).
 
+Long horizons (`prdp_petsc.training.unroll`): ``unroll: m`` trains on m-step rollouts
+of the hybrid (windows of m + 1 reference states starting every ``window_stride``
+steps), ``checkpoint: True`` recomputes the network's activations in the backward pass
+instead of keeping them (the solves are not rerun), ``unroll_curriculum: E`` doubles m
+from 1 every E epochs.  ``correction: "indirect"`` feeds the network's output into the
+implicit step as a momentum forcing, s ↦ P_K(s; f = C(s)) with C: 3 → 2 channels and
+f/Δt added to the momentum rows of the right-hand side (the Indirect Neural Corrector),
+instead of adding it to the solver's output.  ``train_solver: "schur"`` trains with
+GMRES(30) and the Schur-complement PC (`SCHUR`; K counts its iterations).
+``val_metric: "rollout_mean"`` validates on the mean velocity error of the
+``val_steps``-step rollout instead of the final x-velocity nMSE.  Every run records
+``uncorrected_rollout``, the same held-out rollout with the solver alone.
+
 Presets: ``quick`` (12², seconds, tests), ``paper`` (48², the reference network
 and batch; 5 trajectories × 5 windows = 25 training samples, one batch per epoch,
 instead of 200 samples, and 24 epochs instead of 100, to fit this 2-core machine),
 ``large`` (64², 12 288 unknowns per sample, 4 trajectories × 2 windows, two
 validation flows, a small network: the solve dominates the training step).
-On ``paper`` and ``large`` the reference data take minutes (direct solves on the
-2N grid); they are cached per process, so ``compare`` builds them once.
+``long`` (32², 12 trajectories of 50 steps, m = 16 from every 8th step, Schur
+training and validation, validation on the mean error of a 50-step rollout of two
+held-out flows), with the baselines on the same data, network and epochs:
+``long_nograd`` (m = 16 without solver gradients) and ``long_noise`` (one step at a
+time from noisy inputs, every start); ``long_quick`` (12², tests).
+On ``paper``, ``large`` and ``long`` the reference data take minutes (direct solves on the
+2N grid); they are cached per process and on disk (`reference_data`), so ``compare``
+and later runs build them once.
 
 Run ``python demos/ns2d.py compare --preset paper --out results/ns2d``;
 ``python demos/ns2d.py adjoint --preset paper --k 8 64 256`` (or ``prdp-petsc scene
@@ -80,9 +99,12 @@ from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import math
+import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -90,19 +112,27 @@ import torch
 import prdp_petsc as pp
 from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.fem import mac
+from prdp_petsc.training import unroll
 from prdp_petsc.training.networks import ConvResNet
 from prdp_petsc.training.routes import parse_routes
 from prdp_petsc.training.scene import preset_config, shuffled_batches
+from prdp_petsc.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
 
 _BASE = {
     "dt": 0.1,
     "nu": 1e-4,
     "unroll": 2,
+    "unroll_curriculum": 0,
+    "correction": "direct",
+    "checkpoint": False,
     "solver_grad": True,
     "noise": 0.0,
     "adjoint_rtol": None,
+    "train_solver": "gmres",
     "val_solver": "same",
+    "val_metric": "u_nmse",
     "train_steps": 5,
+    "window_stride": 1,
     "val_steps": 5,
     "rollout_steps": 20,
     "lr": 1e-3,
@@ -161,6 +191,46 @@ PRESETS = {
 # PRDP from 8 restart cycles, refining by 8 (the reference starts at 1 and steps by 1)
 PRESETS["paper_k64"] = {**PRESETS["paper"], "k_init": 64}
 PRESETS["large_k64"] = {**PRESETS["large"], "k_init": 64, "k_step": 64}
+# long horizons (solver in the loop over m steps, 50-step held-out rollouts): a 32² grid,
+# trained and validated with the Schur-complement PC (K counts GMRES(30) iterations)
+PRESETS["long"] = {
+    **_BASE,
+    "n": 32,
+    "n_train": 12,
+    "train_steps": 50,
+    "window_stride": 8,
+    "n_val": 2,
+    "unroll": 16,
+    "checkpoint": True,
+    "train_solver": "schur",
+    "val_solver": "schur",
+    "val_steps": 50,
+    "val_metric": "rollout_mean",
+    "rollout_steps": 50,
+    "batch": 8,
+    "hidden": 24,
+    "blocks": 2,
+    "epochs": 20,
+    "k_init": 2,
+    "k_step": 2,
+    "compare_ks": [],
+}
+# the baselines on the same trajectories, network and epochs: no solver gradients, and
+# one step at a time from noisy inputs (every start of every trajectory)
+PRESETS["long_nograd"] = {**PRESETS["long"], "solver_grad": False}
+PRESETS["long_noise"] = {**PRESETS["long"], "unroll": 1, "window_stride": 1, "noise": 0.05}
+PRESETS["long_quick"] = {
+    **PRESETS["long"],
+    "n": 12,
+    "n_train": 3,
+    "train_steps": 6,
+    "window_stride": 1,
+    "unroll": 4,
+    "hidden": 8,
+    "blocks": 1,
+    "epochs": 4,
+    "compare_ks": [2],
+}
 PRESETS["quick_detached"] = {**PRESETS["quick"], "solver_grad": False}
 PRESETS["quick_noise"] = {**PRESETS["quick"], "unroll": 1, "noise": 0.05}
 PRESETS["paper_detached"] = {**PRESETS["paper"], "solver_grad": False}
@@ -182,20 +252,50 @@ SCHUR = {
     "fieldsplit_1_ksp_type": "preonly",
     "fieldsplit_1_pc_type": "bjacobi",
 }
+# the settings that name one of a few choices
+CHOICES = {
+    "train_solver": ("gmres", "schur"),
+    "val_solver": ("same", "schur"),
+    "correction": CORRECTIONS,
+    "val_metric": ("u_nmse", "rollout_mean"),
+}
 
 
 @functools.lru_cache(maxsize=4)
 def reference_data(n: int, count: int, steps: int, dt: float, nu: float, seed: int):
-    """Reference trajectories (steps + 1, count, 3n²): the 2n² simulation restricted."""
+    """Reference trajectories (steps + 1, count, 3n²): the 2n² simulation restricted.
+
+    Cached in memory per process, and on disk in ``$PRDP_PETSC_CACHE`` (default
+    ``~/.cache/prdp_petsc``) under a name made of all the arguments and a hash of
+    the scheme's source (`prdp_petsc.fem.mac`), so that the runs of a comparison
+    build them once and a changed scheme never reads old data;
+    ``PRDP_PETSC_CACHE=""`` turns the disk cache off.
+    """
+    folder = os.environ.get("PRDP_PETSC_CACHE", str(Path.home() / ".cache" / "prdp_petsc"))
+    scheme = hashlib.sha1(Path(mac.__file__).read_bytes()).hexdigest()[:12]
+    name = f"ns2d_{scheme}_n{n}_count{count}_steps{steps}_dt{dt!r}_nu{nu!r}_seed{seed}.npy"
+    cached = Path(folder) / name if folder else None
+    if cached is not None and cached.exists():
+        return torch.from_numpy(np.load(cached))
     rng = np.random.default_rng(seed)
     fine = mac.simulate(mac.random_states(2 * n, count, rng), 2 * n, dt, nu, steps)
-    return torch.from_numpy(mac.restrict(fine, 2 * n))
+    coarse = mac.restrict(fine, 2 * n)
+    if cached is not None:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        partial = cached.with_suffix(f".{os.getpid()}.tmp.npy")
+        np.save(partial, coarse)
+        partial.replace(cached)  # atomic: a concurrent run reads a whole file or none
+    return torch.from_numpy(coarse)
 
 
 class Corrector:
-    """The hybrid step s ↦ P_K(s) + C(P_K(s)) with its solver and network.
+    """The solver step P_K and the network C of the hybrid, direct or indirect.
 
-    With `warm_starts` (a `WarmStarts`), a solve given ``keys`` (one per state) starts
+    ``correction: "direct"`` steps s ↦ P_K(s) + C(P_K(s)) (C: 3 → 3 channels);
+    ``"indirect"`` steps s ↦ P_K(s; f = C(s)) (C: 3 → 2 channels), the forcing
+    f/Δt added to the momentum rows of the implicit step's right-hand side (the
+    continuity rows stay zero, so the singular system stays consistent).  With
+    `warm_starts` (a `WarmStarts`), a solve given ``keys`` (one per state) starts
     from the solutions stored under them and stores its own.
     """
 
@@ -209,6 +309,7 @@ class Corrector:
         ).coalesce()
         self.scale = torch.from_numpy(mac.rhs_scale(self.n, self.dt))
         self.net = net
+        self.correction, self.checkpoint = config["correction"], config["checkpoint"]
         self.warm_starts = warm_starts
 
     def theta(self, state: torch.Tensor) -> torch.Tensor:
@@ -219,38 +320,49 @@ class Corrector:
         positive = torch.relu(a)
         return torch.cat([positive, a - positive], dim=1)
 
-    def solve(self, state: torch.Tensor, solver: pp.KSPSolver, keys=None) -> torch.Tensor:
-        """The capped solve P_K(s): operator and right-hand side both from s (from the
-        warm starts of `keys`, if any)."""
+    def solve(
+        self, state: torch.Tensor, solver: pp.KSPSolver, keys=None, forcing=None
+    ) -> torch.Tensor:
+        """The capped solve P_K(s; f): operator and right-hand side from s, plus the
+        forcing f (B, 2n²) on the momentum rows (from the warm starts of `keys`, if any)."""
         starts = self.warm_starts if keys is not None else None
         x0 = None if starts is None else starts.guess(keys)
-        x = pp.solve(self.A, state * self.scale, solver, theta=self.theta(state), x0=x0)
+        b = state * self.scale
+        if forcing is not None:
+            b = b + torch.cat([forcing / self.dt, torch.zeros_like(state[:, 2 * self.n**2 :])], 1)
+        x = pp.solve(self.A, b, solver, theta=self.theta(state), x0=x0)
         if starts is not None:
             starts.store(keys, x)
         return x
 
-    def correct(self, coarse: torch.Tensor) -> torch.Tensor:
+    def network(self, state: torch.Tensor) -> torch.Tensor:
+        """C on states (B, 3n²): a state correction (direct) or a forcing (indirect)."""
         n = self.n
-        return coarse + self.net(coarse.reshape(-1, 3, n, n)).reshape(coarse.shape)
+        return self.net(state.reshape(-1, 3, n, n)).reshape(len(state), -1)
+
+    def step(self, solver: pp.KSPSolver) -> Hybrid:
+        """The corrected step with `solver` (`prdp_petsc.training.unroll.Hybrid`)."""
+
+        def physics(state, forcing, keys):
+            return self.solve(state, solver, keys, forcing)
+
+        return Hybrid(physics, self.network, correction=self.correction, checkpoint=self.checkpoint)
 
     def __call__(self, state: torch.Tensor, solver: pp.KSPSolver, keys=None) -> torch.Tensor:
-        return self.correct(self.solve(state, solver, keys))
+        return self.step(solver)(state, keys)
 
 
-def unrolled_loss(
-    hybrid, solver, windows, *, unroll: int = 2, solver_grad: bool = True, samples=None
+def hybrid_loss(
+    hybrid: Corrector, solver, windows, *, steps=None, solver_grad: bool = True, samples=None
 ):
-    """Summed MSE of an `unroll`-step corrected rollout from ``windows[0]`` (B, 3n²)
-    against ``windows[1:]``; ``solver_grad=False`` detaches each solve's input.
-    `samples` (the windows' indices) key the warm starts of step t as ``(t, index)``."""
-    state, total = windows[0], 0.0
-    for t in range(1, unroll + 1):
-        if not solver_grad:
-            state = state.detach()  # the solve sees a constant: no physics gradient
-        keys = None if samples is None else [(t, i) for i in samples]
-        state = hybrid(state, solver, keys)
-        total = total + ((state - windows[t]) ** 2).mean()
-    return total
+    """Summed MSE of an m-step corrected rollout from ``windows[0]`` (B, 3n²)
+    against ``windows[1:]`` (`unrolled_loss`); ``solver_grad=False`` detaches each
+    solve's input.  `samples` (the windows' indices) key the warm starts of step t
+    as ``(t, index)``."""
+    keys = None if samples is None else (lambda t: [(t, i) for i in samples])
+    return unrolled_loss(
+        hybrid.step(solver), windows, steps=steps, solver_grad=solver_grad, keys=keys
+    )
 
 
 def setup(config: dict, seed: int) -> dict:
@@ -258,20 +370,32 @@ def setup(config: dict, seed: int) -> dict:
     trajectories (T + 1, B, 3n²), ``solver`` (capped), ``full`` (to ``rtol_full``),
     ``hybrid`` (`Corrector`)."""
     n, dt, nu = config["n"], config["dt"], config["nu"]
-    # training windows (s_t, s_t+1, s_t+2) from every start t of the reference trajectories
+    # training windows (s_t, …, s_t+m) from every start t of the reference trajectories
     traj = reference_data(n, config["n_train"], config["train_steps"], dt, nu, 1000 + seed)
-    train = traj.unfold(0, 3, 1).permute(0, 3, 1, 2).transpose(0, 1).reshape(3, -1, traj.shape[-1])
+    train = unroll.windows(traj, config["unroll"] + 1, config["window_stride"])
     steps = max(config["val_steps"], config["rollout_steps"])
     val = reference_data(n, config["n_val"], steps, dt, nu, 2000 + seed)
     adjoint = None
     if config["adjoint_rtol"] is not None:
         adjoint = pp.AdjointSettings(rtol=config["adjoint_rtol"], max_it=100_000)
+    chosen = {
+        "train_solver": config["train_solver"],
+        "val_solver": config["val_solver"],
+        "correction": config["correction"],
+        "val_metric": config["val_metric"],
+    }
+    for key, value in chosen.items():
+        if value not in CHOICES[key]:
+            raise ValueError(f"{key} must be one of {CHOICES[key]}, got {value!r}")
+    options = SCHUR if config["train_solver"] == "schur" else GMRES
     solver = pp.KSPSolver(
-        GMRES, prefix="ns2d_", max_it=config["k_init"], adjoint=adjoint, nullspace=mac.nullspace(n)
+        options,
+        prefix="ns2d_",
+        max_it=config["k_init"],
+        adjoint=adjoint,
+        nullspace=mac.nullspace(n),
     )
     val_solver = config["val_solver"]
-    if val_solver not in ("same", "schur"):
-        raise ValueError(f'val_solver must be "same" or "schur", got {val_solver!r}')
     if val_solver == "schur":  # the converged step, reached sooner
         full = pp.KSPSolver(
             SCHUR,
@@ -282,7 +406,8 @@ def setup(config: dict, seed: int) -> dict:
         )
     else:  # the training solver run to rtol_full
         full = solver.clone(max_it=100_000, rtol=config["rtol_full"])
-    net = ConvResNet(3, 3, hidden=config["hidden"], blocks=config["blocks"])
+    out = 3 if config["correction"] == "direct" else 2  # indirect: a momentum forcing
+    net = ConvResNet(3, out, hidden=config["hidden"], blocks=config["blocks"])
     hybrid = Corrector(config, net, WarmStarts() if config["warm_start_epochs"] else None)
     return {"train": train, "val": val, "solver": solver, "full": full, "hybrid": hybrid}
 
@@ -304,43 +429,64 @@ def build(config: dict, seed: int) -> pp.Scene:
 
     velocity_std = float(train[0].reshape(n_train, 3, -1)[:, :2].std())
 
+    epoch_now = [0]  # the epoch being trained, for the horizon curriculum
+    batches = shuffled_batches(n_train, config["batch"])
+
+    def epoch_batches(epoch: int, generator: torch.Generator):
+        epoch_now[0] = epoch
+        return batches(epoch, generator)
+
     def loss(idx):
         if config["noise"] > 0:  # one step at a time from noisy inputs
             losses = []
-            for t in range(2):
+            for t in range(len(train) - 1):
                 s = train[t, idx].clone()
                 noise = torch.randn(s.shape, dtype=s.dtype) * config["noise"] * velocity_std
                 s.view(len(idx), 3, -1)[:, :2] += noise.view(len(idx), 3, -1)[:, :2]
                 keys = [(t, i) for i in idx.tolist()]
                 losses.append(((hybrid(s, solver, keys) - train[t + 1, idx]) ** 2).mean())
             return sum(losses)
-        return unrolled_loss(
+        steps = unroll.horizon(epoch_now[0], config["unroll"], every=config["unroll_curriculum"])
+        return hybrid_loss(
             hybrid,
             solver,
             train[:, idx],
-            unroll=config["unroll"],
+            steps=steps,
             solver_grad=config["solver_grad"],
             samples=idx.tolist(),
         )
 
-    def rollout_states(steps: int) -> torch.Tensor:
+    def rollout_states(steps: int, step) -> torch.Tensor:
         with torch.no_grad():
             states, s = [], val[0]
             for _ in range(steps):
-                s = hybrid(s, full)
+                s = step(s)
                 states.append(s)
         return torch.stack(states)
 
+    def velocity_errors(states: torch.Tensor) -> np.ndarray:
+        """Per-step ‖(û, v̂) − (u, v)‖/‖(u, v)‖ of validation states (T, n_val, 3n²)."""
+        steps = len(states)
+        pred = states.reshape(steps, n_val, 3, -1)[:, :, :2].flatten(2)
+        ref = val[1 : steps + 1].reshape(steps, n_val, 3, -1)[:, :, :2].flatten(2)
+        return ((pred - ref).norm(dim=-1) / ref.norm(dim=-1)).mean(-1).numpy()
+
+    corrected = lambda s: hybrid(s, full)  # noqa: E731
+
     def validate() -> float:
-        pred = rollout_states(config["val_steps"])[-1].reshape(n_val, 3, -1)[:, 0]
+        if config["val_metric"] == "rollout_mean":
+            return float(velocity_errors(rollout_states(config["val_steps"], corrected)).mean())
+        pred = rollout_states(config["val_steps"], corrected)[-1].reshape(n_val, 3, -1)[:, 0]
         ref = val[config["val_steps"]].reshape(n_val, 3, -1)[:, 0]
         return float((((pred - ref) ** 2).sum(-1) / (ref**2).sum(-1)).mean())
 
     def rollout() -> np.ndarray:
-        steps = config["rollout_steps"]
-        pred = rollout_states(steps).reshape(steps, n_val, 3, -1)[:, :, :2].flatten(2)
-        ref = val[1 : steps + 1].reshape(steps, n_val, 3, -1)[:, :, :2].flatten(2)
-        return ((pred - ref).norm(dim=-1) / ref.norm(dim=-1)).mean(-1).numpy()
+        return velocity_errors(rollout_states(config["rollout_steps"], corrected))
+
+    def uncorrected_rollout() -> np.ndarray:
+        return velocity_errors(
+            rollout_states(config["rollout_steps"], lambda s: hybrid.solve(s, full))
+        )
 
     def probe():
         s = val[1, 0].numpy()
@@ -350,10 +496,11 @@ def build(config: dict, seed: int) -> pp.Scene:
     return pp.Scene(
         solvers=[solver],
         optimizer=optimizer,
-        batches=shuffled_batches(n_train, config["batch"]),
+        batches=epoch_batches,
         loss=loss,
         validate=validate,
         rollout=rollout,
+        uncorrected_rollout=uncorrected_rollout,
         probe=probe,
         rtol_full=config["rtol_full"],
         epochs=epochs,
@@ -405,7 +552,7 @@ def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -
     for i in range(warmup):
         idx = order[(i * batch) % len(order) :][:batch]
         optimizer.zero_grad()
-        unrolled_loss(hybrid, solver, train[:, idx]).backward()
+        hybrid_loss(hybrid, solver, train[:, idx]).backward()
         optimizer.step()
     windows = train[:, order[:batch]]
     converged = solver.clone(
@@ -415,12 +562,12 @@ def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -
     cases += [("converged", converged, None, True), ("detached", converged, None, False)]
     grads, rows = {}, {}
     solver.max_it = ks[0]  # first-call costs (options, transpose set-up) outside the timings
-    torch.autograd.grad(unrolled_loss(hybrid, solver, windows[:, :1]), params)
+    torch.autograd.grad(hybrid_loss(hybrid, solver, windows[:, :1]), params)
     for name, s, k, grad in cases:
         if k is not None:
             s.max_it = k
         s.reset_stats()
-        loss = unrolled_loss(hybrid, s, windows, solver_grad=grad)
+        loss = hybrid_loss(hybrid, s, windows, solver_grad=grad)
         g = torch.autograd.grad(loss, params)
         grads[name] = torch.cat([x.flatten() for x in g]).double()
         st = s.stats

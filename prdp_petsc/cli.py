@@ -17,6 +17,8 @@ Sub-commands::
     prdp-petsc work-precision PROBLEM --out DIR [--k-max K] [--routes cg/gamg,...]
     prdp-petsc stability --out DIR
     prdp-petsc pages --out docs/results
+    prdp-petsc rollouts --run NAME=DIR[,DIR...] ... [--ratio NAME/REF] --out DIR
+    prdp-petsc horizon SCENE_FILE [--preset P] [--m 2 4 8 16] [--k K] --out DIR
     prdp-petsc --version
 
 Every sub-command follows the same conventions: PETSc options (below) start PETSc,
@@ -80,6 +82,8 @@ _TOOLS = {
     "work-precision": "prdp_petsc.reports.workprecision",
     "stability": "prdp_petsc.reports.stability",
     "pages": "prdp_petsc.reports.pages",
+    "rollouts": "prdp_petsc.reports.rollouts",
+    "horizon": "prdp_petsc.reports.horizon",
 }
 
 
@@ -548,9 +552,10 @@ def scene_main(scene_file: str, argv: list[str] | None = None) -> int:
 
 
 def _tool_command(name: str, argv: list[str]) -> int:
-    """``prdp-petsc bench|work-precision|stability|pages ...``: the same conventions as
-    ``run``: PETSc options start PETSc, the tool's own parser reads the rest (``--debug``
-    included: an error prints one line unless it is given), usage errors exit 2."""
+    """``prdp-petsc bench|work-precision|stability|pages|rollouts|horizon ...``: the
+    same conventions as ``run``: PETSc options start PETSc, the tool's own parser reads
+    the rest (``--debug`` included: an error prints one line unless it is given), usage
+    errors exit 2."""
     ours, petsc = split_petsc_options(argv)
     init_petsc(petsc)
     tool = importlib.import_module(_TOOLS[name])

@@ -1,7 +1,13 @@
 """Fixtures shared by the test files."""
 
+import os
+
 import pytest
 from petsc4py import PETSc
+
+# scenes that cache data on disk (ns2d's reference trajectories) do it in no folder
+# of the user's: tests compute what they use
+os.environ["PRDP_PETSC_CACHE"] = ""
 
 
 @pytest.fixture

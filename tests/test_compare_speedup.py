@@ -324,3 +324,13 @@ def test_an_rtol_run_resumes_exactly(tmp_path):
 
     assert seen(resumed) == seen(straight)  # level, rtol and iterations continue as one run
     assert resumed["rtol"] == straight["rtol"]
+
+
+def test_the_summary_keeps_each_runs_rollouts():
+    logs = runs_on_two_routes()
+    logs["prdp"]["rollout"] = [0.1, 0.2, 0.4]
+    logs["prdp"]["uncorrected_rollout"] = [0.2, 0.3, 0.5]
+    runs = summarize("s", {"": 10, "cg/icc": 3}, logs)["runs"]
+    assert runs["prdp"]["rollout"] == [0.1, 0.2, 0.4]
+    assert runs["prdp"]["uncorrected_rollout"] == [0.2, 0.3, 0.5]
+    assert "rollout" not in runs["fixed:10"] and "uncorrected_rollout" not in runs["fixed:10"]

@@ -16,13 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.linalg
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
+import torch
 
 import prdp_petsc as pp
 from prdp_petsc.fem import mac
 from prdp_petsc.training.emulators import heat_step_system
-from prdp_petsc.training.harness import find_k_full, run
+from prdp_petsc.training.harness import build_scene, find_k_full, run
 from prdp_petsc.training.modal import laplacian_modes
 from prdp_petsc.training.scene import load_scene
 
@@ -311,6 +314,32 @@ def check_poisson_field(t):
     assert 0.5 * floor < t.losses[-1] < 4 * floor
 
 
+def check_poisson3d(t):
+    # κ = 1 against κ_true = 1 + Σ a_i g_i, g_i 3D Gaussians (σ 0.12 and 0.1) well inside
+    # the cube: ∫g_i g_j = (2π σ_i²σ_j² / (σ_i² + σ_j²))^{3/2} exp(−d_ij² / 2(σ_i² + σ_j²))
+    # and ∫g_i = (2πσ_i²)^{3/2} give the initial error 0.58785 (measured 0.58797 with
+    # centroid values on the quick mesh).
+    bumps = [(9.0, 0.12, np.array([0.35, 0.4, 0.5])), (3.0, 0.1, np.array([0.7, 0.65, 0.4]))]
+
+    def cross(a, b):
+        (ai, si, ci), (aj, sj, cj) = a, b
+        s2 = si**2 + sj**2
+        scale = (2 * math.pi * si**2 * sj**2 / s2) ** 1.5
+        return ai * aj * scale * math.exp(-float(np.sum((ci - cj) ** 2)) / (2 * s2))
+
+    sq = sum(cross(a, b) for a in bumps for b in bumps)
+    lin = sum(a * (2 * math.pi * s**2) ** 1.5 for a, s, _ in bumps)
+    assert t.untrained == pytest.approx(math.sqrt(sq / (1 + 2 * lin + sq)), rel=0.01)
+    # No randomness in the scene (noise seeded, θ₀ = 0): the κ error falls to 0.403 (0.69
+    # of the start) on every seed, and the loss to 4.55e-5, near the noise floor
+    # ½(1 %)² = 5e-5 that the true κ's misfit sits at.
+    assert t.errors[-1] < 0.75 * t.untrained
+    floor = 0.5 * t.config["noise"] ** 2
+    assert 0.5 * floor < t.losses[-1] < 4 * floor
+    # every rank's share: the one process owns every unknown
+    assert t.scene.info["owned_unknowns"] == [(t.config["n"] - 2) ** 3]
+
+
 def _poisson_inverse_rho(n: int) -> float:
     """Jacobi contraction of the mode sin(2πx) of −u'' (h = 1/(n + 1)): cos(2πh)."""
     return math.cos(2 * math.pi / (n + 1))
@@ -344,6 +373,7 @@ CHECKS = {
     "heat_nonlinear": check_heat_nonlinear,
     "ns2d": check_ns2d,
     "poisson_field": check_poisson_field,
+    "poisson3d": check_poisson3d,
     "poisson_inverse": check_poisson_inverse,
     "poisson_sip": check_poisson_sip,
 }
@@ -382,3 +412,77 @@ def test_poisson_inverse_fixed_k_converges_to_the_biased_theta(k):
     theta_star = module.THETA_REF / (1 - rho**k)
     expected = abs(theta_star - module.THETA_REF) / module.THETA_REF
     assert result["totals"]["final_val_error"] == pytest.approx(expected, rel=0.01)
+
+
+# -- heat1d's unroll setting (multi-step training) ------------------------------------------
+
+
+def _heat1d_scene_and_net(preset: str, seed: int = 0):
+    """heat1d's scene, and a copy of its MLP (the loss closes over the scene's own)."""
+    module = load_scene(DEMOS / "heat1d.py")
+    scene = build_scene(module, preset, seed)
+    net = module.mlp(module.PRESETS["quick"]["n"])
+    for mine, theirs in zip(net.parameters(), scene.optimizer.param_groups[0]["params"]):
+        mine.data.copy_(theirs.detach())
+    return module, scene, net
+
+
+def _heat1d_data(module, seed: int, steps: int):
+    """The exact states u⁰ … u^steps of heat1d quick's training trajectories, computed
+    as the scene does (the same dense SPD solve, so the same bits)."""
+    config = module.PRESETS["quick"]
+    n = config["n"]
+    rng = np.random.default_rng(seed)
+    u0 = module.initial_conditions(config["n_train"] + config["n_val"], n, config["modes"], rng)
+    A = (sp.identity(n, format="csr") - module.NU_DT * pp.laplacian(n)).tocsr()
+    traj = [u0]
+    for _ in range(steps):
+        traj.append(scipy.linalg.solve(A.toarray(), traj[-1].T, assume_a="pos").T)
+    return A, torch.from_numpy(np.stack(traj)[:, : config["n_train"]])
+
+
+def test_heat1d_unroll_1_is_the_one_step_loss_to_the_bit():
+    """unroll = 1 (every preset's default) is the loss ‖P_K(N(u⁰)) − u²‖² the scene had."""
+    module, scene, net = _heat1d_scene_and_net("quick")
+    (solver,) = scene.solvers
+    solver.max_it = 5
+    A, traj = _heat1d_data(module, 0, 2)
+    idx = torch.tensor([3, 0, 17, 8])
+    u2_hat = pp.solve(A, net(traj[0][idx]), solver)
+    old = ((u2_hat - traj[2][idx]) ** 2).sum(-1).mean()
+    assert old.item() > 1e-3
+    assert torch.equal(scene.loss(idx), old)
+
+
+def test_heat1d_unroll_2_sums_two_chained_steps():
+    """unroll = 2: (P_K ∘ N)¹ and (P_K ∘ N)² of u⁰ against u² and u⁴, summed; the same
+    number as the library's `unrolled_loss` (a mean over the n values, so times n)."""
+    from prdp_petsc.training.unroll import unrolled_loss
+
+    module, scene, net = _heat1d_scene_and_net("quick unroll=2")
+    (solver,) = scene.solvers
+    solver.max_it = 5
+    A, traj = _heat1d_data(module, 0, 4)
+    idx = torch.tensor([3, 0, 17, 8])
+    targets = traj[::2][:, idx]  # u⁰, u², u⁴
+    step = lambda state, keys: pp.solve(A, net(state), solver)  # noqa: E731
+    expected = module.PRESETS["quick"]["n"] * unrolled_loss(step, targets)
+    one_step = module.PRESETS["quick"]["n"] * unrolled_loss(step, targets, steps=1)
+    loss = scene.loss(idx)
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-12)
+    assert loss.item() > 1.5 * one_step.item()  # the second step adds its own misfit
+
+
+def test_heat1d_trains_with_unroll_2_on_quick(tmp_path):
+    """PRDP on quick with two chained solves per sample: twice unroll = 1's inner
+    iterations at each K, and the training loss falls as with one step (last over first
+    epoch 0.32, 0.32, 0.23, 0.30 on seeds 0-3; K climbs to 3-4)."""
+    path = DEMOS / "heat1d.py"
+    config = load_scene(path).PRESETS["quick"]
+    result = run(path, "prdp", preset="quick unroll=2", seed=0, progress=False, out=tmp_path)
+    epochs = result["epochs"]
+    for e in epochs:
+        assert e["fwd_iterations"] == e["adj_iterations"] == 2 * e["k"] * config["n_train"]
+    losses = [e["train_loss"] for e in epochs]
+    assert all(math.isfinite(x) for x in losses) and losses[-1] < 0.5 * losses[0]
+    assert result["config"]["unroll"] == 2

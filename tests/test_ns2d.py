@@ -82,7 +82,7 @@ def test_petsc_gmres_matches_direct_solve_and_is_divergence_free():
     n = 8
     s = state(n, 2)
     A = mac.ns_operator(n, DT, NU)
-    hybrid = NS2D.Corrector({"n": n, "dt": DT, "nu": NU}, net=None)
+    hybrid = NS2D.Corrector({**NS2D.PRESETS["quick"], "n": n, "dt": DT, "nu": NU}, net=None)
     theta, b = hybrid.theta(s), s * hybrid.scale
     assert np.allclose(theta.numpy(), mac.picard_parameters(s.numpy(), mac.wind_matrix(n)))
     with converged(n) as solver:
@@ -99,7 +99,7 @@ def test_picard_parameters_take_one_upwind_side_at_zero_wind():
     """θ = [a⁺; a⁻]: ∂a⁺/∂a + ∂a⁻/∂a = 1 everywhere, also where the wind is exactly 0
     (a shear flow with v ≡ 0), so the gradient sees one upwind side, not both."""
     n = 8
-    hybrid = NS2D.Corrector({"n": n, "dt": DT, "nu": NU}, net=None)
+    hybrid = NS2D.Corrector({**NS2D.PRESETS["quick"], "n": n, "dt": DT, "nu": NU}, net=None)
     y = (np.arange(n) + 0.5) / n
     u = np.tile(np.sin(2 * np.pi * y)[:, None], (1, n))
     s = torch.from_numpy(np.concatenate([u.ravel(), np.zeros(2 * n * n)])).requires_grad_()
@@ -133,7 +133,7 @@ def test_gradcheck_of_one_corrected_step_through_the_operator():
     torch.manual_seed(0)
     net = ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
     config = {"n": n, "dt": DT, "nu": NU}
-    hybrid = NS2D.Corrector(config, net)
+    hybrid = NS2D.Corrector({**NS2D.PRESETS["quick"], **config}, net)
     s0 = state(n, 2).requires_grad_(True)
     with converged(n) as solver:
         assert torch.autograd.gradcheck(lambda s: hybrid(s, solver), (s0,), atol=1e-6)
@@ -156,7 +156,7 @@ def test_net_gradient_matches_finite_difference_with_capped_adjoint_converged():
     n = 4
     torch.manual_seed(1)
     net = ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
-    hybrid = NS2D.Corrector({"n": n, "dt": DT, "nu": NU}, net)
+    hybrid = NS2D.Corrector({**NS2D.PRESETS["quick"], "n": n, "dt": DT, "nu": NU}, net)
     s0, target = state(n, 2, seed=3), state(n, 2, seed=4)
     weight = next(net.parameters())
     with converged(n) as solver:
@@ -278,3 +278,77 @@ def test_large_presets_validate_with_schur_and_a_typo_is_refused():
     assert NS2D.PRESETS["large"]["val_solver"] == "schur"
     with pytest.raises(ValueError, match="val_solver must be"):
         NS2D.setup({**NS2D.PRESETS["quick"], "val_solver": "shur"}, 0)
+
+
+def test_gradcheck_of_one_indirectly_corrected_step():
+    """float64 gradcheck of s ↦ P(s; f = C(s)): the forcing reaches the momentum rows of
+    the right-hand side, the continuity rows stay zero (the system stays consistent)."""
+    n = 4
+    torch.manual_seed(0)
+    net = ConvResNet(3, 2, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
+    config = {**NS2D.PRESETS["quick"], "n": n, "correction": "indirect"}
+    hybrid = NS2D.Corrector(config, net)
+    s0 = state(n, 2).requires_grad_(True)
+    with converged(n) as solver:
+        assert torch.autograd.gradcheck(lambda s: hybrid(s, solver), (s0,), atol=1e-6)
+        with torch.no_grad():
+            f = hybrid.network(s0)
+            x = hybrid(s0, solver)
+            plain = hybrid.solve(s0, solver)
+            # A(s) (x − P(s)) = [f/Δt; 0]: the correction is a forcing of the same step
+            A = hybrid.A.matrix(hybrid.theta(s0)[0].numpy())
+            residual = A @ (x - plain)[0].numpy() - np.r_[f[0].numpy() / DT, np.zeros(n * n)]
+        assert np.abs(residual).max() < 1e-8 * np.abs(f.numpy()).max() / DT
+        assert solver.last.converged
+
+
+@pytest.mark.parametrize("correction", ["direct", "indirect"])
+def test_checkpointed_long_unroll_gives_the_same_gradient(correction):
+    config = {**NS2D.PRESETS["long_quick"], "correction": correction}
+    grads = []
+    for checkpoint in (False, True):
+        torch.manual_seed(0)
+        scene = NS2D.build({**config, "checkpoint": checkpoint}, 0)
+        scene.solvers[0].max_it = 6
+        params = list(scene.optimizer.param_groups[0]["params"])
+        for _ in scene.batches(0, torch.Generator().manual_seed(0)):
+            break
+        loss = scene.loss(torch.arange(4))
+        grads.append(torch.cat([g.flatten() for g in torch.autograd.grad(loss, params)]))
+    assert grads[0].abs().max() > 0
+    assert torch.allclose(grads[0], grads[1], rtol=1e-5, atol=1e-7)  # float32 network
+
+
+def test_long_quick_records_both_rollouts_and_the_horizon_curriculum():
+    """An untrained (zero) corrector is the plain solver: its rollout is the uncorrected
+    one; a trained one beats it early in the rollout; m follows the curriculum."""
+    config = NS2D.PRESETS["long_quick"]
+    assert config["rollout_steps"] >= 50 and NS2D.PRESETS["long"]["rollout_steps"] >= 50
+    scene = NS2D.build(config, 0)
+    untrained = np.asarray(scene.rollout())
+    assert np.allclose(untrained, scene.uncorrected_rollout(), rtol=1e-6)
+    result = run(SCENE, "fixed:30", preset="long_quick", seed=0, progress=False)
+    assert len(result["rollout"]) == len(result["uncorrected_rollout"]) == 50
+    assert result["rollout"][0] < result["uncorrected_rollout"][0]
+    # the curriculum: m = 1, 2, 4 over epochs 0-1, 2-3, 4-: forward solves per window
+    scene = NS2D.build({**config, "unroll_curriculum": 2}, 0)
+    solver = scene.solvers[0]
+    for epoch, m in ((0, 1), (2, 2), (4, 4)):
+        solver.reset_stats()
+        scene.batches(epoch, torch.Generator())
+        scene.loss(torch.arange(2)).backward()
+        assert solver.stats.forward_solves == 2 * m
+
+
+def test_reference_data_cache_on_disk_returns_what_was_computed(tmp_path, monkeypatch):
+    monkeypatch.setenv("PRDP_PETSC_CACHE", str(tmp_path))
+    NS2D.reference_data.cache_clear()
+    first = NS2D.reference_data(4, 2, 3, DT, NU, 7)
+    (cached,) = tmp_path.glob("ns2d_*_n4_count2_steps3_*_seed7.npy")
+    NS2D.reference_data.cache_clear()
+    again = NS2D.reference_data(4, 2, 3, DT, NU, 7)
+    assert torch.equal(first, again) and first.shape == (4, 2, 3 * 16)
+    np.save(cached, np.zeros((4, 2, 48)))  # what is on disk is what is read
+    NS2D.reference_data.cache_clear()
+    assert float(NS2D.reference_data(4, 2, 3, DT, NU, 7).abs().max()) == 0
+    NS2D.reference_data.cache_clear()

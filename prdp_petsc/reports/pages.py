@@ -71,8 +71,8 @@ class DataSet:
     name : str
         Folder name under ``docs/data``; also the page's file name.
     kind : str
-        ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``
-        or ``"work-precision"``.
+        ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
+        ``"work-precision"``, ``"rollouts"`` or ``"horizon"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -95,6 +95,8 @@ class DataSet:
             "seeds": "seeds.json",
             "bench": "bench_bridge.json",
             "stability": "stability.json",
+            "rollouts": "rollouts.json",
+            "horizon": "horizon.json",
         }.get(self.kind)
         if key is None:  # work-precision: the one work_precision_<problem>.json
             key = next(k for k in self.files if k.startswith("work_precision_"))
@@ -115,6 +117,10 @@ def _kind(files: dict) -> str:
         return "bench"
     if "stability.json" in files:
         return "stability"
+    if "rollouts.json" in files:
+        return "rollouts"
+    if "horizon.json" in files:
+        return "horizon"
     if any(k.startswith("work_precision_") for k in files):
         return "work-precision"
     raise ValueError(f"no known result file among {sorted(files)}")
@@ -163,6 +169,10 @@ def _title(ds: DataSet) -> str:
         return "Bridge benchmark"
     if ds.kind == "stability":
         return "Stability on stiff and extreme cases"
+    if ds.kind == "rollouts":
+        return f"Long rollouts against the uncorrected solver: {ds.name}"
+    if ds.kind == "horizon":
+        return f"Memory and time against the unroll length: {d['scene']} {d['preset']}"
     return f"Error against run time: {d['problem']}"
 
 
@@ -402,7 +412,42 @@ def _seeds_body(ds: DataSet) -> list[str]:
     ]
 
 
+def _rollouts_body(ds: DataSet) -> list[str]:
+    from .rollouts import format_rollout_report
+
+    return [
+        "What `prdp-petsc rollouts` printed: the per-step error of each run's held-out "
+        "rollout (geometric mean over the seeds) and of the uncorrected solver, on how "
+        "many seeds each run stayed below the uncorrected solver at every step, and the "
+        "ratios of error, inner iterations and wall time per seed with their geometric "
+        "mean and 95 % interval:",
+        "",
+        "```text",
+        format_rollout_report(ds.main).rstrip("\n"),
+        "```",
+        "",
+        *_images(ds),
+    ]
+
+
+def _horizon_body(ds: DataSet) -> list[str]:
+    from .horizon import format_horizon_report
+
+    return [
+        "What `prdp-petsc horizon` printed: m-step training at a fixed K, each row in a "
+        "fresh process with one torch thread; `growth` is the peak resident size while "
+        "training minus the size when training started, `saved MB` what autograd kept "
+        "for one batch's backward pass:",
+        "",
+        "```text",
+        format_horizon_report(ds.main).rstrip("\n"),
+        "```",
+    ]
+
+
 _BODIES = {
+    "rollouts": _rollouts_body,
+    "horizon": _horizon_body,
     "seeds": _seeds_body,
     "compare": _compare_body,
     "bench": _bench_body,
@@ -477,6 +522,10 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
     if ds.kind == "stability":
         c = _stability_counts(d["rows"])
         return [(f"stability suite: {c['rows']} stiff and extreme solves", _stability_line(c))]
+    if ds.kind == "rollouts":
+        return _rollouts_headline(ds)
+    if ds.kind == "horizon":
+        return _horizon_headline(ds)
     from .workprecision import LEVELS, summarize
 
     summary = summarize(d)
@@ -496,6 +545,52 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
             f"to a relative error ≤ {level:.0e}",
             f"{pair} at K = {k}: {t * 1e3:.1f} ms, against {direct * 1e3:.0f} ms "
             "for a direct solve",
+        )
+    ]
+
+
+def _rollouts_headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    out = []
+    for name, entry in d["runs"].items():
+        below = entry.get("below_uncorrected_every_step")
+        if below is not None:
+            out.append(
+                (
+                    f"{ds.name}: `{name}` below the uncorrected solver at every one of "
+                    f"{d['steps']} rollout steps",
+                    f"on {below} of {len(entry['rollout'])} seeds",
+                )
+            )
+    for pair, stats in d["ratios"].items():
+        e = stats["error"]
+        interval = e["interval"]
+        ci = "" if interval is None else f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})"
+        out.append(
+            (
+                f"{ds.name}: error ratio {pair} at rollout step {d['step']}",
+                f"{e['geometric_mean']:.3f}{ci}, {e['n']} seeds",
+            )
+        )
+    return out
+
+
+def _horizon_headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    rows = {(r["m"], r["checkpoint"]): r for r in d["rows"]}
+    ms = sorted({m for m, _ in rows})
+    lo, hi = ms[0], ms[-1]
+    if (lo, True) not in rows or (hi, True) not in rows:
+        return []
+    a, b = rows[lo, True], rows[hi, True]
+    growth = [r["peak_rss_mb"] - r["rss_at_start_mb"] for r in (a, b)]
+    return [
+        (
+            f"{d['scene']} {d['preset']}: peak memory of m = {hi} training against m = {lo}, "
+            "checkpointed",
+            f"{b['peak_rss_mb']:.0f} MB against {a['peak_rss_mb']:.0f} MB "
+            f"({b['peak_rss_mb'] / a['peak_rss_mb']:.2f}×; while training +{growth[1]:.0f} "
+            f"against +{growth[0]:.0f} MB)",
         )
     ]
 

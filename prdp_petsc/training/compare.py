@@ -177,7 +177,9 @@ def compare(
         target = epochs or scene.epochs
         origin = provenance(threads, ranks.size)
         warmed = False
-        coarse = scene.compare_ks or sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
+        coarse = scene.compare_ks
+        if coarse is None:  # an empty list: no constant coarse K
+            coarse = sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
         own = [*schedules, f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
         prefixes = [s.prefix for s in scene.solvers]
         runs = [(schedule, None) for schedule in own] + [

@@ -3,10 +3,12 @@
 The heat scenes ``demos/heat2d.py`` (L-shape) and ``demos/heat3d.py`` (unit cube) are
 one learning problem on two meshes, built by `heat_emulator_scene`: a network N maps
 uⁿ to ûⁿ⁺¹, and the loss compares the *capped* solver step P_K(ûⁿ⁺¹) with the exact
-uⁿ⁺² (the paper's mixed chain).  The pieces it is made of are public, so that tests
-and other scenes use the same physics and data: `heat_step_system` (the matrices of
-one step), `gaussian_bumps` and `bubble` (the initial conditions; ``poisson_sip``
-draws its sources with `gaussian_bumps` too), `training_pairs` and `emulator_net`.
+uⁿ⁺² (the paper's mixed chain), or, unrolled m times, each state of the chain
+sⁿ⁺² = P_K(N(sⁿ)) with the exact one.  The pieces it is made of are public, so that
+tests and other scenes use the same physics and data: `heat_step_system` (the
+matrices of one step), `gaussian_bumps` and `bubble` (the initial conditions;
+``poisson_sip`` draws its sources with `gaussian_bumps` too), `training_pairs`,
+`training_windows` and `emulator_net`.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from .modal import ModalNet
 from .networks import ResidualMLP
 from .rollout import rollout_errors
 from .scene import Scene, shuffled_batches
+from .unroll import windows
 
 __all__ = [
     "DAMPED_JACOBI",
@@ -34,6 +37,7 @@ __all__ = [
     "heat_emulator_scene",
     "heat_step_system",
     "training_pairs",
+    "training_windows",
 ]
 
 #: The paper's solver: damped Jacobi (Richardson, scale 0.8, with PCJACOBI).
@@ -125,11 +129,41 @@ def training_pairs(traj: torch.Tensor, spans: int) -> tuple[torch.Tensor, torch.
 
     Several starting times show the network the smoother states it meets in a
     rollout, not only the initial conditions.  Each pair is scaled by ``‖uₜ‖`` (the
-    step is linear), so late, decayed states weigh as much as early ones.
+    step is linear), so late, decayed states weigh as much as early ones.  The
+    windows of `training_windows` with one step.
     """
-    inputs = traj[:spans].reshape(-1, traj.shape[-1])
-    norms = inputs.norm(dim=-1, keepdim=True)
-    return inputs / norms, traj[2 : spans + 2].reshape(-1, traj.shape[-1]) / norms
+    inputs, outputs = training_windows(traj, spans, 1)
+    return inputs, outputs
+
+
+def training_windows(traj: torch.Tensor, spans: int, steps: int) -> torch.Tensor:
+    """Windows ``(uₜ, uₜ₊₂, …, uₜ₊₂ₘ)``, m = `steps`, for t < `spans`, scaled by ``‖uₜ‖``.
+
+    The targets of an m-step unroll of the mixed chain, each of whose steps spans two
+    time steps; ``steps=1`` gives the pairs of `training_pairs`.
+
+    Parameters
+    ----------
+    traj : torch.Tensor, shape (T + 1, samples, n)
+        Exact trajectories, T + 1 ≥ `spans` + 2 `steps`.
+    spans, steps : int
+        Number of starting times and of chain steps, both ≥ 1.
+
+    Returns
+    -------
+    torch.Tensor, shape (steps + 1, spans · samples, n)
+        Ordered by starting time, then by trajectory; window i is divided by the
+        norm of its first state.
+    """
+    if spans < 1 or steps < 1:
+        raise ValueError(f"spans and steps must be >= 1, got {spans}, {steps}")
+    if len(traj) < spans + 2 * steps:
+        raise ValueError(
+            f"{spans} starts of {steps}-step windows need {spans + 2 * steps} states, "
+            f"the trajectories have {len(traj)}"
+        )
+    w = windows(traj[: spans + 2 * steps], 2 * steps + 1)[::2]  # by start, then trajectory
+    return w / w[0].norm(dim=-1, keepdim=True)
 
 
 def emulator_net(
@@ -172,6 +206,7 @@ def heat_emulator_scene(
     n_val: int,
     val_steps: int,
     rollout_steps: int,
+    unroll: int,
     epochs: int,
     batch: int,
     lr: float,
@@ -185,11 +220,17 @@ def heat_emulator_scene(
 
     Data: ``n_train + n_val`` initial conditions (`gaussian_bumps` times `bubble`,
     drawn from ``numpy.random.default_rng(seed)``) stepped exactly (splu) for
-    ``max(val_steps, rollout_steps, spans + 1)`` steps.  Training pairs
-    (`training_pairs`) start at t < `spans` of the training trajectories; the
+    ``max(val_steps, rollout_steps, spans + 2 unroll − 1)`` steps.  Training windows
+    (`training_windows`) start at t < `spans` of the training trajectories; the
     validation metric is the mean normalised error of a `val_steps`-step rollout
     of N from the held-out initial conditions, and ``Scene.rollout`` the per-step
     error of a `rollout_steps`-step one.
+
+    Loss: the chain s ← P_K(B N(s)) (``A s' = B N(s)`` capped at K iterations) runs
+    ``unroll`` = m times from uₜ under autograd; the k-th state is compared with the
+    exact uₜ₊₂ₖ, each term ‖·‖² averaged over the batch and divided by the square of
+    the mean norm of the targets uₜ₊₂, and the loss is their sum over k = 1 … m.
+    m = 1 is the one-step mixed chain.
 
     Parameters
     ----------
@@ -209,6 +250,8 @@ def heat_emulator_scene(
         from zero.
     spans, n_train, n_val, val_steps, rollout_steps : int
         Data sizes, as above.
+    unroll : int
+        m, the chain steps of the loss (≥ 1), as above.
     epochs, batch : int
         Default number of epochs and mini-batch size.
     lr, gamma : float
@@ -235,6 +278,8 @@ def heat_emulator_scene(
         raise ValueError(f'net must be "modal" or "mlp", got {net!r}')
     if spans < 1 or n_train < 1 or n_val < 1:
         raise ValueError(f"spans, n_train and n_val must be >= 1, got {spans}, {n_train}, {n_val}")
+    if unroll < 1:
+        raise ValueError(f"unroll must be >= 1, got {unroll}")
     A, B, interior, _ = heat_step_system(mesh, dt)
     n = A.shape[0]
     rng = np.random.default_rng(seed)
@@ -243,12 +288,12 @@ def heat_emulator_scene(
     u0 = u0 * bubble(A, B, dt)  # vanish smoothly on the boundary
     lu = spla.splu(A.tocsc())
     traj = [u0]
-    for _ in range(max(steps, spans + 1)):
+    for _ in range(max(steps, spans + 2 * unroll - 1)):
         traj.append(lu.solve(B @ traj[-1].T).T)
     traj = torch.from_numpy(np.stack(traj))  # (steps + 1, samples, n)
-    train_in, train_out = training_pairs(traj[:, :n_train], spans)
+    targets = training_windows(traj[:, :n_train], spans, unroll)  # (m + 1, windows, n)
     val_traj = traj[:, n_train:]
-    scale = float(train_out.norm(dim=-1).mean())
+    scale = float(targets[1].norm(dim=-1).mean())
 
     B_t = _torch_sparse(B)
     solver = KSPSolver(DAMPED_JACOBI if options is None else options, prefix=prefix, max_it=1)
@@ -256,10 +301,13 @@ def heat_emulator_scene(
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
 
     def loss(idx):
-        u1_hat = model(train_in[idx])
-        rhs = (B_t @ u1_hat.T).T
-        u2_hat = solve(A, rhs, solver, x0=u1_hat if warm_start else None)
-        return ((u2_hat - train_out[idx]) ** 2).sum(-1).mean() / scale**2
+        state, total = targets[0, idx], 0
+        for target in targets[1:, idx]:
+            u1_hat = model(state)
+            rhs = (B_t @ u1_hat.T).T
+            state = solve(A, rhs, solver, x0=u1_hat if warm_start else None)
+            total = total + ((state - target) ** 2).sum(-1).mean() / scale**2
+        return total
 
     def rollout():
         return rollout_errors(model, val_traj[0], val_traj[1 : rollout_steps + 1])
@@ -275,7 +323,7 @@ def heat_emulator_scene(
     return Scene(
         solvers=[solver],
         optimizer=optimizer,
-        batches=shuffled_batches(len(train_in), batch),
+        batches=shuffled_batches(targets.shape[1], batch),
         loss=loss,
         validate=validate,
         rollout=rollout,

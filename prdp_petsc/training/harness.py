@@ -280,8 +280,9 @@ def run(
         first epoch not completed), ``reason`` (a PETSc reason; ``NON_FINITE`` for a
         NaN or Inf input, loss or metric; ``STRUCTURE``, ``INVALID_INPUT`` for the
         other `prdp_petsc.errors.InputError` kinds; or ``interrupted``) and
-        ``message``; ``rollout``, the per-step error of the trained model, for
-        scenes that define it; ``requested_epochs``; ``finished`` (True once all
+        ``message``; ``rollout``, the per-step error of the trained model, and
+        ``uncorrected_rollout``, that of the solver alone, for scenes that define
+        them; ``requested_epochs``; ``finished`` (True once all
         of them trained and the rollout is recorded); ``checkpoint`` (``file`` and
         ``epoch`` of the last save, or None); ``scene_file``; ``provenance``
         (`prdp_petsc.training.provenance.provenance` of the process that started
@@ -379,7 +380,9 @@ def run(
             )  # fmt: skip
             if not result["stopped"]:
                 if scene.rollout is not None:
-                    result["rollout"] = ranks.rollout(scene)
+                    result["rollout"] = ranks.rollout(scene.rollout)
+                if scene.uncorrected_rollout is not None:
+                    result["uncorrected_rollout"] = ranks.rollout(scene.uncorrected_rollout)
                 result["finished"] = True
         except KeyboardInterrupt:
             epoch = len(result["epochs"])

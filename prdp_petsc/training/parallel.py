@@ -222,8 +222,9 @@ class Parallel:
         """The validation metric: every rank (``domain``: collective solves) or rank 0."""
         return self._on_root(lambda: float(scene.validate()))
 
-    def rollout(self, scene) -> list[float]:
-        return self._on_root(lambda: [float(e) for e in scene.rollout()])
+    def rollout(self, errors) -> list[float]:
+        """The per-step errors `errors()` returns, computed on rank 0."""
+        return self._on_root(lambda: [float(e) for e in errors()])
 
     def _on_root(self, compute):
         """``compute()`` on rank 0 in ``batch`` mode (on every rank otherwise), its value

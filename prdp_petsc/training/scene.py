@@ -98,13 +98,18 @@ class Scene:
     scheduler : torch.optim.lr_scheduler.LRScheduler, optional
         Stepped once per epoch.
     compare_ks : list of int, optional
-        Constant coarse Ks for ``compare`` (default: 1, K_full/4, K_full/2).
+        Constant coarse Ks for ``compare`` (default: 1, K_full/4, K_full/2; an empty
+        list: none).
     info : dict
         Free-form description written into results (sizes, settings).
     rollout : callable ``() -> sequence of float``, optional
         Per-step error of the trained model over a long autoregressive rollout
         (`prdp_petsc.training.rollout.rollout_errors`); recorded after training
         and plotted by ``compare``.  Emulator scenes validate on its mean.
+    uncorrected_rollout : callable ``() -> sequence of float``, optional
+        For scenes whose network corrects a solver: the same rollout with the
+        solver alone (what the corrector has to beat at every step); recorded
+        after training next to ``rollout``.
     """
 
     solvers: list[KSPSolver]
@@ -120,6 +125,7 @@ class Scene:
     compare_ks: list[int] | None = None
     info: dict = field(default_factory=dict)
     rollout: Callable[[], Sequence[float]] | None = None
+    uncorrected_rollout: Callable[[], Sequence[float]] | None = None
 
     def __post_init__(self):
         if not self.solvers or not all(isinstance(s, KSPSolver) for s in self.solvers):

@@ -48,7 +48,9 @@ def summarize(
     candidate for ``fastest`` nor for the speedup.  `skipped` maps routes that do
     not fit the scene's solvers (a `StructureError`: CG on a non-symmetric
     operator) to the reason; they appear in ``routes`` as ``{"skipped": reason}``.
-    Every run gets ``time_to_full_accuracy``
+    A run whose results recorded ``rollout`` / ``uncorrected_rollout`` (per-step
+    errors of the trained model, and of the solver alone) keeps them.  Every run
+    gets ``time_to_full_accuracy``
     (`prdp_petsc.training.routes.time_to_accuracy` against full fidelity's final
     validation error; None if it never reached it, or without full fidelity), and
     the summary ``speedup_vs_best_full`` and ``speedup`` (`speedup_vs_best_full`).
@@ -73,6 +75,9 @@ def summarize(
         }
         if log.get("rtol"):  # the rtol schedule: where its tolerance ended, what it cost
             runs[schedule]["rtol"] = _rtol_summary(log)
+        for key in ("rollout", "uncorrected_rollout"):  # per-step errors, when recorded
+            if log.get(key) is not None:
+                runs[schedule][key] = log[key]
     target = accuracy_target(logs, full_name)
     for name, r in runs.items():
         reached = None if target is None else time_to_accuracy(logs[name], target)

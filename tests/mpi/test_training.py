@@ -227,7 +227,7 @@ def test_a_failed_validation_on_rank_0_stops_every_rank():
     with pytest.raises(SolverError, match="DIVERGED_NANORINF"):
         ranks.validate(_ValidationFails())
     with pytest.raises(RuntimeError, match="no rollout"):
-        ranks.rollout(_ValidationFails())
+        ranks.rollout(_ValidationFails().rollout)
 
 
 def test_synchronize_starts_every_rank_from_rank_0():
