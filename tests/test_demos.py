@@ -486,3 +486,9 @@ def test_heat1d_trains_with_unroll_2_on_quick(tmp_path):
     losses = [e["train_loss"] for e in epochs]
     assert all(math.isfinite(x) for x in losses) and losses[-1] < 0.5 * losses[0]
     assert result["config"]["unroll"] == 2
+
+
+def test_heat1d_paper_k10_starts_prdp_at_k_10():
+    module = load_scene(DEMOS / "heat1d.py")
+    assert build_scene(module, "paper_k10", 0).prdp["k_init"] == 10
+    assert build_scene(module, "quick", 0).prdp["k_init"] == 1
