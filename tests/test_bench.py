@@ -119,3 +119,57 @@ def test_bench_rejects_non_positive_sizes(tmp_path, flag):
     with pytest.raises(SystemExit):
         main(["bridge", flag, "0", "--out", str(tmp_path)])
     assert not (tmp_path / "bench_bridge.json").exists()
+
+
+def _owned_record():
+    """An owned-layout ``bench mpi`` record at N = 1000 with memory = 200 MB + 0.1 MB
+    × N/P on every rank but rank 0 (which also held the mesh) and halos ∝ (N/P)^(2/3)."""
+    solve = {}
+    for p in (1, 2, 4):
+        share = 1000 / p
+        peaks = [200 + 0.1 * share] * p
+        peaks[0] += 30 if p > 1 else 0
+        ghosts = [0] * p if p == 1 else [round(3 * share ** (2 / 3))] * p
+        solve[str(p)] = {
+            "layout": "owned", "unknowns": 1000, "k": 20, "forward_s": 1.0 / p,
+            "backward_s": 2.0 / p, "speedup_forward": float(p), "speedup_backward": float(p),
+            "rows_per_rank": [1000 // p] * p, "petsc_mat_mb_per_rank": [1.0] * p,
+            "owned_arrays_mb_per_rank": [2.0] * p, "peak_rss_mb_per_rank": peaks,
+            "ghost_vertices_per_rank": ghosts,
+        }  # fmt: skip
+    return {"layout": "owned", "mesh": "cube 10", "solve": solve, "epoch": {}}
+
+
+def test_the_mpi_scaling_model_recovers_the_law_it_was_fitted_to():
+    from prdp_petsc.reports.bench_mpi import format_scaling_model, scaling_model
+
+    model = scaling_model(_owned_record())
+    assert model["base_mb"] == pytest.approx(200, abs=1e-6)
+    assert model["mb_per_unknown"] == pytest.approx(0.1)
+    assert model["halo_coefficient"] == pytest.approx(3, rel=1e-2)
+    assert model["rank0_mb"] == pytest.approx(30)
+    row = model["rows"]["1024"]
+    assert row["peak_mb_per_rank"] == pytest.approx(200 + 0.1 * 1000 / 1024)
+    assert row["halo_kb_per_iteration"] == pytest.approx(
+        8 * 3 * (1000 / 1024) ** (2 / 3) / 1024, rel=1e-2
+    )
+    assert row["weak_unknowns"] == 1024 * 1000
+    assert "Model (not measured)" in format_scaling_model(model)
+    replicated = _owned_record()
+    for r in replicated["solve"].values():
+        r["layout"] = "replicated"
+    assert scaling_model(replicated) is None
+
+
+def test_a_bench_mpi_record_gets_a_page_with_the_model(tmp_path):
+    from prdp_petsc.reports import pages
+
+    folder = tmp_path / "data" / "bench_mpi_cube10"
+    folder.mkdir(parents=True)
+    (folder / "bench_mpi.json").write_text(json.dumps(_owned_record()))
+    (folder / "provenance.json").write_text(json.dumps({"command": ["prdp-petsc"]}))
+    (ds,) = pages.load_data(tmp_path / "data", tmp_path / "images")
+    assert ds.kind == "bench-mpi"
+    ((what, figure),) = pages._headline(ds)
+    assert "2 ranks against 1" in what and "backward 2.00×" in figure
+    assert "0.93×" in figure  # the largest rank, rank 0: (200 + 50 + 30) / 300

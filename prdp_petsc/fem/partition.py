@@ -298,7 +298,7 @@ def _pieces(mesh, part: np.ndarray, size: int, data: tuple = ({}, {})):
         yield {
             "type": type(mesh),
             "p": np.ascontiguousarray(mesh.p[:, vertices]),
-            "t": local_of[t[:, elements]],
+            "t": np.ascontiguousarray(local_of[t[:, elements]]),
             "owned_vertices": len(mine),
             "ghost_vertices": new_vertex[ghost_v],
             "owned_elements": int(owned_e.sum()),

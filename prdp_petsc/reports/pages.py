@@ -72,7 +72,7 @@ class DataSet:
         Folder name under ``docs/data``; also the page's file name.
     kind : str
         ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
-        ``"work-precision"``, ``"rollouts"`` or ``"horizon"``.
+        ``"work-precision"``, ``"rollouts"``, ``"horizon"`` or ``"bench-mpi"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -97,6 +97,7 @@ class DataSet:
             "stability": "stability.json",
             "rollouts": "rollouts.json",
             "horizon": "horizon.json",
+            "bench-mpi": "bench_mpi.json",
         }.get(self.kind)
         if key is None:  # work-precision: the one work_precision_<problem>.json
             key = next(k for k in self.files if k.startswith("work_precision_"))
@@ -121,6 +122,8 @@ def _kind(files: dict) -> str:
         return "rollouts"
     if "horizon.json" in files:
         return "horizon"
+    if "bench_mpi.json" in files:
+        return "bench-mpi"
     if any(k.startswith("work_precision_") for k in files):
         return "work-precision"
     raise ValueError(f"no known result file among {sorted(files)}")
@@ -173,6 +176,8 @@ def _title(ds: DataSet) -> str:
         return f"Long rollouts against the uncorrected solver: {ds.name}"
     if ds.kind == "horizon":
         return f"Memory and time against the unroll length: {d['scene']} {d['preset']}"
+    if ds.kind == "bench-mpi":
+        return f"One rank against several: {d['mesh']}, {d.get('layout', 'replicated')} layout"
     return f"Error against run time: {d['problem']}"
 
 
@@ -445,7 +450,24 @@ def _horizon_body(ds: DataSet) -> list[str]:
     ]
 
 
+def _bench_mpi_body(ds: DataSet) -> list[str]:
+    from .bench_mpi import format_report, format_scaling_model, scaling_model
+
+    model = scaling_model(ds.main)
+    lines = [
+        "What `prdp-petsc bench mpi` printed: one capped CG + Jacobi solve (forward) and its "
+        "adjoint with ∂L/∂θ (backward), medians of the repeats; 4 ranks on this 2-core "
+        "machine are oversubscribed, so their times say nothing, their memory does.",
+        "",
+        format_report(ds.main).rstrip("\n"),
+    ]
+    if model is not None:
+        lines += ["", "## Beyond this machine: a model", "", format_scaling_model(model)]
+    return lines
+
+
 _BODIES = {
+    "bench-mpi": _bench_mpi_body,
     "rollouts": _rollouts_body,
     "horizon": _horizon_body,
     "seeds": _seeds_body,
@@ -526,6 +548,8 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
         return _rollouts_headline(ds)
     if ds.kind == "horizon":
         return _horizon_headline(ds)
+    if ds.kind == "bench-mpi":
+        return _bench_mpi_headline(ds)
     from .workprecision import LEVELS, summarize
 
     summary = summarize(d)
@@ -573,6 +597,23 @@ def _rollouts_headline(ds: DataSet) -> list[tuple[str, str]]:
             )
         )
     return out
+
+
+def _bench_mpi_headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    solve = d["solve"]
+    if "1" not in solve or "2" not in solve:
+        return []
+    one, two = solve["1"], solve["2"]
+    ratio = max(two["peak_rss_mb_per_rank"]) / max(one["peak_rss_mb_per_rank"])
+    return [
+        (
+            f"{d['mesh']} ({one['unknowns']} unknowns), {d.get('layout', 'replicated')} "
+            "layout: 2 ranks against 1",
+            f"peak memory per rank {ratio:.2f}× the one-rank peak; forward "
+            f"{two['speedup_forward']:.2f}×, backward {two['speedup_backward']:.2f}× faster",
+        )
+    ]
 
 
 def _horizon_headline(ds: DataSet) -> list[tuple[str, str]]:
