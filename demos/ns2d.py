@@ -100,6 +100,7 @@ from __future__ import annotations
 import argparse
 import functools
 import hashlib
+import json
 import math
 import os
 import sys
@@ -627,7 +628,94 @@ def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Names
     return run
 
 
-COMMANDS = {"adjoint": adjoint_command}
+def energy_report(folder: str, steps: int | None = None) -> dict:
+    """Error, energy and correlation per step of a trained run's held-out rollout.
+
+    Loads the run in `folder` (`prdp_petsc.training.harness.load_trained`), rebuilds
+    its validation flows and rolls them out with the full-fidelity solver, with and
+    without the corrector.  Per step t and flow: the normalised velocity error, the
+    energy ratio ‖(û, v̂)‖/‖(u, v)‖ against the reference, and the correlation
+    ⟨(û, v̂), (u, v)⟩/(‖(û, v̂)‖‖(u, v)‖), averaged over the flows.  The error
+    mixes amplitude (energy) and phase (correlation): a diffusive solver loses energy
+    but stays in phase; a corrector that restores energy can lose phase faster.
+    """
+    from prdp_petsc.training.harness import load_trained, release
+
+    module = sys.modules[__name__]
+    scene = load_trained(folder, module=module)
+    record = json.loads((Path(folder) / "results.json").read_text())
+    config, seed = record["config"], record["seed"]
+    parts = setup(config, seed)
+    trained = [p for group in scene.optimizer.param_groups for p in group["params"]]
+    with torch.no_grad():
+        for p, q in zip(parts["hybrid"].net.parameters(), trained, strict=True):
+            p.copy_(q)
+    release(scene)
+    hybrid, full, val = parts["hybrid"], parts["full"], parts["val"]
+    steps = steps or config["rollout_steps"]
+    count = val.shape[1]
+
+    def curves(step) -> dict:
+        rows, s = [], val[0]
+        with torch.no_grad():
+            for t in range(steps):
+                s = step(s)
+                pred = s.reshape(count, 3, -1)[:, :2].flatten(1)
+                ref = val[t + 1].reshape(count, 3, -1)[:, :2].flatten(1)
+                norms = pred.norm(dim=1), ref.norm(dim=1)
+                rows.append(
+                    [
+                        float(((pred - ref).norm(dim=1) / norms[1]).mean()),
+                        float((norms[0] / norms[1]).mean()),
+                        float(((pred * ref).sum(1) / (norms[0] * norms[1])).mean()),
+                    ]
+                )
+        columns = [list(column) for column in zip(*rows, strict=True)]
+        return dict(zip(("error", "energy", "correlation"), columns, strict=True))
+
+    out = {
+        "folder": str(folder),
+        "corrected": curves(lambda s: hybrid(s, full)),
+        "uncorrected": curves(lambda s: hybrid.solve(s, full)),
+    }
+    for solver in (parts["solver"], full):
+        solver.destroy()
+    return out
+
+
+def format_energy_report(report: dict, marks=(1, 10, 20, 30, 40, 50)) -> str:
+    """`energy_report` at a few steps, as a table."""
+    c, u = report["corrected"], report["uncorrected"]
+    lines = [
+        report["folder"],
+        f"{'step':>4} {'error':>7} {'(none)':>7} {'energy':>7} {'(none)':>7} "
+        f"{'corr':>7} {'(none)':>7}",
+    ]
+    for t in (m for m in marks if m <= len(c["error"])):
+        i = t - 1
+        lines.append(
+            f"{t:>4} {c['error'][i]:>7.3f} {u['error'][i]:>7.3f} {c['energy'][i]:>7.3f} "
+            f"{u['energy'][i]:>7.3f} {c['correlation'][i]:>7.3f} {u['correlation'][i]:>7.3f}"
+        )
+    return "\n".join(lines)
+
+
+def energy_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    """Error, energy and correlation of a trained run's rollout, with and without the
+    corrector (`energy_report`)."""
+    parser.add_argument("folders", nargs="+", help="run folders (a compare run's out/<schedule>)")
+    parser.add_argument("--steps", type=int, help="rollout steps (default: the run's)")
+
+    def run(args: argparse.Namespace) -> int:
+        torch.set_num_threads(1)
+        for folder in args.folders:
+            print(format_energy_report(energy_report(folder, args.steps)))
+        return 0
+
+    return run
+
+
+COMMANDS = {"adjoint": adjoint_command, "energy": energy_command}
 
 
 if __name__ == "__main__":

@@ -352,3 +352,22 @@ def test_reference_data_cache_on_disk_returns_what_was_computed(tmp_path, monkey
     NS2D.reference_data.cache_clear()
     assert float(NS2D.reference_data(4, 2, 3, DT, NU, 7).abs().max()) == 0
     NS2D.reference_data.cache_clear()
+
+
+def test_energy_report_of_a_trained_run(tmp_path):
+    """The untrained-vs-trained rollout diagnostics: the uncorrected rollout equals the
+    scene's own record, and error, energy and correlation are consistent numbers."""
+    out = tmp_path / "run"
+    result = run(SCENE, "fixed:20", preset="long_quick", seed=0, progress=False, out=out)
+    report = NS2D.energy_report(out)
+    c, u = report["corrected"], report["uncorrected"]
+    assert len(c["error"]) == len(u["error"]) == 50
+    assert np.allclose(u["error"], result["uncorrected_rollout"], rtol=1e-9)
+    assert np.allclose(c["error"], result["rollout"], rtol=1e-6)
+    # |a − b|² = |a|² + |b|² − 2|a||b|cos: per flow, so only approximately after averaging
+    for curve in (c, u):
+        e, r, k = (np.asarray(curve[key]) for key in ("error", "energy", "correlation"))
+        assert np.all((k <= 1 + 1e-12) & (r > 0))
+        assert np.allclose(e**2, 1 + r**2 - 2 * r * k, rtol=0.3)
+    assert u["energy"][-1] < u["energy"][0] < 1  # the coarse upwind step loses energy
+    assert "step" in NS2D.format_energy_report(report).splitlines()[1]

@@ -8,8 +8,9 @@ NAME, e.g. ``--run sol=results/long/s0,results/long/s1``) and writes
 ``runs``
     Per NAME: the per-step error of the held-out rollout per seed (``rollout``),
     its geometric mean over the seeds per step, the wall time, the inner iterations
-    (forward + adjoint), and on how many seeds the run's error stayed below the
-    uncorrected solver's at every step (``below_uncorrected_every_step``).
+    (forward + adjoint), on how many seeds the run's error stayed below the
+    uncorrected solver's at every step (``below_uncorrected_every_step``), and each
+    run's command line and commit (``made_by``).
 ``uncorrected``
     The rollout of the solver alone per seed (``uncorrected_rollout``; every run of
     a seed recorded the same one: checked).
@@ -83,6 +84,11 @@ def rollout_report(runs: dict[str, list[Path]], ratios: list[tuple[str, str]], s
                 r["totals"]["fwd_iterations"] + r["totals"]["adj_iterations"] for r in results
             ],
             "k_final": [r["totals"]["k_final"] for r in results],
+            # what made each run: its command line and commit (`provenance`)
+            "made_by": [
+                {key: r.get("provenance", {}).get(key) for key in ("command", "git")}
+                for r in results
+            ],
         }
         if "uncorrected" in report:
             below = [
