@@ -173,3 +173,18 @@ def test_a_bench_mpi_record_gets_a_page_with_the_model(tmp_path):
     ((what, figure),) = pages._headline(ds)
     assert "2 ranks against 1" in what and "backward 2.00×" in figure
     assert "0.93×" in figure  # the largest rank, rank 0: (200 + 50 + 30) / 300
+
+
+def test_child_env_drops_the_mpi_runtime_of_this_process(monkeypatch):
+    """After MPI_Init as a singleton, Open MPI's runtime variables are in os.environ; an
+    mpiexec started with them fails (a recorded `bench mpi` did), so children lose them."""
+    from prdp_petsc.core.parallel import child_env
+
+    for key in ("PMIX_RANK", "PMIX_SERVER_URI4", "OMPI_MCA_ess", "OMPI_MCA_orte_launch"):
+        monkeypatch.setenv(key, "1")
+    monkeypatch.setenv("OMPI_MCA_rmaps_base_oversubscribe", "1")
+    env = child_env({"OMP_NUM_THREADS": "1"})
+    assert not any(
+        k.startswith("PMIX_") or k in ("OMPI_MCA_ess", "OMPI_MCA_orte_launch") for k in env
+    )
+    assert env["OMPI_MCA_rmaps_base_oversubscribe"] == "1" and env["OMP_NUM_THREADS"] == "1"

@@ -320,7 +320,9 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
         if mode:
             cmd += ["--mode", mode]
         logger.info("running %s", " ".join(cmd))
-        env = {**os.environ, **MPI_ENV}
+        from ..core.parallel import child_env
+
+        env = child_env(MPI_ENV)  # without this process's own MPI runtime variables
         # a timeout: a rank that failed alone could leave the others waiting
         subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, timeout=args.timeout)
         return json.loads(record.read_text())

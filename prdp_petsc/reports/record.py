@@ -136,7 +136,10 @@ def record(
     }
     before = _stamps(out)
     start = time.time()
-    status = subprocess.call([sys.executable, "-m", "prdp_petsc.cli", *command])
+    from ..core.parallel import child_env
+
+    # the command may start MPI jobs: not with this process's MPI runtime variables
+    status = subprocess.call([sys.executable, "-m", "prdp_petsc.cli", *command], env=child_env())
     provenance["wall_s"] = round(time.time() - start, 1)
     provenance["exit_status"] = status
     provenance["machine"]["load_average_end"] = _load_average()
