@@ -101,6 +101,14 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
         "heat_nonlinear_speedup": "seeds",
         "ns2d_large_speedup": "seeds",
         "ns2d_large_schur_speedup": "seeds",
+        "heat1d_seeds": "seeds",
+        "heat1d_m2_seeds": "seeds",
+        "heat1d_k10_seeds": "seeds",
+        "ns2d_long_rollouts": "rollouts",
+        "ns2d_long_horizon": "horizon",
+        "bench_mpi_owned_cube64": "bench-mpi",
+        "bench_mpi_owned_cube101": "bench-mpi",
+        "bench_mpi_replicated_cube101": "bench-mpi",
     }
     for ds in sets:
         p = ds.provenance

@@ -576,7 +576,7 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
 def _rollouts_headline(ds: DataSet) -> list[tuple[str, str]]:
     d = ds.main
     out = []
-    for name, entry in d["runs"].items():
+    for name, entry in list(d["runs"].items())[:1]:  # the first run: the one compared
         below = entry.get("below_uncorrected_every_step")
         if below is not None:
             out.append(
