@@ -207,9 +207,9 @@ def test_an_unknown_scene_command_exits_2_with_the_available_names(capsys):
 
     assert exit_status(cli.main, ["scene", str(NS2D), "adjiont"]) == 2
     err = capsys.readouterr().err
-    assert "error: unknown command 'adjiont'; ns2d.py's commands: adjoint\n" in err
+    assert "error: unknown command 'adjiont'; ns2d.py's commands: adjoint, energy\n" in err
     assert exit_status(cli.scene_main, str(NS2D), ["adjiont"]) == 2  # run, compare there too
-    assert "unknown command 'adjiont'; ns2d.py's commands: run, compare, adjoint\n" in (
+    assert "unknown command 'adjiont'; ns2d.py's commands: run, compare, adjoint, energy\n" in (
         capsys.readouterr().err
     )
     assert exit_status(cli.main, ["scene", str(HEAT1D), "adjoint"]) == 2
