@@ -80,10 +80,10 @@ and batch; 5 trajectories × 5 windows = 25 training samples, one batch per epoc
 instead of 200 samples, and 24 epochs instead of 100, to fit this 2-core machine),
 ``large`` (64², 12 288 unknowns per sample, 4 trajectories × 2 windows, two
 validation flows, a small network: the solve dominates the training step).
-``long`` (32², 12 trajectories of 50 steps, m = 16 from every 8th step, Schur
+``long`` (32², 12 trajectories of 50 steps, m = 32 from every 8th step, Schur
 training and validation, validation on the mean error of a 50-step rollout of two
 held-out flows), with the baselines on the same data, network and epochs:
-``long_nograd`` (m = 16 without solver gradients) and ``long_noise`` (one step at a
+``long_nograd`` (m = 32 without solver gradients) and ``long_noise`` (one step at a
 time from noisy inputs, every start); ``long_quick`` (12², tests).
 On ``paper``, ``large`` and ``long`` the reference data take minutes (direct solves on the
 2N grid); they are cached per process and on disk (`reference_data`), so ``compare``
@@ -201,7 +201,7 @@ PRESETS["long"] = {
     "train_steps": 50,
     "window_stride": 8,
     "n_val": 2,
-    "unroll": 16,
+    "unroll": 32,
     "checkpoint": True,
     "train_solver": "schur",
     "val_solver": "schur",
