@@ -13,11 +13,9 @@ the mesh and splits it with METIS; every rank assembles its piece alone, and θ,
 observations and every tensor of the loss hold that rank's own tetrahedra and vertices.
 Under ``prdp-petsc run ... --parallel domain`` the ranks share one PETSc solve; on one
 process it is the whole problem.  The misfit and the metric are sums over the ranks,
-one ``MPI_Allreduce`` each (`prdp_petsc.autograd.owned.sum_over_ranks`).  θ is held
-padded to the largest owned count, so that the harness's start-up broadcast of rank
-0's parameters sees equal shapes (all start at θ = 0); the padding never reaches the
-operator and keeps a zero gradient.  Resuming such a run is not supported: the
-checkpoint holds rank 0's parameters only.
+one ``MPI_Allreduce`` each (`prdp_petsc.autograd.owned.sum_over_ranks`).  θ is declared
+``Scene.owned_parameters``: each rank starts from and keeps its own part.  Resuming such
+a run on several ranks is refused: the checkpoint holds rank 0's part only.
 
 Inverse problem: Adam on θ (no network) minimises ``½‖u(θ) − u_obs‖² / ‖u_obs‖² +
 ½ β Σ_T |T| θ_T²`` (a small pull towards κ = 1, local to every tetrahedron).  ``steps``
@@ -130,8 +128,8 @@ def build(config: dict, seed: int) -> pp.Scene:
     )
     obs_scale = float(total(float(u_obs.square().sum()))[0])
 
-    # θ padded to the largest owned count: equal shapes on every rank (see the docstring)
-    theta = torch.zeros(max(_gather(comm, owned)), dtype=torch.float64, requires_grad=True)
+    # θ of this rank's own tetrahedra (`Scene.owned_parameters`: each rank its own part)
+    theta = torch.zeros(owned, dtype=torch.float64, requires_grad=True)
     weights = torch.from_numpy(volume / float(total(volume.sum())[0]))
     solver = pp.KSPSolver(options, prefix=PREFIX, max_it=config["k_init"])
     optimizer = torch.optim.Adam([theta], lr=config["lr"])
@@ -141,10 +139,9 @@ def build(config: dict, seed: int) -> pp.Scene:
         """``steps`` Adam steps; the last one's loss is returned for the harness to step."""
         for step in range(config["steps"]):
             optimizer.zero_grad()
-            mine = theta[:owned]
-            u = bc.solve(f, g, solver, theta=torch.exp(mine))
+            u = bc.solve(f, g, solver, theta=torch.exp(theta))
             local = 0.5 * (u - u_obs).square().sum() / obs_scale
-            local = local + 0.5 * beta * (weights * mine.square()).sum()
+            local = local + 0.5 * beta * (weights * theta.square()).sum()
             value = pp.sum_over_ranks(local, comm)
             if step < config["steps"] - 1:
                 value.backward()
@@ -152,7 +149,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         return value
 
     def validate():
-        kappa = np.exp(theta.detach().numpy()[:owned])
+        kappa = np.exp(theta.detach().numpy())
         return float(np.sqrt(total(np.sum(volume * (kappa - kappa_true) ** 2))[0]) / kappa_norm)
 
     return pp.Scene(
@@ -162,6 +159,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         loss=loss,
         validate=validate,
         probe=lambda: (bc.A_II.owned_csr(kappa_true), bc.rhs(f, g, kappa).numpy(), None),
+        owned_parameters=[theta],
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={

@@ -358,6 +358,11 @@ def run(
             "checkpoint": None,
         }
         if state is not None:
+            if scene.owned_parameters and ranks.size > 1:
+                raise InputError(
+                    "this scene holds owned parameters (each rank its own part) and its "
+                    "checkpoint holds rank 0's: it cannot be resumed on several ranks"
+                )
             _continue_result(result, state)
         out = Path(out) if out is not None and ranks.root else None
         if out is not None:

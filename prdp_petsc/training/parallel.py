@@ -131,6 +131,8 @@ class Parallel:
         if self.mode != "batch":
             loss = scene.loss(batch)
             loss.backward()
+            if self.mode == "domain" and scene.owned_parameters:
+                self._sum_replicated_gradients(scene)
             scene.optimizer.step()
             return float(loss.detach())
         share, weight = self._share(batch)
@@ -151,6 +153,20 @@ class Parallel:
             self._check_mean(loss, whole)
         scene.optimizer.step()
         return loss
+
+    def _sum_replicated_gradients(self, scene) -> None:
+        """Owned layout: sum over the ranks the gradients of the parameters every rank
+        holds alike (each rank's backward pass gave its own part of them)."""
+        from mpi4py import MPI
+
+        owned = {id(p) for p in scene.owned_parameters}
+        for group in scene.optimizer.param_groups:
+            for p in group["params"]:
+                if id(p) in owned or p.grad is None:
+                    continue
+                grad = np.ascontiguousarray(p.grad.detach().numpy(), dtype=np.float64)
+                self.comm.Allreduce(MPI.IN_PLACE, grad, op=MPI.SUM)
+                p.grad = torch.from_numpy(grad).to(dtype=p.dtype).reshape(p.shape)
 
     def _check_mean(self, shares: float, whole: torch.Tensor) -> None:
         """Refuse, on every rank, a loss whose split `shares` (summed) is not `whole`."""
@@ -245,11 +261,15 @@ class Parallel:
         return outcome[0]
 
     def synchronize(self, scene) -> None:
-        """Start every rank from rank 0's parameters (replicas must not drift apart)."""
+        """Start every rank from rank 0's parameters (replicas must not drift apart);
+        the scene's ``owned_parameters`` are each rank's own and stay as they are."""
         if self.comm is None:
             return
+        owned = {id(p) for p in scene.owned_parameters}
         for group in scene.optimizer.param_groups:
             for p in group["params"]:
+                if id(p) in owned:
+                    continue
                 with torch.no_grad():
                     p.copy_(torch.from_numpy(self.comm.bcast(p.detach().numpy(), root=0)))
 

@@ -106,6 +106,15 @@ class Scene:
         Per-step error of the trained model over a long autoregressive rollout
         (`prdp_petsc.training.rollout.rollout_errors`); recorded after training
         and plotted by ``compare``.  Emulator scenes validate on its mean.
+    owned_parameters : list of torch.Tensor, optional
+        Parameters of the owned MPI layout (`prdp_petsc.fem.distributed`): each rank
+        holds its own part (θ of its own elements), so their shapes and values differ
+        between ranks.  The harness does not start them from rank 0's values, and
+        under ``--parallel domain`` it sums the gradients of every *other* parameter
+        over the ranks before the optimizer step: the loss is then a sum over the
+        ranks of local parts (`prdp_petsc.sum_over_ranks`), so each rank's backward
+        pass gives only its part of a replicated parameter's gradient.  Such a run
+        cannot be resumed on several ranks (its checkpoint holds rank 0's part).
     uncorrected_rollout : callable ``() -> sequence of float``, optional
         For scenes whose network corrects a solver: the same rollout with the
         solver alone (what the corrector has to beat at every step); recorded
@@ -126,6 +135,7 @@ class Scene:
     info: dict = field(default_factory=dict)
     rollout: Callable[[], Sequence[float]] | None = None
     uncorrected_rollout: Callable[[], Sequence[float]] | None = None
+    owned_parameters: list = field(default_factory=list)
 
     def __post_init__(self):
         if not self.solvers or not all(isinstance(s, KSPSolver) for s in self.solvers):

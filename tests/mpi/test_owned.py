@@ -220,3 +220,49 @@ def test_owned_scene_trains_on_the_ranks_as_in_one_process(tmp_path):
         expected = np.array([e[key] for e in serial["epochs"]])
         assert all_ranks(np.allclose(got, expected, rtol=1e-9, atol=0)), (key, got, expected)
     assert all_ranks(parallel["epochs"][-1]["val_metric"] < parallel["epochs"][0]["val_metric"])
+
+
+class _OwnedAndShared:
+    """A scene with an owned θ (this rank's part, its own length) and a shared weight w:
+    ``L = Σ_ranks Σ_i (w·θ_i − r)²``, summed with `sum_over_ranks`."""
+
+    def __init__(self):
+        rank = COMM.Get_rank()
+        self.theta = torch.arange(rank + 2, dtype=torch.float64).requires_grad_(True)
+        self.w = torch.tensor([1.5 + rank], dtype=torch.float64, requires_grad=True)
+        self.owned_parameters = [self.theta]
+        self.optimizer = torch.optim.SGD([self.theta, self.w], lr=0.0)
+
+    def loss(self, _):
+        local = (self.w * self.theta - COMM.Get_rank()).square().sum()
+        return sum_over_ranks(local, COMM)
+
+
+def test_the_harness_keeps_owned_parameters_and_sums_the_shared_gradients():
+    from prdp_petsc.training.parallel import Parallel
+
+    scene = _OwnedAndShared()
+    ranks = Parallel("domain")
+    ranks.synchronize(scene)  # w from rank 0; θ (of another length on every rank) kept
+    assert all_ranks(float(scene.w.detach()) == 1.5)
+    assert all_ranks(torch.equal(scene.theta.detach(), torch.arange(COMM.Get_rank() + 2.0)))
+    ranks.step(scene, None)
+    # ∂L/∂w = Σ_ranks Σ_i 2 (w θ_i − r) θ_i, on every rank; ∂L/∂θ stays each rank's own
+    expected = sum(sum(2 * (1.5 * t - r) * t for t in range(r + 2)) for r in range(COMM.Get_size()))
+    assert all_ranks(float(scene.w.grad[0]) == pytest.approx(expected, rel=1e-14))
+    rank = COMM.Get_rank()
+    own = 2 * (1.5 * torch.arange(rank + 2.0) - rank) * 1.5
+    assert all_ranks(torch.allclose(scene.theta.grad, own.double(), rtol=1e-14))
+
+
+def test_an_owned_layout_run_is_not_resumed_on_several_ranks(tmp_path):
+    from pathlib import Path
+
+    from prdp_petsc.errors import InputError
+    from prdp_petsc.training.harness import run
+
+    scene = Path(__file__).resolve().parents[2] / "demos" / "poisson3d.py"
+    out = Path(COMM.bcast(str(tmp_path), root=0))
+    run(scene, "fixed:5", preset="quick", epochs=1, out=out, parallel="domain", progress=False)
+    with pytest.raises(InputError, match="cannot be resumed on several ranks"):
+        run(resume=out, epochs=2, parallel="domain", progress=False)
