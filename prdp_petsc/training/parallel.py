@@ -131,7 +131,7 @@ class Parallel:
         if self.mode != "batch":
             loss = scene.loss(batch)
             loss.backward()
-            if self.mode == "domain" and scene.owned_parameters:
+            if self.mode == "domain" and _owned(scene):
                 self._sum_replicated_gradients(scene)
             scene.optimizer.step()
             return float(loss.detach())
@@ -159,7 +159,7 @@ class Parallel:
         holds alike (each rank's backward pass gave its own part of them)."""
         from mpi4py import MPI
 
-        owned = {id(p) for p in scene.owned_parameters}
+        owned = {id(p) for p in _owned(scene)}
         for group in scene.optimizer.param_groups:
             for p in group["params"]:
                 if id(p) in owned or p.grad is None:
@@ -265,7 +265,7 @@ class Parallel:
         the scene's ``owned_parameters`` are each rank's own and stay as they are."""
         if self.comm is None:
             return
-        owned = {id(p) for p in scene.owned_parameters}
+        owned = {id(p) for p in _owned(scene)}
         for group in scene.optimizer.param_groups:
             for p in group["params"]:
                 if id(p) in owned:
@@ -298,6 +298,11 @@ class Parallel:
         if self.mode == "batch":  # domain: collective solves, every rank counted the same
             fwd, adj = int(total[0]), int(total[1])
         return fwd, adj, float(total[2] / self.size)
+
+
+def _owned(scene) -> list:
+    """The scene's ``owned_parameters`` (none for a scene-like object without them)."""
+    return list(getattr(scene, "owned_parameters", None) or [])
 
 
 def _whole_batch_loss(scene, batch) -> torch.Tensor:
