@@ -186,3 +186,15 @@ def test_py_typed_is_shipped():
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert "py.typed" in pyproject["tool"]["setuptools"]["package-data"]["prdp_petsc"]
     assert "mkdocstrings[python]" in " ".join(pyproject["project"]["optional-dependencies"]["docs"])
+
+
+def test_a_seeds_data_set_headlines_its_error_ratio_and_savings():
+    """The README row of a `compare --seeds` record gives PRDP's error ratio over full
+    fidelity with its interval and the iterations saved, from seeds.json."""
+    ds = next(d for d in pages.load_data(DOCS / "data", DOCS / "images") if d.kind == "seeds")
+    rows = dict(pages._headline(ds))
+    ((what, figure),) = [(w, f) for w, f in rows.items() if "error over full" in w]
+    ratio = ds.main["prdp_ratio"]
+    assert figure.startswith(f"{ratio['geometric_mean']:.3f} (95 % interval")
+    saved = ds.main["savings"]["iterations_saved"]["mean"]
+    assert f"{100 * saved:.1f} % fewer inner iterations" in figure

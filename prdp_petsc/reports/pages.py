@@ -522,11 +522,29 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
         return out
     if ds.kind == "seeds":
         speedup = d.get("speedup") or {}
-        what = f"{_setting(ds)} over seeds {', '.join(map(str, d['seeds']))}: speed-up of the "
-        what += "fastest reduced run over the fastest full-fidelity one"
+        seeds = f"{_setting(ds)} over seeds {', '.join(map(str, d['seeds']))}"
+        what = f"{seeds}: speed-up of the fastest reduced run over the fastest full-fidelity one"
         if speedup.get("geometric_mean") is None:
-            return [(what, "no reduced run reached full-fidelity accuracy")]
-        return [(what, _speedup_figure(speedup))]
+            rows = [(what, "no reduced run reached full-fidelity accuracy")]
+        else:
+            rows = [(what, _speedup_figure(speedup))]
+        ratio = d.get("prdp_ratio") or {}
+        if ratio.get("geometric_mean") is not None:
+            interval = ratio.get("interval")
+            ci = "" if not interval else f" (95 % interval {interval[0]:.3f}–{interval[1]:.3f})"
+            iterations = (d.get("savings") or {}).get("iterations_saved") or {}
+            saved = (
+                f"; {iterations['mean']:.1%} fewer inner iterations".replace("%", " %")
+                if iterations.get("mean") is not None
+                else ""
+            )
+            rows.append(
+                (
+                    f"{seeds}: PRDP's final validation error over full fidelity's",
+                    f"{ratio['geometric_mean']:.3f}{ci}{saved}",
+                )
+            )
+        return rows
     if ds.kind == "bench":
         t = d["throughput"]
         return [
