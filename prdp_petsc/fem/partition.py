@@ -20,8 +20,8 @@ graph, or recursive coordinate bisection), and sends every rank its piece:
 Only the root ever holds the whole mesh: it reads or builds it, partitions it
 and sends the pieces (``mpi4py`` point-to-point messages); the other ranks
 receive their piece and never see the rest.  The root's peak memory is the
-whole mesh plus the partitioner's graph (about 3.3 GB for 6 million
-tetrahedra with METIS); every other rank holds its piece only.  A mesh too large
+whole mesh plus the partitioner's graph (at start-up; assembly, which comes after,
+costs every rank more); every other rank holds its piece only.  A mesh too large
 for one node would need a parallel reader and partitioner (ParMETIS, PETSc's
 DMPlex), which this module does not provide.
 
