@@ -443,7 +443,8 @@ def scaling_model(result: dict, ranks=MODEL_RANKS) -> dict | None:
         ranks of the largest rank's peak resident size (rank 0 also held the whole
         mesh at start-up and is left out where P > 1; ``rank0_mb`` below keeps it).
         ``base`` is what every process holds whatever its share (Python, torch,
-        PETSc, MPI buffers).
+        PETSc, MPI buffers).  ``rank0_mb`` is how far rank 0's peak was above the
+        other ranks' at the largest P (rank 0 also read and partitioned the mesh).
     halo
         Ghost vertices per rank ``g(P) = c · (N / P)^(2/3)`` (the surface of a
         compact 3D part), c fitted on P ≥ 2.  One CG iteration moves 8·g bytes into
@@ -501,8 +502,9 @@ def format_scaling_model(model: dict) -> str:
         f"Model (not measured), fitted to P = {', '.join(map(str, model['measured_ranks']))} "
         f"at N = {model['unknowns']} unknowns: peak per rank = {model['base_mb']:.0f} MB + "
         f"{1e3 * model['mb_per_unknown']:.2f} kB × N/P; ghost vertices per rank = "
-        f"{model['halo_coefficient']:.2f} × (N/P)^(2/3); rank 0 also held "
-        f"{model['rank0_mb']:.0f} MB more at start-up (the whole mesh).",
+        f"{model['halo_coefficient']:.2f} × (N/P)^(2/3); rank 0's peak was "
+        f"{model['rank0_mb']:.0f} MB above the other ranks' (it also read and partitioned "
+        "the whole mesh).",
         "",
         "| ranks P | N | peak MB per rank | ghost vertices per rank | halo kB per CG iteration "
         "| weak scaling: N | peak MB per rank | halo kB per iteration |",
