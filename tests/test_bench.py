@@ -162,7 +162,7 @@ def test_the_mpi_scaling_model_recovers_the_law_it_was_fitted_to():
 
 
 def test_a_bench_mpi_record_gets_a_page_with_the_model(tmp_path):
-    from prdp_petsc.reports import pages
+    from prdp_petsc.reports import kinds, pages
 
     folder = tmp_path / "data" / "bench_mpi_cube10"
     folder.mkdir(parents=True)
@@ -170,7 +170,7 @@ def test_a_bench_mpi_record_gets_a_page_with_the_model(tmp_path):
     (folder / "provenance.json").write_text(json.dumps({"command": ["prdp-petsc"]}))
     (ds,) = pages.load_data(tmp_path / "data", tmp_path / "images")
     assert ds.kind == "bench-mpi"
-    ((what, figure),) = pages._headline(ds)
+    ((what, figure),) = kinds.headline(ds)
     assert "2 ranks against 1" in what and "backward 2.00×" in figure
     assert "0.93×" in figure  # the largest rank, rank 0: (200 + 50 + 30) / 300
 

@@ -14,7 +14,7 @@ import scipy.sparse.linalg as spla
 
 import prdp_petsc
 from prdp_petsc import cli
-from prdp_petsc.reports import pages
+from prdp_petsc.reports import kinds, pages
 from prdp_petsc.training import harness
 from prdp_petsc.training.scene import load_scene
 
@@ -192,7 +192,7 @@ def test_a_seeds_data_set_headlines_its_error_ratio_and_savings():
     """The README row of a `compare --seeds` record gives PRDP's error ratio over full
     fidelity with its interval and the iterations saved, from seeds.json."""
     ds = next(d for d in pages.load_data(DOCS / "data", DOCS / "images") if d.kind == "seeds")
-    rows = dict(pages._headline(ds))
+    rows = dict(kinds.headline(ds))
     ((what, figure),) = [(w, f) for w, f in rows.items() if "error over full" in w]
     ratio = ds.main["prdp_ratio"]
     assert figure.startswith(f"{ratio['geometric_mean']:.3f} (95 % interval")

@@ -1,0 +1,477 @@
+"""What each kind of recorded data set says: its page title, page body and headline rows.
+
+`prdp_petsc.reports.pages` reads the data sets under ``docs/data/`` and writes the
+pages, the index and the README fragments; this module turns one data set of a
+given kind into text.  A kind (`DataSet.kind`) is one of ``compare``, ``seeds``,
+``bench``, ``stability``, ``work-precision``, ``rollouts``, ``horizon`` and
+``bench-mpi``; each has a body (the table its command prints, with its plots) and
+headline rows (``(what, figure)`` pairs for the README and the index).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .pages import DataSet
+
+__all__ = ["TAYLOR_RIGHT", "body", "headline", "title"]
+
+
+def _pct(value: float) -> str:
+    return f"{100 * value:.1f} %"
+
+
+def title(ds: DataSet) -> str:
+    d = ds.main
+    if ds.kind == "compare":
+        return f"PRDP against full fidelity: {d['scene']}"
+    if ds.kind == "seeds":
+        return f"PRDP against full fidelity over seeds: {d['scene']}"
+    if ds.kind == "bench":
+        return "Bridge benchmark"
+    if ds.kind == "stability":
+        return "Stability on stiff and extreme cases"
+    if ds.kind == "rollouts":
+        return f"Long rollouts against the uncorrected solver: {ds.name}"
+    if ds.kind == "horizon":
+        return f"Memory and time against the unroll length: {d['scene']} {d['preset']}"
+    if ds.kind == "bench-mpi":
+        return f"One rank against several: {d['mesh']}, {d.get('layout', 'replicated')} layout"
+    return f"Error against run time: {d['problem']}"
+
+
+def _images(ds: DataSet, depth: str = "../") -> list[str]:
+    return [f"![{Path(img).stem}]({depth}images/{ds.name}/{img})" for img in ds.images]
+
+
+# -- the page of each kind -----------------------------------------------------------------------
+def _compare_body(ds: DataSet) -> list[str]:
+    from ..training.summary import format_table
+
+    return [
+        "What `compare` printed (validation error at the last epoch, final K, inner "
+        "iterations forward + adjoint, wall time, the solver's share of it):",
+        "",
+        "<!-- --8<-- [start:output] -->",
+        "```text",
+        format_table(ds.main).rstrip("\n"),
+        "```",
+        "<!-- --8<-- [end:output] -->",
+        "",
+        *(["## Plots", "", *_images(ds)] if ds.images else []),
+    ]
+
+
+def _signed(value: float) -> str:
+    return f"{value:+.3f}"
+
+
+def _bench_rows(d: dict) -> list[tuple[str, str, str]]:
+    t = d["throughput"]
+    targets = d.get("targets", {})
+    rows = [
+        (
+            f"overhead: bridge forward + backward (gradients for b and θ) over raw "
+            f"`KSPSolve` + `KSPSolve`, − 1; n = {d['n']}, K = {d['k']}",
+            _signed(d["overhead"]),
+            targets.get("overhead", ""),
+        ),
+        (
+            "same, over raw `KSPSolve` + `KSPSolveTranspose`",
+            _signed(d["overhead_vs_raw_solve_transpose"]),
+            "",
+        ),
+        (
+            "backward over forward (symmetric: the adjoint runs as a forward solve)",
+            f"{d['backward_over_forward_symmetric']:.2f}",
+            targets.get("backward_over_forward_symmetric", ""),
+        ),
+        (
+            f"small systems (n = {t['n']}, K = {t['k']}), gradient in b: 1 right-hand side",
+            _signed(t["overhead_1_rhs"]),
+            targets.get("throughput.overhead_1_rhs", ""),
+        ),
+        (
+            "same, a batch of 32 right-hand sides",
+            _signed(t["overhead_32_rhs"]),
+            targets.get("throughput.overhead_32_rhs", ""),
+        ),
+        (
+            "bridge's extra cost per call / per right-hand side",
+            f"{t['extra_per_call_s'] * 1e6:.0f} µs / {t['extra_per_rhs_s'] * 1e6:.0f} µs",
+            "",
+        ),
+        (
+            f'`mode="unrolled"` CG over PETSc implicit, n = {d["unrolled_n"]}, '
+            f"K = {d['unrolled_k']}, forward + backward",
+            f"{d['unrolled_speedup']:.1f}×",
+            targets.get("unrolled_speedup", ""),
+        ),
+    ]
+    if d.get("handwritten_unrolled_speedup") is not None:
+        rows.append(
+            (
+                "same, against a hand-written torch CG",
+                f"{d['handwritten_unrolled_speedup']:.1f}×",
+                "",
+            )
+        )
+    rows.append(
+        (
+            f"peak memory increase at K = {d['unrolled_k']}: implicit / unrolled",
+            f"{d['implicit_peak_rss_mb']:.2f} MiB / {d['unrolled_peak_rss_mb']:.0f} MiB",
+            "",
+        )
+    )
+    return rows
+
+
+def _bench_body(ds: DataSet) -> list[str]:
+    d = ds.main
+    s = d["settings"]
+    lines = [
+        f"`{s['ksp_type']}` + `{s['pc_type']}`, {s['mode']}; torch threads "
+        f"{s['torch_threads']}; every ratio is the {s['statistic']} ({s['repeats']} "
+        f"repeats after {s['warmup']} warm-up); timing noise (interquartile range over "
+        f"median of the raw forward time) {d['timing_noise']:.3f}.",
+        "",
+        "| figure | measured | target |",
+        "|---|---:|---|",
+    ]
+    lines += [f"| {what} | {value} | {target} |" for what, value, target in _bench_rows(d)]
+    lines += [
+        "",
+        "What the rows mean is in the docstring of `prdp_petsc.reports.bench`; every "
+        "single timing is in the JSON.",
+    ]
+    return lines
+
+
+#: a Taylor rate at or above this says the gradient is right (2 in exact arithmetic)
+TAYLOR_RIGHT = 1.85
+
+
+def _stability_counts(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r["outcome"] == "ok"]
+    rates = [r.get("taylor_rate") for r in ok]
+    return {
+        "rows": len(rows),
+        "ok": len(ok),
+        "right": sum(x is not None and x >= TAYLOR_RIGHT for x in rates),  # NaN: False
+        "errors": sorted({r["outcome"] for r in rows if r["outcome"] != "ok"}),
+        "nan_or_inf": sum(bool(r["nan_or_inf"]) for r in rows),
+        "cases": len(dict.fromkeys(r["case"] for r in rows)),
+    }
+
+
+def _stability_line(c: dict) -> str:
+    return (
+        f"{c['ok']} solved, {c['right']} of them with a Taylor rate ≥ {TAYLOR_RIGHT} "
+        f"(2: the gradient is right); {c['rows'] - c['ok']} raised the error they must "
+        f"({', '.join(c['errors'])}); NaN or Inf in {c['nan_or_inf']}"
+    )
+
+
+def _stability_body(ds: DataSet) -> list[str]:
+    from .stability import to_markdown
+
+    rows = ds.main["rows"]
+    c = _stability_counts(rows)
+    summary = f"{c['rows']} rows in {c['cases']} cases: {_stability_line(c)}."
+    return [
+        "Each row solves `A(θ) x = b` through the torch bridge and reports the forward "
+        "residual, the iterations (forward/adjoint), the Taylor rate of the gradient of "
+        "`J(θ) = ⟨w, x(θ)⟩` (2 when the gradient is right) with the ε range of the fit, "
+        "whether anything became NaN/Inf, and the outcome; a case that must fail reports "
+        "the error and the PETSc reason. The cases are described in the docstring of "
+        "`prdp_petsc.reports.stability`; `tests/test_stability.py` runs them at small sizes.",
+        "",
+        summary,
+        "",
+        to_markdown(rows).rstrip("\n"),
+    ]
+
+
+def _work_precision_body(ds: DataSet) -> list[str]:
+    from .workprecision import to_markdown
+
+    return [
+        "Every KSP/PC pair runs in fixed mode (`rtol = atol = 0`) for K = 1, 2, 4, …; "
+        "each point has the forward error against a direct (SuperLU) solve and the "
+        "gradient error against the converged adjoint gradient, against the wall time of "
+        "one gradient (PC setup + forward + adjoint). The JSON holds every point.",
+        "",
+        to_markdown(ds.main).rstrip("\n"),
+        "",
+        *_images(ds),
+    ]
+
+
+def _seeds_body(ds: DataSet) -> list[str]:
+    from ..training.seeds import format_seeds
+
+    return [
+        "What `compare --seeds` printed (per seed: validation errors of PRDP, full "
+        "fidelity and its twin, their ratios, PRDP's savings, and the speed-up of the "
+        "fastest reduced run over the fastest full-fidelity run; then geometric means "
+        "with 95 % intervals over the seeds):",
+        "",
+        "```text",
+        format_seeds(ds.main).rstrip("\n"),
+        "```",
+        "",
+        *(["## Plots", "", *_images(ds)] if ds.images else []),
+    ]
+
+
+def _rollouts_body(ds: DataSet) -> list[str]:
+    from .rollouts import format_rollout_report
+
+    return [
+        "What `prdp-petsc rollouts` printed: the per-step error of each run's held-out "
+        "rollout (geometric mean over the seeds) and of the uncorrected solver, on how "
+        "many seeds each run stayed below the uncorrected solver at every step, and the "
+        "ratios of error, inner iterations and wall time per seed with their geometric "
+        "mean and 95 % interval:",
+        "",
+        "```text",
+        format_rollout_report(ds.main).rstrip("\n"),
+        "```",
+        "",
+        *_images(ds),
+    ]
+
+
+def _horizon_body(ds: DataSet) -> list[str]:
+    from .horizon import format_horizon_report
+
+    return [
+        "What `prdp-petsc horizon` printed: m-step training at a fixed K, each row in a "
+        "fresh process with one torch thread; `growth` is the peak resident size while "
+        "training minus the size when training started, `saved MB` what autograd kept "
+        "for one batch's backward pass:",
+        "",
+        "```text",
+        format_horizon_report(ds.main).rstrip("\n"),
+        "```",
+    ]
+
+
+def _bench_mpi_body(ds: DataSet) -> list[str]:
+    from .bench_mpi import format_report, format_scaling_model, scaling_model
+
+    model = scaling_model(ds.main)
+    lines = [
+        "What `prdp-petsc bench mpi` printed: one capped CG + Jacobi solve (forward) and its "
+        "adjoint with ∂L/∂θ (backward), medians of the repeats; 4 ranks on this 2-core "
+        "machine are oversubscribed, so their times say nothing, their memory does.",
+        "",
+        format_report(ds.main).rstrip("\n"),
+    ]
+    if model is not None:
+        lines += ["", "## Beyond this machine: a model", "", format_scaling_model(model)]
+    return lines
+
+
+_BODIES = {
+    "bench-mpi": _bench_mpi_body,
+    "rollouts": _rollouts_body,
+    "horizon": _horizon_body,
+    "seeds": _seeds_body,
+    "compare": _compare_body,
+    "bench": _bench_body,
+    "stability": _stability_body,
+    "work-precision": _work_precision_body,
+}
+
+
+# -- headline figures: the index and the README ----------------------------------------------
+def headline(ds: DataSet) -> list[tuple[str, str]]:
+    """(what, figure) pairs of one data set for the headline table."""
+    d = ds.main
+    if ds.kind == "compare":
+        out = []
+        if "savings" in d:
+            s = d["savings"]
+            out.append(
+                (
+                    f"{d['scene']}: PRDP against constant K_full = {d['k_full']}",
+                    f"{_pct(s['iterations'])} fewer inner iterations, {_pct(s['wall_time'])} "
+                    f"less wall time, validation error ratio {d['val_error_ratio']:.3f}",
+                )
+            )
+        else:
+            out.append((f"{d['scene']}: PRDP against constant K_full", d["savings_unavailable"]))
+        best = d.get("fastest")
+        if best and best["winner"]:
+            out.append(
+                (
+                    f"{d['scene']}: fastest run to the full-fidelity validation error",
+                    f"`{best['winner']}` in {best['winner_seconds']:.2f} s, against "
+                    f"{best['seconds_to_target'][best['reference']]:.2f} s for "
+                    f"`{best['reference']}`",
+                )
+            )
+        return out
+    if ds.kind == "seeds":
+        speedup = d.get("speedup") or {}
+        seeds = f"{_setting(ds)} over seeds {', '.join(map(str, d['seeds']))}"
+        what = f"{seeds}: speed-up of the fastest reduced run over the fastest full-fidelity one"
+        if speedup.get("geometric_mean") is None:
+            rows = [(what, "no reduced run reached full-fidelity accuracy")]
+        else:
+            rows = [(what, _speedup_figure(speedup))]
+        ratio = d.get("prdp_ratio") or {}
+        if ratio.get("geometric_mean") is not None:
+            interval = ratio.get("interval")
+            ci = "" if not interval else f" (95 % interval {interval[0]:.3f}–{interval[1]:.3f})"
+            iterations = (d.get("savings") or {}).get("iterations_saved") or {}
+            saved = (
+                f"; {iterations['mean']:.1%} fewer inner iterations".replace("%", " %")
+                if iterations.get("mean") is not None
+                else ""
+            )
+            rows.append(
+                (
+                    f"{seeds}: PRDP's final validation error over full fidelity's",
+                    f"{ratio['geometric_mean']:.3f}{ci}{saved}",
+                )
+            )
+        return rows
+    if ds.kind == "bench":
+        t = d["throughput"]
+        return [
+            (
+                f"bridge overhead over raw PETSc, n = {d['n']}, K = {d['k']} (target ≤ 0.05)",
+                f"{_signed(d['overhead'])}; one small system {_signed(t['overhead_1_rhs'])}, "
+                f"32 right-hand sides {_signed(t['overhead_32_rhs'])}",
+            ),
+            (
+                f"implicit against unrolled gradients, K = {d['unrolled_k']}",
+                f"implicit {d['unrolled_speedup']:.1f}× faster; peak memory "
+                f"{d['implicit_peak_rss_mb']:.2f} MiB against {d['unrolled_peak_rss_mb']:.0f} MiB",
+            ),
+        ]
+    if ds.kind == "stability":
+        c = _stability_counts(d["rows"])
+        return [(f"stability suite: {c['rows']} stiff and extreme solves", _stability_line(c))]
+    if ds.kind == "rollouts":
+        return _rollouts_headline(ds)
+    if ds.kind == "horizon":
+        return _horizon_headline(ds)
+    if ds.kind == "bench-mpi":
+        return _bench_mpi_headline(ds)
+    from .workprecision import LEVELS, summarize
+
+    summary = summarize(d)
+    level = min(LEVELS)
+    hits = sorted(
+        (e["levels"][str(level)]["t"], e["pair"], e["levels"][str(level)]["K"])
+        for e in summary
+        if str(level) in e["levels"]
+    )
+    direct = d["direct"]["t_solve_and_gradient"]
+    if not hits:
+        return [(f"{d['problem']}: gradient error ≤ {level:.0e}", "no pair reached it")]
+    t, pair, k = hits[0]
+    return [
+        (
+            f"{d['problem']} ({d['info']['unknowns']} unknowns): cheapest gradient "
+            f"to a relative error ≤ {level:.0e}",
+            f"{pair} at K = {k}: {t * 1e3:.1f} ms, against {direct * 1e3:.0f} ms "
+            "for a direct solve",
+        )
+    ]
+
+
+def _rollouts_headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    out = []
+    for name, entry in list(d["runs"].items())[:1]:  # the first run: the one compared
+        below = entry.get("below_uncorrected_every_step")
+        if below is not None:
+            out.append(
+                (
+                    f"{ds.name}: `{name}` below the uncorrected solver at every one of "
+                    f"{d['steps']} rollout steps",
+                    f"on {below} of {len(entry['rollout'])} seeds",
+                )
+            )
+    for pair, stats in d["ratios"].items():
+        e = stats["error"]
+        interval = e["interval"]
+        ci = "" if interval is None else f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})"
+        out.append(
+            (
+                f"{ds.name}: error ratio {pair} at rollout step {d['step']}",
+                f"{e['geometric_mean']:.3f}{ci}, {e['n']} seeds",
+            )
+        )
+    return out
+
+
+def _bench_mpi_headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    solve = d["solve"]
+    if "1" not in solve or "2" not in solve:
+        return []
+    one, two = solve["1"], solve["2"]
+    ratio = max(two["peak_rss_mb_per_rank"]) / max(one["peak_rss_mb_per_rank"])
+    return [
+        (
+            f"{d['mesh']} ({one['unknowns']} unknowns), {d.get('layout', 'replicated')} "
+            "layout: 2 ranks against 1",
+            f"peak memory per rank {ratio:.2f}× the one-rank peak; forward "
+            f"{two['speedup_forward']:.2f}×, backward {two['speedup_backward']:.2f}× faster",
+        )
+    ]
+
+
+def _horizon_headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    rows = {(r["m"], r["checkpoint"]): r for r in d["rows"]}
+    ms = sorted({m for m, _ in rows})
+    lo, hi = ms[0], ms[-1]
+    if (lo, True) not in rows or (hi, True) not in rows:
+        return []
+    a, b = rows[lo, True], rows[hi, True]
+    growth = [r["peak_rss_mb"] - r["rss_at_start_mb"] for r in (a, b)]
+    return [
+        (
+            f"{d['scene']} {d['preset']}: peak memory of m = {hi} training against m = {lo}, "
+            "checkpointed",
+            f"{b['peak_rss_mb']:.0f} MB against {a['peak_rss_mb']:.0f} MB "
+            f"({b['peak_rss_mb'] / a['peak_rss_mb']:.2f}×; while training +{growth[1]:.0f} "
+            f"against +{growth[0]:.0f} MB)",
+        )
+    ]
+
+
+def _setting(ds: DataSet) -> str:
+    """``ns2d --preset large_k64, -ns2d_pc_type fieldsplit``: the scene, the preset and
+    the PC a run set on the command line, from the recorded command."""
+    argv = ds.provenance.get("argv", [])
+    text = ds.main["scene"]
+    if "--preset" in argv[:-1]:
+        text += f" --preset {argv[argv.index('--preset') + 1]}"
+    pcs = [f"{a} {argv[i + 1]}" for i, a in enumerate(argv[:-1]) if a.endswith("_pc_type")]
+    return text + (f", {pcs[0]}" if pcs else "")
+
+
+def _speedup_figure(stats: dict) -> str:
+    """``2.10× (95 % interval 1.62–2.71, 3 seeds; ≥ 2 on 2 of 3)``."""
+    text = f"{stats['geometric_mean']:.2f}×"
+    inside = []
+    if stats.get("interval"):
+        lo, hi = stats["interval"]
+        inside.append(f"95 % interval {lo:.2f}–{hi:.2f}")
+    goal = f"≥ {stats['goal']:g} on {stats['goal_met']} of {stats['seeds']}"
+    inside.append(f"{stats['n']} seeds; {goal}")
+    return f"{text} ({', '.join(inside)})"
+
+
+def body(ds: DataSet) -> list[str]:
+    """The lines of `ds`'s page after its provenance."""
+    return _BODIES[ds.kind](ds)
