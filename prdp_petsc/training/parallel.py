@@ -160,13 +160,13 @@ class Parallel:
         from mpi4py import MPI
 
         owned = {id(p) for p in _owned(scene)}
-        for group in scene.optimizer.param_groups:
-            for p in group["params"]:
-                if id(p) in owned or p.grad is None:
-                    continue
-                grad = np.ascontiguousarray(p.grad.detach().numpy(), dtype=np.float64)
-                self.comm.Allreduce(MPI.IN_PLACE, grad, op=MPI.SUM)
-                p.grad = torch.from_numpy(grad).to(dtype=p.dtype).reshape(p.shape)
+        params = [
+            p for group in scene.optimizer.param_groups for p in group["params"]
+            if id(p) not in owned
+        ]  # fmt: skip
+        has = np.array([p.grad is not None for p in params], dtype=np.int8)
+        self.comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)  # a rank without one adds zeros
+        self._sum_in_place(params, has, 0.0)
 
     def _check_mean(self, shares: float, whole: torch.Tensor) -> None:
         """Refuse, on every rank, a loss whose split `shares` (summed) is not `whole`."""
@@ -214,7 +214,15 @@ class Parallel:
             failures = self.comm.allgather(_describe(error))
             rank, failure = next((r, f) for r, f in enumerate(failures) if f)
             raise error if error is not None else _remote_error(rank, failure)
-        live = [p for p, h in zip(params, has[:-1], strict=True) if h]
+        return self._sum_in_place(params, has[:-1], loss)
+
+    def _sum_in_place(self, params: list, has, value: float) -> float:
+        """Sum over the ranks, in one ``MPI_Allreduce``, the gradients of the `params`
+        that some rank has (`has`, agreed; a rank without one adds zeros) and `value`;
+        return the summed `value`."""
+        from mpi4py import MPI
+
+        live = [p for p, h in zip(params, has, strict=True) if h]
         flat = np.empty(sum(p.numel() for p in live) + 1)
         offset = 0
         for p in live:
@@ -223,7 +231,7 @@ class Parallel:
                 p.grad.detach().reshape(-1).numpy() if p.grad is not None else 0.0
             )
             offset += size
-        flat[-1] = loss
+        flat[-1] = value
         self.comm.Allreduce(MPI.IN_PLACE, flat, op=MPI.SUM)
         offset = 0
         for p in live:

@@ -230,11 +230,15 @@ class _OwnedAndShared:
         rank = COMM.Get_rank()
         self.theta = torch.arange(rank + 2, dtype=torch.float64).requires_grad_(True)
         self.w = torch.tensor([1.5 + rank], dtype=torch.float64, requires_grad=True)
+        # a shared weight only rank 0's part of the loss uses: no gradient on the others
+        self.v = torch.tensor([2.0], dtype=torch.float64, requires_grad=True)
         self.owned_parameters = [self.theta]
-        self.optimizer = torch.optim.SGD([self.theta, self.w], lr=0.0)
+        self.optimizer = torch.optim.SGD([self.theta, self.w, self.v], lr=0.0)
 
     def loss(self, _):
         local = (self.w * self.theta - COMM.Get_rank()).square().sum()
+        if COMM.Get_rank() == 0:
+            local = local + self.v.square().sum()
         return sum_over_ranks(local, COMM)
 
 
@@ -250,6 +254,7 @@ def test_the_harness_keeps_owned_parameters_and_sums_the_shared_gradients():
     # ∂L/∂w = Σ_ranks Σ_i 2 (w θ_i − r) θ_i, on every rank; ∂L/∂θ stays each rank's own
     expected = sum(sum(2 * (1.5 * t - r) * t for t in range(r + 2)) for r in range(COMM.Get_size()))
     assert all_ranks(float(scene.w.grad[0]) == pytest.approx(expected, rel=1e-14))
+    assert all_ranks(scene.v.grad is not None and float(scene.v.grad[0]) == 4.0)
     rank = COMM.Get_rank()
     own = 2 * (1.5 * torch.arange(rank + 2.0) - rank) * 1.5
     assert all_ranks(torch.allclose(scene.theta.grad, own.double(), rtol=1e-14))
