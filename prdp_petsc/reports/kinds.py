@@ -260,7 +260,8 @@ def _horizon_body(ds: DataSet) -> list[str]:
 
 
 def _bench_mpi_body(ds: DataSet) -> list[str]:
-    from .bench_mpi import format_report, format_scaling_model, scaling_model
+    from .bench_mpi import format_report
+    from .scaling import format_scaling_model, scaling_model
 
     model = scaling_model(ds.main)
     lines = [
