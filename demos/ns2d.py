@@ -116,7 +116,7 @@ from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.fem import mac
 from prdp_petsc.training import unroll
 from prdp_petsc.training.networks import ConvResNet
-from prdp_petsc.training.routes import parse_routes
+from prdp_petsc.training.routes import parse_routes, route_string
 from prdp_petsc.training.scene import preset_config, shuffled_batches
 from prdp_petsc.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
 
@@ -143,12 +143,12 @@ _BASE = {
     "k_init": 8,
     "k_step": 8,
     "warm_start_epochs": False,
-    # the KSP/PC pairs `compare` also runs (``--routes`` overrides them): none.  The
-    # operator is not symmetric (CG, ICC refused) and has a zero pressure block: ILU
-    # fails on it, Jacobi stalls (GMRES) or diverges (BiCGStab), and the unpreconditioned
-    # alternatives are no faster (K_full on ``paper``: BiCGStab 744, TFQMR 397, GMRES(8)
-    # 436).  The route that pays, a fieldsplit Schur complement PC (the docstring, `SCHUR`),
-    # needs sub-options a ``ksp/pc`` route does not carry: give them as PETSc options.
+    # the KSP/PC pairs `compare` also runs (``--routes`` overrides them): none here;
+    # ``paper`` and ``large`` run ``schur`` (`ROUTES`).  The operator is not symmetric
+    # (CG, ICC refused) and has a zero pressure block: ILU fails on it, Jacobi stalls
+    # (GMRES) or diverges (BiCGStab), and the unpreconditioned alternatives are no
+    # faster (K_full on ``paper``: BiCGStab 744, TFQMR 397, GMRES(8) 436).  The route
+    # that pays is the fieldsplit Schur-complement PC (`SCHUR`).
     "routes": "",
 }
 
@@ -175,6 +175,7 @@ PRESETS = {
         "blocks": 3,
         "epochs": 24,
         "compare_ks": [8, 64, 128],
+        "routes": "schur",
     },
     "large": {
         **_BASE,
@@ -188,6 +189,7 @@ PRESETS = {
         "blocks": 1,
         "epochs": 16,
         "compare_ks": [8, 256],
+        "routes": "schur",
     },
 }
 # PRDP from 8 restart cycles, refining by 8 (the reference starts at 1 and steps by 1)
@@ -256,6 +258,8 @@ SCHUR = {
     "fieldsplit_1_ksp_type": "preonly",
     "fieldsplit_1_pc_type": "bjacobi",
 }
+# the routes `compare` can run by name (``--routes schur``): the Schur-complement PC
+ROUTES = {"schur": route_string(SCHUR)}
 # the settings that name one of a few choices
 CHOICES = {
     "train_solver": ("gmres", "schur"),
@@ -417,7 +421,7 @@ def setup(config: dict, seed: int) -> dict:
 
 
 def build(config: dict, seed: int) -> pp.Scene:
-    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
+    parse_routes(config["routes"], ROUTES)  # `compare` runs them; a malformed one fails here
     n = config["n"]
     parts = setup(config, seed)
     train, val, solver, full, hybrid = (

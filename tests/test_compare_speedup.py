@@ -198,8 +198,9 @@ def test_routes_are_declared_by_the_scenes_presets():
         "gmres/gamg",
     )
     assert scene_routes(load_scene(HEAT1D), "quick") == ()  # no key: no routes
-    ns2d = load_scene(DEMOS / "ns2d.py")  # no ksp/pc pair fits (see its presets)
-    assert {scene_routes(ns2d, preset) for preset in ns2d.PRESETS} == {()}
+    ns2d = load_scene(DEMOS / "ns2d.py")  # no plain ksp/pc pair fits: the named Schur PC
+    assert scene_routes(ns2d, "quick") == () and scene_routes(ns2d, "long") == ()
+    assert scene_routes(ns2d, "paper") == scene_routes(ns2d, "large_k64") == ("schur",)
 
 
 def test_cli_routes_default_to_the_scene_and_empty_means_none():

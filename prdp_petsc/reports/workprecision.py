@@ -356,7 +356,7 @@ def plot(result: dict, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``prdp-petsc work-precision PROBLEM --out DIR [--quick] [--k-max K] [--routes R,...]``."""
-    from ..training.routes import parse_routes
+    from ..training.routes import parse_routes, route_settings
     from .problems import PROBLEMS, build_problem
 
     def k_max(text: str) -> int:
@@ -366,7 +366,11 @@ def main(argv: list[str] | None = None) -> int:
 
     def routes(text: str) -> tuple[str, ...]:
         try:
-            return parse_routes(text)
+            pairs = parse_routes(text)
+            for route in pairs:
+                if len(route_settings(route)) > 2:
+                    raise ValueError(f"work-precision runs plain ksp/pc pairs, got {route!r}")
+            return pairs
         except ValueError as err:
             raise argparse.ArgumentTypeError(str(err)) from None
 

@@ -39,11 +39,7 @@ from .harness import (
 )
 from .parallel import Parallel
 from .provenance import provenance
-from .routes import (
-    parse_route,
-    parse_routes,
-    route_options,
-)
+from .routes import parse_routes, route_options, route_settings
 from .scene import load_scene, preset_config
 from .summary import TWIN, summarize
 
@@ -63,7 +59,8 @@ def scene_routes(module, preset: str) -> tuple[str, ...]:
     (`prdp_petsc.training.routes.parse_routes`; ``--set routes=...`` changes it),
     none where its presets have no such key."""
     config = preset_config(module, preset)
-    return parse_routes(config["routes"]) if "routes" in config else ()
+    named = getattr(module, "ROUTES", None)
+    return parse_routes(config["routes"], named) if "routes" in config else ()
 
 
 def compare(
@@ -99,7 +96,9 @@ def compare(
         torch threads for every run (restored afterwards); recorded in the summary.
     routes : sequence of str, or str, optional
         Other solvers to try, ``"ksp_type/pc_type"`` (e.g. ``"cg/icc"``; a string
-        ``"cg/icc,cg/gamg"`` is split as `parse_routes` does): the `schedules` and
+        ``"cg/icc,cg/gamg"`` is split as `parse_routes` does), with sub-options as
+        ``":option=value"`` or by a name of the scene's ``ROUTES``
+        (`prdp_petsc.training.routes.route_settings`): the `schedules` and
         full fidelity (the route's own K_full) run again with those options on every
         solver prefix of the scene (`prdp_petsc.training.routes`), as
         ``"prdp@cg/icc"``, ``"rtol@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in
@@ -157,13 +156,14 @@ def compare(
             f"schedules must be some of {', '.join(REDUCED_SCHEDULES)}, got {list(schedules)}"
         )
     module = load_scene(scene_file)
+    named = getattr(module, "ROUTES", None)  # the scene's routes by name
     if routes is None:
         routes = scene_routes(module, preset)
     elif isinstance(routes, str):  # "cg/icc,cg/gamg", as the preset key and the CLI write it
-        routes = parse_routes(routes)
+        routes = parse_routes(routes, named)
     routes = tuple(dict.fromkeys(routes))
     for route in routes:
-        parse_route(route)
+        route_settings(route, named)
     ranks = Parallel(parallel)
     out = Path(out)
     if ranks.root:
@@ -194,7 +194,7 @@ def compare(
         for schedule, route in runs:
             if route in skipped:
                 continue
-            context = route_options(prefixes, route) if route else contextlib.nullcontext()
+            context = route_options(prefixes, route, named) if route else contextlib.nullcontext()
             name = folder = None
             try:
                 with context:
@@ -216,7 +216,7 @@ def compare(
                     else:
                         schedule = f"fixed:{k_fulls[route]}" if schedule == "full" else schedule
                         name = schedule if route is None else f"{schedule}@{route}"
-                    folder = out / name.replace(":", "_").replace("@", "_on_").replace("/", "-")
+                    folder = out / _folder_name(name)
                     settings = {"schedule": schedule, "preset": preset, "seed": seed,
                                 "torch_seed": torch_seed}  # fmt: skip
                     prdp = (
@@ -272,6 +272,14 @@ def compare(
         summary["plots"] = plot_compare(drawn, k_fulls, out)
         write_json(out / "summary.json", summary)
     return summary
+
+
+def _folder_name(name: str) -> str:
+    """A run's folder: its name with ``:`` and ``=`` as ``_``, ``@`` as ``_on_``, ``/`` as ``-``
+    (``prdp@cg/icc`` → ``prdp_on_cg-icc``)."""
+    for char, text in ((":", "_"), ("=", "_"), ("@", "_on_"), ("/", "-")):
+        name = name.replace(char, text)
+    return name
 
 
 def _finished_run(folder: Path, settings: dict, prdp: dict, epochs: int) -> dict | None:

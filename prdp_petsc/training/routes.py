@@ -10,6 +10,16 @@ validation error in the least wall time, by `time_to_accuracy`: the one definiti
 "reaching full-fidelity accuracy" that ``compare``'s ``time_to_full_accuracy`` and
 ``speedup_vs_best_full`` use too.
 
+A route may carry the sub-options its PC needs after the pair, each as
+``:option`` (a flag) or ``:option=value``, written without the leading dash and
+without the solver prefix: ``"gmres/fieldsplit:pc_fieldsplit_type=schur:
+fieldsplit_0_pc_type=bjacobi"`` (one string, no spaces) sets
+``-<prefix>pc_fieldsplit_type schur`` and ``-<prefix>fieldsplit_0_pc_type bjacobi``
+for every prefix too.  A value holds no ``:``, ``,`` or space.  Long ones read
+better by name: a scene module's ``ROUTES`` dict maps a name (``"schur"``) to such a
+string, and its preset key ``routes`` and ``compare --routes`` may use the name;
+the runs are named by it (``prdp@schur``).
+
 A scene declares the routes that fit its operator as the preset key ``routes``, a
 comma-separated string (`parse_routes`); ``compare`` runs them unless told otherwise.
 """
@@ -18,8 +28,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 
 __all__ = [
     "REACH_FACTOR",
@@ -28,6 +39,7 @@ __all__ = [
     "parse_route",
     "parse_routes",
     "route_options",
+    "route_settings",
     "time_to_accuracy",
 ]
 
@@ -35,16 +47,75 @@ __all__ = [
 REACH_FACTOR = 1.05
 
 
-def parse_route(route: str) -> tuple[str, str]:
-    """``"cg/icc"`` → ``("cg", "icc")``; ValueError for anything else."""
-    ksp, sep, pc = route.partition("/")
-    if not sep or not ksp or not pc or "/" in pc or any(c.isspace() for c in route):
-        raise ValueError(f"a route is 'ksp_type/pc_type', e.g. 'cg/icc', got {route!r}")
-    return ksp, pc
+_OPTION = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_.-]*")
+_FORM = "'ksp_type/pc_type[:option[=value]...]', e.g. 'cg/icc'"
 
 
-def parse_routes(text: str) -> tuple[str, ...]:
-    """``"cg/icc,cg/gamg"`` → ``("cg/icc", "cg/gamg")`` (each checked by `parse_route`).
+def route_settings(route: str, named: Mapping[str, str] | None = None) -> dict[str, str | None]:
+    """The PETSc options of `route`, without prefix: ``{"ksp_type": ..., "pc_type": ...,
+    option: value, ...}`` (None for a flag), in the order written.
+
+    `route` is ``"ksp/pc"`` with optional ``:option`` / ``:option=value`` parts, or a
+    name in `named` (a scene's ``ROUTES``) that stands for such a string.  ValueError
+    for anything else, naming the form.
+    """
+    if not isinstance(route, str):
+        raise ValueError(f"a route is {_FORM}, got {route!r}")
+    if named and route in named:
+        text = named[route]
+        if not isinstance(text, str) or text in named:
+            raise ValueError(f"route {route!r} must name a {_FORM} string, got {text!r}")
+        return route_settings(text)
+    head, *parts = route.split(":")
+    ksp, sep, pc = head.partition("/")
+    if not sep or not ksp or not pc or "/" in pc or any(c.isspace() or c == "," for c in route):
+        if _NAME.fullmatch(route):
+            known = ", ".join(sorted(named)) if named else "none"
+            raise ValueError(
+                f"no route named {route!r} (the scene names: {known}); a route is {_FORM}"
+            )
+        raise ValueError(f"a route is {_FORM}, got {route!r}")
+    settings: dict[str, str | None] = {"ksp_type": ksp, "pc_type": pc}
+    for part in parts:
+        option, eq, value = part.partition("=")
+        if not _OPTION.fullmatch(option) or (eq and not value) or "=" in value:
+            raise ValueError(
+                f"route {route!r}: {part!r} is not 'option' or 'option=value' "
+                "(a PETSc option without the dash and the solver prefix)"
+            )
+        if option in settings:
+            raise ValueError(f"route {route!r} sets {option!r} twice")
+        settings[option] = value if eq else None
+    return settings
+
+
+def route_string(options: Mapping[str, object]) -> str:
+    """The route of a solver's option dict (``ksp_type`` and ``pc_type`` required, the
+    rest as ``:option=value``, a None value as a flag): the inverse of `route_settings`,
+    so that a scene can name its own solver settings as a route
+    (``ROUTES = {"schur": route_string(SCHUR)}``)."""
+    rest = {str(k).lstrip("-"): v for k, v in options.items()}
+    try:
+        head = f"{rest.pop('ksp_type')}/{rest.pop('pc_type')}"
+    except KeyError as err:
+        raise ValueError(f"a route needs ksp_type and pc_type, got {sorted(options)}") from err
+    parts = [head, *(k if v is None else f"{k}={v}" for k, v in rest.items())]
+    route = ":".join(parts)
+    route_settings(route)  # a value a route cannot carry (a space, a colon) fails here
+    return route
+
+
+def parse_route(route: str, named: Mapping[str, str] | None = None) -> tuple[str, str]:
+    """``"cg/icc"`` → ``("cg", "icc")``: the KSP and PC of `route` (any form
+    `route_settings` takes, which checks it; ValueError for anything else)."""
+    settings = route_settings(route, named)
+    return settings["ksp_type"], settings["pc_type"]
+
+
+def parse_routes(text: str, named: Mapping[str, str] | None = None) -> tuple[str, ...]:
+    """``"cg/icc,cg/gamg"`` → ``("cg/icc", "cg/gamg")`` (each checked by `route_settings`,
+    names against `named`).
 
     The form of a scene's ``routes`` preset key and of ``compare --routes``; the
     empty string is no route.  Spaces around a comma are allowed, a route named
@@ -54,13 +125,14 @@ def parse_routes(text: str) -> tuple[str, ...]:
         raise ValueError(f"routes are a comma-separated string like 'cg/icc,cg/gamg', got {text!r}")
     routes = tuple(dict.fromkeys(r.strip() for r in text.split(",") if r.strip()))
     for route in routes:
-        parse_route(route)
+        route_settings(route, named)
     return routes
 
 
 @contextlib.contextmanager
-def route_options(prefixes, route: str) -> Iterator[None]:
-    """Put ``-<prefix>ksp_type``/``pc_type`` of `route` into PETSc's database meanwhile.
+def route_options(prefixes, route: str, named: Mapping[str, str] | None = None) -> Iterator[None]:
+    """Put `route`'s options (`route_settings`) into PETSc's database under every
+    prefix of `prefixes` meanwhile.
 
     Values already there (the user's command line) are restored afterwards.  The
     scene's own options that the route's KSP/PC does not read (a Richardson scale
@@ -70,11 +142,11 @@ def route_options(prefixes, route: str) -> Iterator[None]:
 
     from ..core.solver import UnusedOptionWarning
 
-    ksp, pc = parse_route(route)
+    settings = route_settings(route, named)
     opts = PETSc.Options()
     saved = {}
     for prefix in dict.fromkeys(prefixes):
-        for key, value in (("ksp_type", ksp), ("pc_type", pc)):
+        for key, value in settings.items():
             name = prefix + key
             saved[name] = opts.getString(name) if opts.hasName(name) else None
             opts.setValue(name, value)
