@@ -38,6 +38,8 @@ sample's Newton loop starts from that sample's capped result of the last epoch
 (`prdp_petsc.autograd.WarmStarts`) instead of from ûⁿ⁺¹, so the two capped Newton
 steps of every epoch continue where the last epoch's stopped; the gradient is the
 implicit one at the returned iterate either way (the start receives none).
+``pc_lag: N`` (default 1) sets the Jacobian's PC up only at every N-th Jacobian
+(`prdp_petsc.KSPSolver`'s ``pc_lag``), for the ``gmres/gamg`` route's dear set-up.
 
 Presets: ``quick`` (tests; seconds) and ``paper`` (about 20 s per run on this
 project's 2-core machine).  At K_full the inner GMRES iterations take about a third
@@ -84,6 +86,7 @@ PRESETS = {
         "lr": 3e-3,
         "gamma": 0.97,
         "warm_start_epochs": False,
+        "pc_lag": 1,
         "k_init": 1,
         "k_step": 1,
         "routes": "gmres/ilu",
@@ -105,6 +108,7 @@ PRESETS = {
         "lr": 3e-3,
         "gamma": 0.97,
         "warm_start_epochs": False,
+        "pc_lag": 1,
         "k_init": 1,
         "k_step": 1,
         "routes": "gmres/ilu,gmres/gamg",
@@ -182,7 +186,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     train_out = torch.from_numpy(train_traj[2:].reshape(-1, heat.n))
     scale = float(train_out.norm(dim=-1).mean())
 
-    solver = pp.KSPSolver(GMRES, prefix="heatnl_", max_it=config["k_init"])
+    solver = pp.KSPSolver(GMRES, prefix="heatnl_", max_it=config["k_init"], pc_lag=config["pc_lag"])
     J0 = heat.jacobian(u0[n_train], heat.expand(u0[n_train], zero_g), zero_f, zero_g, alpha)
     coords = basis.doflocs[:, interior].T
     coords = (coords - coords.mean(axis=0)) / coords.std(axis=0)

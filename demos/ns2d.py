@@ -53,6 +53,12 @@ epoch (`prdp_petsc.autograd.WarmStarts`, keyed by step and window) instead of fr
 zero, so the capped GMRES continues where the last epoch's stopped; validation
 solves (to ``rtol_full``) and K_full's probe still start from zero.
 
+Preconditioner reuse (``pc_lag: N``; default 1): the training solver sets its PC up
+only at every N-th operator change (`prdp_petsc.KSPSolver`'s ``pc_lag``, with its
+quality guard); the operator changes with every state the corrector meets, so this
+pays only where the set-up is dear (the ``schur`` route's fieldsplit).  An epoch's
+record then counts its ``pc_setups``.
+
 Variants (config keys): ``solver_grad: False`` detaches the solver from the graph
 (the second step's solve sees a constant input: the reference's effective
 gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
@@ -143,6 +149,7 @@ _BASE = {
     "k_init": 8,
     "k_step": 8,
     "warm_start_epochs": False,
+    "pc_lag": 1,
     # the KSP/PC pairs `compare` also runs (``--routes`` overrides them): none here;
     # ``paper`` and ``large`` run ``schur`` (`ROUTES`).  The operator is not symmetric
     # (CG, ICC refused) and has a zero pressure block: ILU fails on it, Jacobi stalls
@@ -402,6 +409,7 @@ def setup(config: dict, seed: int) -> dict:
         max_it=config["k_init"],
         adjoint=adjoint,
         nullspace=mac.nullspace(n),
+        pc_lag=config["pc_lag"],
     )
     val_solver = config["val_solver"]
     if val_solver == "schur":  # the converged step, reached sooner

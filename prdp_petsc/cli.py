@@ -19,6 +19,8 @@ Sub-commands::
     prdp-petsc pages --out docs/results
     prdp-petsc rollouts --run NAME=DIR[,DIR...] ... [--ratio NAME/REF] --out DIR
     prdp-petsc horizon SCENE_FILE [--preset P] [--m 2 4 8 16] [--k K] --out DIR
+    prdp-petsc ablation SCENE_FILE [--preset P] [--seeds 0-2] --lever NAME KEY=VALUE ...
+                   [--schedules prdp,rtol] [--routes R] [--no-twin] --out DIR
     prdp-petsc --version
 
 Every sub-command follows the same conventions: PETSc options (below) start PETSc,
@@ -84,6 +86,7 @@ _TOOLS = {
     "pages": "prdp_petsc.reports.pages",
     "rollouts": "prdp_petsc.reports.rollouts",
     "horizon": "prdp_petsc.reports.horizon",
+    "ablation": "prdp_petsc.reports.ablation",
 }
 
 

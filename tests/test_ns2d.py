@@ -373,3 +373,19 @@ def test_energy_report_of_a_trained_run(tmp_path):
         assert np.allclose(e**2, 1 + r**2 - 2 * r * k, rtol=0.3)
     assert u["energy"][-1] < u["energy"][0] < 1  # the coarse upwind step loses energy
     assert "step" in NS2D.format_energy_report(report).splitlines()[1]
+
+
+def test_pc_lag_on_the_schur_route_sets_the_pc_up_less_often(tmp_path):
+    """``pc_lag: 4`` under the ``schur`` route: fewer PC set-ups per epoch than solves,
+    recorded per epoch, and the run still trains to a finite validation error."""
+    from prdp_petsc.training.routes import route_options
+
+    with route_options(["ns2d_"], "schur", NS2D.ROUTES):
+        result = run(SCENE, "fixed:4", preset="quick pc_lag=4", epochs=1, out=tmp_path,
+                     progress=False)  # fmt: skip
+    epoch = result["epochs"][0]
+    assert result["solvers"][0]["forward"]["pc_type"] == "fieldsplit"
+    assert 0 < epoch["pc_setups"] < epoch["fwd_iterations"] // 4  # fewer set-ups than solves
+    assert np.isfinite(epoch["val_metric"])
+    plain = run(SCENE, "fixed:4", preset="quick", epochs=1, progress=False)
+    assert "pc_setups" not in plain["epochs"][0]  # recorded only where a PC is reused

@@ -3,7 +3,7 @@
 `prdp_petsc.reports.pages` reads the data sets under ``docs/data/`` and writes the
 pages, the index and the README fragments; this module turns one data set of a
 given kind into text.  A kind (`DataSet.kind`) is one of ``compare``, ``seeds``,
-``bench``, ``stability``, ``work-precision``, ``rollouts``, ``horizon`` and
+``bench``, ``stability``, ``work-precision``, ``rollouts``, ``horizon``, ``ablation`` and
 ``bench-mpi``; each has a body (the table its command prints, with its plots) and
 headline rows (``(what, figure)`` pairs for the README and the index).
 """
@@ -37,6 +37,8 @@ def title(ds: DataSet) -> str:
         return f"Long rollouts against the uncorrected solver: {ds.name}"
     if ds.kind == "horizon":
         return f"Memory and time against the unroll length: {d['scene']} {d['preset']}"
+    if ds.kind == "ablation":
+        return f"Which lever buys what: {d['scene']} {d['preset']}"
     if ds.kind == "bench-mpi":
         return f"One rank against several: {d['mesh']}, {d.get('layout', 'replicated')} layout"
     return f"Error against run time: {d['problem']}"
@@ -276,7 +278,23 @@ def _bench_mpi_body(ds: DataSet) -> list[str]:
     return lines
 
 
+def _ablation_body(ds: DataSet) -> list[str]:
+    from .ablation import format_ablation
+
+    return [
+        "What `prdp-petsc ablation` printed: `compare --seeds` for the preset as given "
+        "(`baseline`) and once per lever, each lever's preset settings on their own; one "
+        "torch thread, configurations one after another. Each configuration's per-seed "
+        "table is in its `seeds.json` under the data folder.",
+        "",
+        "```text",
+        format_ablation(ds.main).rstrip("\n"),
+        "```",
+    ]
+
+
 _BODIES = {
+    "ablation": _ablation_body,
     "bench-mpi": _bench_mpi_body,
     "rollouts": _rollouts_body,
     "horizon": _horizon_body,
@@ -362,6 +380,8 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
         return _rollouts_headline(ds)
     if ds.kind == "horizon":
         return _horizon_headline(ds)
+    if ds.kind == "ablation":
+        return _ablation_headline(ds)
     if ds.kind == "bench-mpi":
         return _bench_mpi_headline(ds)
     from .workprecision import LEVELS, summarize
@@ -448,6 +468,30 @@ def _horizon_headline(ds: DataSet) -> list[tuple[str, str]]:
             f"against +{growth[0]:.0f} MB)",
         )
     ]
+
+
+def _ablation_headline(ds: DataSet) -> list[tuple[str, str]]:
+    """One row per lever: its speed-up against the best full run, the baseline's, and
+    how much sooner its fastest reduced run got there than the baseline's."""
+    d = ds.main
+    seeds = ", ".join(map(str, d["seeds"]))
+    base = (d["configs"]["baseline"]["result"].get("speedup") or {}).get("geometric_mean")
+    rows = []
+    for name, effect in d["effects"].items():
+        speed = (d["configs"][name]["result"].get("speedup") or {}).get("geometric_mean")
+        sooner = effect["reduced_vs_baseline"].get("geometric_mean")
+        figure = "—" if speed is None else f"{speed:.2f}×"
+        figure += "" if base is None else f" (baseline {base:.2f}×)"
+        if sooner is not None:
+            figure += f"; fastest reduced run {sooner:.2f}× as fast as the baseline's"
+        rows.append(
+            (
+                f"{d['scene']} --preset {d['preset']} over seeds {seeds}, lever `{name}` "
+                f"({d['levers'][name]}): speed-up over the fastest full-fidelity run",
+                figure,
+            )
+        )
+    return rows
 
 
 def _setting(ds: DataSet) -> str:

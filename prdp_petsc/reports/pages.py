@@ -68,7 +68,8 @@ class DataSet:
         Folder name under ``docs/data``; also the page's file name.
     kind : str
         ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
-        ``"work-precision"``, ``"rollouts"``, ``"horizon"`` or ``"bench-mpi"``.
+        ``"work-precision"``, ``"rollouts"``, ``"horizon"``, ``"bench-mpi"`` or
+        ``"ablation"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -94,6 +95,7 @@ class DataSet:
             "rollouts": "rollouts.json",
             "horizon": "horizon.json",
             "bench-mpi": "bench_mpi.json",
+            "ablation": "ablation.json",
         }.get(self.kind)
         if key is None:  # work-precision: the one work_precision_<problem>.json
             key = next(k for k in self.files if k.startswith("work_precision_"))
@@ -106,6 +108,8 @@ class DataSet:
 
 
 def _kind(files: dict) -> str:
+    if "ablation.json" in files:
+        return "ablation"
     if "seeds.json" in files:
         return "seeds"
     if "summary.json" in files:

@@ -271,9 +271,10 @@ def run(
         ``epochs`` (per epoch: ``k``, ``train_loss``, ``val_metric``, ``wall_time``,
         ``fwd_iterations``, ``adj_iterations``, the iterations PETSc ran; under
         ``"rtol"`` also ``rtol``, ``rtol_level``, ``fwd_solves`` and ``adj_solves``,
-        with ``k`` the cap), ``totals``; under ``"rtol"``, ``rtol`` (``rtol_init``,
-        ``factor``, ``rtol_min``, ``levels``, ``k_full``, ``max_it_factor``,
-        ``max_it``); ``threads``, ``config``
+        with ``k`` the cap; where a scene solver reuses its PC (``pc_lag`` > 1) also
+        ``pc_setups`` and ``pc_quality_rebuilds``), ``totals``; under ``"rtol"``,
+        ``rtol`` (``rtol_init``, ``factor``, ``rtol_min``, ``levels``, ``k_full``,
+        ``max_it_factor``, ``max_it``); ``threads``, ``config``
         (the preset's settings, as changed by the preset string), ``provenance``,
         ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
         and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
@@ -635,6 +636,11 @@ def _train(
                 "adj_iterations": adj,
                 "solver_time": solver_time,
             }
+            if any(s.pc_lag > 1 for s in scene.solvers):  # what reusing the PC saved
+                setups, rebuilds, _ = ranks.totals(
+                    sum(s.pc_setups for s in stats), sum(s.pc_quality_rebuilds for s in stats), 0.0
+                )
+                record.update(pc_setups=setups, pc_quality_rebuilds=rebuilds)
             if rtol is not None:  # what the tolerance bought: solves and real iterations
                 fwd_solves, adj_solves, _ = ranks.totals(
                     sum(s.forward_solves for s in stats), sum(s.adjoint_solves for s in stats), 0.0

@@ -107,7 +107,8 @@ def _spread(values: list[float]) -> dict:
 
 
 def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> dict:
-    """`compare` (with ``twin=True``) for each seed into ``out/seed_S``; summarise.
+    """`compare` (with ``twin=True`` unless `kwargs` say otherwise) for each seed into
+    ``out/seed_S``; summarise.
 
     Keyword arguments go to `compare`.  Writes ``out/seeds.json`` after every seed
     (so an interrupted study keeps what it measured) and returns it: ``scene``,
@@ -127,7 +128,9 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
     root = Parallel(kwargs.get("parallel")).root  # rank 0 alone writes files
     per_seed, tables = [], []
     for seed in seeds:
-        summary = compare(scene_file, seed=seed, out=out / f"seed_{seed}", twin=True, **kwargs)
+        summary = compare(
+            scene_file, seed=seed, out=out / f"seed_{seed}", **{"twin": True, **kwargs}
+        )
         tables.append(f"seed {seed}\n{format_table(summary)}")
         runs = summary["runs"]
         k = summary["k_full"]
@@ -146,6 +149,10 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             row["speedup_unavailable"] = detail.get("unavailable", "compare gave no speedup")
         else:
             row["speedup_full"], row["speedup_reduced"] = detail["full"], detail["reduced"]
+            row["full_seconds"] = detail.get("full_seconds")
+            row["reduced_seconds"] = detail.get("reduced_seconds")
+        if detail.get("solver_bound") is not None:
+            row["solver_bound"] = detail["solver_bound"]
         if "savings" in summary:
             row.update(
                 prdp_ratio=summary["val_error_ratio"],
@@ -266,6 +273,9 @@ def _speedups(per_seed: list[dict]) -> dict:
         goal=SPEEDUP_GOAL,
         goal_met=sum(v >= SPEEDUP_GOAL for v in values),
     )
+    bounds = [r["solver_bound"] for r in per_seed if r.get("solver_bound") is not None]
+    if bounds:  # the fastest full-fidelity run's solver-only bound (summary.solver_bound)
+        out["solver_bound"] = ratio_statistics(bounds)
     return {"speedup": out}
 
 
@@ -344,6 +354,14 @@ def _speedup_lines(stats: dict | None) -> list[str]:
         + (f" ({len(stats['failures'])} without a speedup)" if stats["failures"] else "")
     )
     lines += [f"  seed {f['seed']}: no speedup, {f['reason']}" for f in stats["failures"]]
+    if stats.get("solver_bound"):
+        lines.append(
+            _ratio_line(
+                "solver-only bound (the fastest full run's wall time over its time outside "
+                "the solver)",
+                stats["solver_bound"],
+            )
+        )
     return lines
 
 
