@@ -196,7 +196,8 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
                 "ksp_type/pc_type (e.g. cg/icc,cg/gamg), each optionally with sub-options "
                 "as :option=value (gmres/fieldsplit:pc_fieldsplit_type=schur), or a route "
                 "the scene names in ROUTES; the summary names the fastest (default: the "
-                "routes the scene's preset declares; --routes '' runs none)",
+                "routes the scene's preset declares; --routes '' runs none; --routes auto: "
+                "a one-epoch pilot at full fidelity picks one of the declared routes)",
             )
             p.add_argument(
                 "--schedules",
@@ -528,7 +529,7 @@ def _check_arguments(parser: argparse.ArgumentParser, args, scene) -> None:
         module = load_scene(scene)
     except (FileNotFoundError, AttributeError):
         return  # reported by the command itself, with the file's name
-    if getattr(args, "routes", None):
+    if getattr(args, "routes", None) and args.routes != ("auto",):  # auto: compare's pilot
         try:
             parse_routes(",".join(args.routes), getattr(module, "ROUTES", None))
         except ValueError as err:

@@ -115,3 +115,68 @@ def test_work_precision_takes_only_plain_pairs(tmp_path):
            "--out", str(tmp_path), "--routes", "cg/icc:pc_factor_levels=1"]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "plain ksp/pc pairs" in done.stderr
+
+
+def test_routes_auto_runs_the_route_a_pilot_picks(tmp_path, monkeypatch):
+    """``routes="auto"``: one timed full-fidelity epoch per candidate, then the
+    comparison runs the fastest candidate's route only; a resume keeps the pick."""
+    import prdp_petsc.training.compare as compare_module
+
+    real = compare_module.pilot_routes
+    calls = []
+
+    def pilot(*args, **kwargs):
+        calls.append(args[1])
+        result = real(*args, **kwargs)
+        # the pick, whatever the timings: the route, so that the test sees it run
+        result["picked"] = "cg/icc"
+        return result
+
+    monkeypatch.setattr(compare_module, "pilot_routes", pilot)
+    heat2d = DEMOS / "heat2d.py"
+    s = compare(heat2d, preset="quick routes=cg/icc,cg/gamg", epochs=2, out=tmp_path,
+                progress=False, plots=False, routes="auto")  # fmt: skip
+    assert calls == [("cg/icc", "cg/gamg")]
+    candidates = s["pilot"]["candidates"]
+    assert set(candidates) == {"scene solver", "cg/icc", "cg/gamg"}
+    assert candidates["scene solver"]["k_full"] == s["k_full"]
+    assert all(c["epoch_seconds"] > 0 for c in candidates.values())
+    assert candidates["cg/icc"]["k_full"] == s["routes"]["cg/icc"]["k_full"]
+    assert any(n.endswith("@cg/icc") for n in s["runs"])
+    assert not any(n.endswith("@cg/gamg") for n in s["runs"])
+    from prdp_petsc.training.summary import format_table
+
+    assert "pilot (1 full-fidelity epoch each)" in format_table(s)
+    s2 = compare(heat2d, preset="quick routes=cg/icc,cg/gamg", epochs=2, out=tmp_path,
+                 progress=False, plots=False, routes=("auto",), resume=True)  # fmt: skip
+    assert len(calls) == 1 and s2["pilot"] == s["pilot"]  # the resumed comparison's pick
+
+
+def test_the_pilot_picks_the_least_epoch_time_and_skips_what_does_not_fit(monkeypatch):
+    """heat1d with CG + ICC as a route that fits and a route whose K_full probe fails
+    (as ILU on a zero diagonal block does): the latter is skipped with the reason."""
+    import prdp_petsc.training.compare as compare_module
+    from prdp_petsc.errors import SolverError
+    from prdp_petsc.training.compare import SCENE_SOLVER, pilot_routes
+    from prdp_petsc.training.harness import build_scene, find_k_full, release
+
+    heat1d = DEMOS / "heat1d.py"
+    module = load_scene(heat1d)
+    scene = build_scene(module, "quick", 0)
+    prefixes, k = [s.prefix for s in scene.solvers], find_k_full(scene)
+    release(scene)
+
+    def probe(scene):
+        if scene.solvers[0].describe()["forward"].get("pc_type") == "sor":
+            raise SolverError("forward KSPSolve failed inside PETSc (gmres/sor)", "DIVERGED")
+        return find_k_full(scene)
+
+    monkeypatch.setattr(compare_module, "find_k_full", probe)
+    p = pilot_routes(heat1d, ("cg/icc", "gmres/sor"), module=module, preset="quick", seed=0,
+                     prefixes=prefixes, k_full=k)  # fmt: skip
+    timed = {n: c["epoch_seconds"] for n, c in p["candidates"].items() if "epoch_seconds" in c}
+    assert set(timed) == {SCENE_SOLVER, "cg/icc"} and p["picked"] == min(timed, key=timed.get)
+    assert p["candidates"]["gmres/sor"] == {
+        "skipped": "forward KSPSolve failed inside PETSc (gmres/sor)"
+    }
+    assert p["candidates"]["cg/icc"]["k_full"] < k  # ICC needs fewer iterations than Jacobi

@@ -45,10 +45,23 @@ from .summary import TWIN, summarize
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["REDUCED_SCHEDULES", "TWIN_SEED_OFFSET", "compare", "scene_routes"]
+__all__ = [
+    "AUTO",
+    "REDUCED_SCHEDULES",
+    "SCENE_SOLVER",
+    "TWIN_SEED_OFFSET",
+    "compare",
+    "pilot_routes",
+    "scene_routes",
+]
 
 #: The ``twin`` run seeds torch (initial weights, batch order) with ``seed + TWIN_SEED_OFFSET``.
 TWIN_SEED_OFFSET = 1000
+
+#: ``routes="auto"`` (``--routes auto``): a pilot picks one of the scene's routes
+AUTO = "auto"
+#: The pilot's name for the scene's own solver (no route)
+SCENE_SOLVER = "scene solver"
 
 #: The reduced-fidelity schedules `compare` can run next to full fidelity (``schedules``)
 REDUCED_SCHEDULES = ("prdp", "rtol")
@@ -104,7 +117,9 @@ def compare(
         ``"prdp@cg/icc"``, ``"rtol@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in
         the summary says which run reached the full-fidelity validation error in the
         least wall time.  None (the default): the routes the scene declares in its
-        preset key ``routes`` (`scene_routes`); ``()`` or ``""`` runs none.  A route
+        preset key ``routes`` (`scene_routes`); ``()`` or ``""`` runs none; ``"auto"``
+        lets a pilot pick one of those (`pilot_routes`: one full-fidelity epoch of the
+        scene's solver and of each route, the fastest one's route runs).  A route
         that does not fit the scene (a `StructureError`: CG on a non-symmetric
         operator; a `SolverError` of its K_full probe: ILU on a zero diagonal
         block) is skipped and reported.
@@ -140,7 +155,8 @@ def compare(
         (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
         adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
         ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why;
-        ``provenance`` (`prdp_petsc.training.provenance.provenance`); with `resume`,
+        ``provenance`` (`prdp_petsc.training.provenance.provenance`); with
+        ``routes="auto"``, ``pilot`` (`pilot_routes`); with `resume`,
         ``reused``: the runs read from an earlier comparison; ``schedules``.
 
     Raises
@@ -157,6 +173,9 @@ def compare(
         )
     module = load_scene(scene_file)
     named = getattr(module, "ROUTES", None)  # the scene's routes by name
+    auto = routes in (AUTO, (AUTO,), [AUTO])
+    if auto:
+        routes = None  # the pilot picks among the scene's routes
     if routes is None:
         routes = scene_routes(module, preset)
     elif isinstance(routes, str):  # "cg/icc,cg/gamg", as the preset key and the CLI write it
@@ -182,13 +201,28 @@ def compare(
             coarse = sorted({1, max(1, k_full // 4), max(1, k_full // 2)})
         own = [*schedules, f"fixed:{k_full}"] + [f"fixed:{k}" for k in coarse if k < k_full]
         prefixes = [s.prefix for s in scene.solvers]
-        runs = [(schedule, None) for schedule in own] + [
-            (schedule, route) for route in routes for schedule in (*schedules, "full")
-        ]
         logs = {}
         k_fulls = {"": k_full}
         skipped = {}  # route -> why it does not fit the scene's solvers
         reused = []  # runs a resumed comparison read instead of training
+        pilot = None
+        if auto:
+            earlier = out / "summary.json"
+            if resume and earlier.is_file():  # the pick of the comparison being resumed
+                pilot = json.loads(earlier.read_text()).get("pilot")
+            if pilot is None:
+                run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False,
+                    threads=threads, module=module, parallel=parallel)  # fmt: skip
+                warmed = True  # the pilot's epochs are timed: warm up first
+                pilot = pilot_routes(scene_file, routes, module=module, preset=preset,
+                                     seed=seed, prefixes=prefixes, k_full=k_full,
+                                     threads=threads, parallel=parallel)  # fmt: skip
+            picked = pilot["picked"]
+            routes = () if picked in (None, SCENE_SOLVER) else (picked,)
+            k_fulls.update({r: pilot["candidates"][r]["k_full"] for r in routes})
+        runs = [(schedule, None) for schedule in own] + [
+            (schedule, route) for route in routes for schedule in (*schedules, "full")
+        ]
         if twin:  # full fidelity again, torch seeded differently: the run-to-run noise
             runs.append((TWIN, None))
         for schedule, route in runs:
@@ -259,6 +293,8 @@ def compare(
                 write(out / "summary.json", interrupted)
                 raise
     summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
+    if pilot is not None:
+        summary["pilot"] = pilot
     summary["schedules"] = list(schedules)
     summary["parallel"] = ranks.describe()
     summary["provenance"] = origin
@@ -272,6 +308,68 @@ def compare(
         summary["plots"] = plot_compare(drawn, k_fulls, out)
         write_json(out / "summary.json", summary)
     return summary
+
+
+def pilot_routes(
+    scene_file,
+    routes,
+    *,
+    module,
+    preset: str,
+    seed: int,
+    prefixes,
+    k_full: int,
+    threads: int = 1,
+    parallel: str | None = None,
+    epochs: int = 1,
+) -> dict:
+    """Time `epochs` full-fidelity training epochs of the scene's own solver and of each
+    route (at its own K_full) and pick the fastest, before anything else trains.
+
+    The operator is the scene's own, the network and data those of `seed`; each
+    candidate trains from the same start.  `prefixes` are the scene's solver prefixes
+    (the route's options go under each), `k_full` the scene solver's K_full.  A route
+    that does not fit (its K_full probe raises `StructureError` or `SolverError`) is
+    skipped, with the reason.  Full fidelity is the pilot's measure because it is the
+    same accuracy for every candidate; a route whose capped solves are cheap but whose full ones are dear
+    could win under PRDP yet lose the pilot (the comparison then shows it only if
+    the route is given by name).
+
+    Returns
+    -------
+    dict
+        ``epochs``; ``candidates``: ``{SCENE_SOLVER or route: {"k_full": K,
+        "epoch_seconds": mean wall time of an epoch}}`` or ``{"skipped": why}``;
+        ``picked``: the candidate with the least ``epoch_seconds``.
+    """
+    candidates = {}
+    named = getattr(module, "ROUTES", None)
+    for route in (SCENE_SOLVER, *routes):
+        own = route == SCENE_SOLVER
+        context = contextlib.nullcontext() if own else route_options(prefixes, route, named)
+        with context:
+            k = k_full
+            if not own:
+                probe = build_scene(module, preset, seed)
+                try:
+                    k = find_k_full(probe)
+                except (StructureError, SolverError) as err:
+                    candidates[route] = {"skipped": " ".join(str(err).split())}
+                    continue
+                finally:
+                    release(probe)
+            log = run(scene_file, f"fixed:{k}", preset=preset, epochs=epochs, seed=seed,
+                      progress=False, threads=threads, module=module,
+                      parallel=parallel)  # fmt: skip
+        seconds = sum(e["wall_time"] for e in log["epochs"]) / max(1, len(log["epochs"]))
+        candidates[route] = {"k_full": k, "epoch_seconds": seconds}
+        logger.info("pilot: %s at K_full %d, %.3f s per epoch", route, k, seconds)
+    timed = {r: c["epoch_seconds"] for r, c in candidates.items() if "epoch_seconds" in c}
+    return {
+        "epochs": epochs,
+        "candidates": candidates,
+        "picked": min(timed, key=timed.get) if timed else None,
+    }
 
 
 def _folder_name(name: str) -> str:

@@ -333,6 +333,8 @@ def format_table(summary: dict) -> str:
     for name, r in summary["runs"].items():
         if "rtol" in r:
             lines.append(_rtol_line(name, r["rtol"]))
+    if "pilot" in summary:
+        lines.append(_pilot_line(summary["pilot"]))
     if "savings" in summary:
         s = summary["savings"]
         lines.append(
@@ -424,6 +426,20 @@ def _speedup_line(ratio: float | None, detail: dict) -> str:
         f"accuracy, val error <= {detail['target_val_error']:.4e}, in "
         f"{detail['full_seconds']:.2f} s; {detail['reduced']} in {detail['reduced_seconds']:.2f} s)"
         + tail
+    )
+
+
+def _pilot_line(pilot: dict) -> str:
+    """The table's line for ``compare --routes auto``'s pilot: each candidate, the pick."""
+    parts = [
+        f"{name} skipped ({c['skipped']})"
+        if "skipped" in c
+        else f"{name} {c['epoch_seconds']:.2f} s (K_full {c['k_full']})"
+        for name, c in pilot["candidates"].items()
+    ]
+    return (
+        f"pilot ({pilot['epochs']} full-fidelity epoch each): {', '.join(parts)}; "
+        f"picked {pilot['picked']}"
     )
 
 
