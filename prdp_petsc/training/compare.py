@@ -331,9 +331,9 @@ def pilot_routes(
     (the route's options go under each), `k_full` the scene solver's K_full.  A route
     that does not fit (its K_full probe raises `StructureError` or `SolverError`) is
     skipped, with the reason.  Full fidelity is the pilot's measure because it is the
-    same accuracy for every candidate; a route whose capped solves are cheap but whose full ones are dear
-    could win under PRDP yet lose the pilot (the comparison then shows it only if
-    the route is given by name).
+    same accuracy for every candidate; a route whose capped solves are cheap but
+    whose full ones are dear could win under PRDP yet lose the pilot (the comparison
+    then shows it only if the route is given by name).
 
     Returns
     -------
