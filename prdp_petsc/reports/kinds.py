@@ -284,8 +284,8 @@ def _ablation_body(ds: DataSet) -> list[str]:
     return [
         "What `prdp-petsc ablation` printed: `compare --seeds` for the preset as given "
         "(`baseline`) and once per lever, each lever's preset settings on their own; one "
-        "torch thread, configurations one after another. Each configuration's per-seed "
-        "table is in its `seeds.json` under the data folder.",
+        "torch thread, configurations one after another. Each configuration's seeds "
+        "result (per seed: errors, times, the runs compared) is kept in `ablation.json`.",
         "",
         "```text",
         format_ablation(ds.main).rstrip("\n"),
