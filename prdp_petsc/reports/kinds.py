@@ -342,6 +342,9 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
             rows = [(what, "no reduced run reached full-fidelity accuracy")]
         else:
             rows = [(what, _speedup_figure(speedup))]
+        bound = (speedup.get("solver_bound") or {}).get("geometric_mean")
+        if bound is not None:  # summary.solver_bound: no solver setting gets past it
+            rows[0] = (what, rows[0][1] + f"; solver-only bound {bound:.2f}×")
         ratio = d.get("prdp_ratio") or {}
         if ratio.get("geometric_mean") is not None:
             interval = ratio.get("interval")
