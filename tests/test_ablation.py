@@ -66,6 +66,7 @@ def test_ablation_runs_each_lever_and_divides_the_baselines_times(tmp_path):
     ds = DataSet("abl", "ablation", {}, {"ablation.json": report}, [])
     rows = kinds.headline(ds)
     assert len(rows) == 1 and "lever `k2` (k_init=2)" in rows[0][0]
+    assert "as fast as the baseline's: fastest reduced run" in rows[0][1]
     assert "Which lever buys what" in kinds.title(ds)
 
 
