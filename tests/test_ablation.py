@@ -28,6 +28,7 @@ def test_solver_bound_is_wall_over_the_time_outside_the_solver():
     assert solver_bound(_log([2, 2], [1.5, 1.5], [1, 1])) == pytest.approx(4.0)
     assert solver_bound(_log([1], [1], [1])) is None  # all in the solver: no bound
     assert solver_bound({"epochs": []}) is None
+    assert solver_bound({"epochs": [{"wall_time": 1.0}]}) is None  # no solver time recorded
     logs = {
         "fixed:10": _log([2, 2], [1.0, 1.0], [0.5, 0.1]),  # 4 s, half in the solver
         "fixed:3@cg/icc": _log([1, 1], [0.75, 0.75], [0.2, 0.1]),  # best full, 3/4 solver

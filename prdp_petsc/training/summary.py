@@ -223,10 +223,13 @@ def solver_bound(log: dict) -> float | None:
     solver share of an epoch can shrink; a reduced run that reaches full-fidelity
     accuracy in as many epochs as the fastest full-fidelity run is at most this much
     faster (fewer epochs to the target is the only way past it).  None without
-    epochs or where the solver took all of the time.
+    epochs, without recorded solver times, or where the solver took all of the time.
     """
-    wall = sum(e["wall_time"] for e in log.get("epochs", []))
-    solver = sum(e.get("solver_time", 0.0) for e in log.get("epochs", []))
+    epochs = log.get("epochs", [])
+    if not epochs or any(e.get("solver_time") is None for e in epochs):
+        return None  # a log from before solver times were recorded
+    wall = sum(e["wall_time"] for e in epochs)
+    solver = sum(e["solver_time"] for e in epochs)
     return wall / (wall - solver) if wall > solver else None
 
 
