@@ -91,6 +91,10 @@ def test_the_seeds_table_and_compare_table_print_the_bound(tmp_path):
     assert "solver-only bound" in format_table(summary)
     assert result["per_seed"][0]["solver_bound"] == summary["speedup"]["solver_bound"]
     assert "solver-only bound" in format_seeds(result)
+    reach = {n: r["time_to_full_accuracy"] for n, r in summary["runs"].items()}
+    assert result["per_seed"][0]["reach_seconds"] == reach
+    assert "prdp vs full" in result["levers"]
+    assert "time to full-fidelity accuracy, B / A" in format_seeds(result)
 
 
 @pytest.mark.parametrize(

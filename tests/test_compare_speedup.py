@@ -335,3 +335,29 @@ def test_the_summary_keeps_each_runs_rollouts():
     assert runs["prdp"]["rollout"] == [0.1, 0.2, 0.4]
     assert runs["prdp"]["uncorrected_rollout"] == [0.2, 0.3, 0.5]
     assert "rollout" not in runs["fixed:10"] and "uncorrected_rollout" not in runs["fixed:10"]
+
+
+def test_lever_ratios_divide_each_reference_time_by_the_levers_seed_by_seed():
+    from prdp_petsc.training.seeds import lever_ratios
+
+    rows = [
+        {"seed": 0, "k_full": 10, "reach_seconds": {
+            "fixed:10": 8.0, "prdp": 4.0, "rtol": None, "fixed:2": 6.0, "fixed:5": 5.0,
+            "fixed:3@cg/icc": 2.0, "prdp@cg/icc": 1.0, "rtol@cg/icc": 4.0, "twin:10": 0.5}},
+        {"seed": 1, "k_full": 11, "reach_seconds": {
+            "fixed:11": 9.0, "prdp": 1.0, "rtol": 3.0, "fixed:2": None, "fixed:5": None,
+            "fixed:4@cg/icc": 3.0, "prdp@cg/icc": None, "rtol@cg/icc": 1.0, "twin:11": 0.5}},
+    ]  # fmt: skip
+    levers = lever_ratios(rows)
+    assert set(levers) == {"prdp vs full", "rtol vs full", "best coarse K vs full",
+                           "full@cg/icc vs full", "prdp@cg/icc vs full@cg/icc",
+                           "rtol@cg/icc vs full@cg/icc"}  # fmt: skip
+    assert levers["prdp vs full"]["geometric_mean"] == pytest.approx(math.sqrt(2.0 * 9.0))
+    assert levers["rtol vs full"]["n"] == 1 and levers["rtol vs full"]["seeds"] == 2
+    assert levers["best coarse K vs full"]["geometric_mean"] == pytest.approx(8.0 / 5.0)
+    assert levers["full@cg/icc vs full"]["geometric_mean"] == pytest.approx(math.sqrt(4.0 * 3.0))
+    assert levers["prdp@cg/icc vs full@cg/icc"]["geometric_mean"] == pytest.approx(2.0)
+    assert levers["rtol@cg/icc vs full@cg/icc"]["geometric_mean"] == pytest.approx(
+        math.sqrt(0.5 * 3.0)
+    )
+    assert lever_ratios([{"seed": 0, "k_full": 3}]) == {}  # rows of an older comparison

@@ -45,6 +45,7 @@ __all__ = [
     "SPEEDUP_GOAL",
     "compare_seeds",
     "format_seeds",
+    "lever_ratios",
     "parse_seeds",
     "plot_seeds",
     "ratio_statistics",
@@ -114,7 +115,8 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
     (so an interrupted study keeps what it measured) and returns it: ``scene``,
     ``seeds``, ``per_seed`` (K_full, final errors, PRDP ratio, twin ratio,
     savings, per-seed verdict, ``speedup_vs_best_full`` with the two runs it
-    compares or ``speedup_unavailable``) and, over the seeds whose PRDP and K_full
+    compares or ``speedup_unavailable``, ``reach_seconds``: every run's
+    ``time_to_full_accuracy``) and, over the seeds whose PRDP and K_full
     runs both finished, ``prdp_ratio`` and ``twin_ratio`` (`ratio_statistics`),
     ``savings`` (`iterations`, `wall_time`: mean, min, max) and ``equal_accuracy``
     (count of seeds that met the per-seed test); ``speedup`` (`ratio_statistics`
@@ -143,6 +145,8 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             "prdp_k_final": runs.get("prdp", {}).get("k_final"),
             "stopped": stopped_runs(summary),
             "speedup_vs_best_full": summary.get("speedup_vs_best_full"),
+            # every run's time to full-fidelity accuracy: what each schedule and route bought
+            "reach_seconds": {n: r.get("time_to_full_accuracy") for n, r in runs.items()},
         }
         detail = summary.get("speedup") or {}
         if row["speedup_vs_best_full"] is None:
@@ -239,6 +243,9 @@ def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
     done = [r for r in per_seed if "prdp_ratio" in r]
     result = {"scene": scene, "seeds": seeds, "per_seed": per_seed, "accuracy": ACCURACY_RATIO}
     result.update(_speedups(per_seed))
+    levers = lever_ratios(per_seed)
+    if levers:
+        result["levers"] = levers
     if not done:
         return result
     result["prdp_ratio"] = ratio_statistics([r["prdp_ratio"] for r in done])
@@ -251,6 +258,55 @@ def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
     result["equal_accuracy"] = sum(r["equal_accuracy"] for r in done)
     result["compared"] = len(done)
     return result
+
+
+def lever_ratios(per_seed: list[dict]) -> dict:
+    """What each schedule and route bought, from the seeds' ``reach_seconds``.
+
+    Per comparison ``"A vs B"``: B's time to full-fidelity accuracy over A's, seed by
+    seed where both reached it (above 1: A got there sooner), as `ratio_statistics`
+    plus ``seeds`` (how many seeds had both).  The pairs: each route's full fidelity
+    against the scene solver's (``"full@cg/icc vs full"``: the preconditioner's
+    worth); ``prdp`` and ``rtol`` against full fidelity on the same solver, scene's or
+    route's (``"prdp@cg/icc vs full@cg/icc"``: the schedule's worth there); the best
+    constant coarse K against the scene solver's full fidelity.
+    The twin is no lever.  Empty for rows without ``reach_seconds``.
+    """
+    pairs: dict[str, list[float]] = {}
+
+    def add(label: str, reference, lever) -> None:
+        values = pairs.setdefault(label, [])
+        if reference and lever:
+            values.append(reference / lever)
+
+    for row in per_seed:
+        reach = row.get("reach_seconds")
+        if not reach:
+            continue
+        full = f"fixed:{row['k_full']}"
+        routes = sorted({n.split("@", 1)[1] for n in reach if "@" in n})
+        for schedule in ("prdp", "rtol"):
+            if schedule in reach:
+                add(f"{schedule} vs full", reach.get(full), reach[schedule])
+        coarse = [
+            t for n, t in reach.items()
+            if n.startswith("fixed:") and "@" not in n and n != full and t is not None
+        ]  # fmt: skip
+        add("best coarse K vs full", reach.get(full), min(coarse) if coarse else None)
+        for route in routes:
+            fulls = [n for n in reach if n.startswith("fixed:") and n.endswith(f"@{route}")]
+            if not fulls:
+                continue
+            add(f"full@{route} vs full", reach.get(full), reach[fulls[0]])
+            for schedule in ("prdp", "rtol"):
+                name = f"{schedule}@{route}"
+                if name in reach:
+                    add(f"{name} vs full@{route}", reach[fulls[0]], reach[name])
+    rows = len([r for r in per_seed if r.get("reach_seconds")])
+    return {
+        label: {**(ratio_statistics(v) if v else {"geometric_mean": None, "n": 0}), "seeds": rows}
+        for label, v in pairs.items()
+    }
 
 
 def _speedups(per_seed: list[dict]) -> dict:
@@ -338,7 +394,20 @@ def format_seeds(result: dict) -> str:
     verdict = _verdict(result["prdp_ratio"].get("interval"), result["accuracy"])
     if verdict:
         lines.append(verdict)
-    return "\n".join(lines + speedup)
+    return "\n".join(lines + speedup + _lever_lines(result.get("levers")))
+
+
+def _lever_lines(levers: dict | None) -> list[str]:
+    """Lines of `lever_ratios`: one per comparison, where it had a seed."""
+    if not levers:
+        return []
+    lines = ["time to full-fidelity accuracy, B / A for 'A vs B' (above 1: A sooner):"]
+    for label, stats in levers.items():
+        if stats["n"]:
+            lines.append("  " + _ratio_line(label, stats) + f" of {stats['seeds']} seeds")
+        else:
+            lines.append(f"  {label}: never both reached (of {stats['seeds']} seeds)")
+    return lines
 
 
 def _speedup_lines(stats: dict | None) -> list[str]:
