@@ -95,6 +95,13 @@ def test_the_seeds_table_and_compare_table_print_the_bound(tmp_path):
     assert result["per_seed"][0]["reach_seconds"] == reach
     assert "prdp vs full" in result["levers"]
     assert "time to full-fidelity accuracy, B / A" in format_seeds(result)
+    assert "read from an earlier comparison" not in format_seeds(result)
+    again = ablation(HEAT1D, {}, preset="quick", seeds=[0], out=tmp_path, epochs=2, twin=False,
+                     progress=False, plots=False, resume=True)  # fmt: skip
+    again = again["configs"]["baseline"]["result"]
+    row = again["per_seed"][0]
+    assert len(row["reused"]) == row["runs"] == len(summary["runs"])  # nothing trained again
+    assert f"{row['runs']} of {row['runs']} runs were read" in format_seeds(again)
 
 
 @pytest.mark.parametrize(

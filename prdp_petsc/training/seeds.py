@@ -147,7 +147,10 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             "speedup_vs_best_full": summary.get("speedup_vs_best_full"),
             # every run's time to full-fidelity accuracy: what each schedule and route bought
             "reach_seconds": {n: r.get("time_to_full_accuracy") for n, r in runs.items()},
+            "runs": len(runs),
         }
+        if summary.get("reused"):  # --resume: read from an earlier comparison, not trained
+            row["reused"] = list(summary["reused"])
         detail = summary.get("speedup") or {}
         if row["speedup_vs_best_full"] is None:
             row["speedup_unavailable"] = detail.get("unavailable", "compare gave no speedup")
@@ -394,6 +397,12 @@ def format_seeds(result: dict) -> str:
     verdict = _verdict(result["prdp_ratio"].get("interval"), result["accuracy"])
     if verdict:
         lines.append(verdict)
+    reused = sum(len(r.get("reused", [])) for r in result["per_seed"])
+    if reused:  # the wall times are the runs' own, from when they trained
+        lines.append(
+            f"{reused} of {sum(r.get('runs', 0) for r in result['per_seed'])} runs were read "
+            "from an earlier comparison (--resume), with the wall times they recorded"
+        )
     return "\n".join(lines + speedup + _lever_lines(result.get("levers")))
 
 
