@@ -55,9 +55,11 @@ solves (to ``rtol_full``) and K_full's probe still start from zero.
 
 Preconditioner reuse (``pc_lag: N``; default 1): the training solver sets its PC up
 only at every N-th operator change (`prdp_petsc.KSPSolver`'s ``pc_lag``, with its
-quality guard); the operator changes with every state the corrector meets, so this
-pays only where the set-up is dear (the ``schur`` route's fieldsplit).  An epoch's
-record then counts its ``pc_setups``.
+quality guard); the validation solver always sets up its own.  An epoch's record then
+counts its ``pc_setups``.  Measured on ``large_k64`` with the ``schur`` route it does
+not pay: the operator changes with every state the corrector meets, so the guard sets
+the PC up again after nearly every reuse and the stale solves lose accuracy at the
+same K (the ns2d ablation page).
 
 Variants (config keys): ``solver_grad: False`` detaches the solver from the graph
 (the second step's solve sees a constant input: the reference's effective
@@ -420,8 +422,8 @@ def setup(config: dict, seed: int) -> dict:
             rtol=config["rtol_full"],
             nullspace=mac.nullspace(n),
         )
-    else:  # the training solver run to rtol_full
-        full = solver.clone(max_it=100_000, rtol=config["rtol_full"])
+    else:  # the training solver run to rtol_full (with a fresh PC at every solve)
+        full = solver.clone(max_it=100_000, rtol=config["rtol_full"], pc_lag=1)
     out = 3 if config["correction"] == "direct" else 2  # indirect: a momentum forcing
     net = ConvResNet(3, out, hidden=config["hidden"], blocks=config["blocks"])
     hybrid = Corrector(config, net, WarmStarts() if config["warm_start_epochs"] else None)

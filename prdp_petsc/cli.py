@@ -240,9 +240,8 @@ def _seeds(text: str) -> list[int]:
 
 
 def _routes(text: str) -> tuple[str, ...]:
-    """The routes of ``--routes``, split; `_check_arguments` checks them against the
-    scene's named ``ROUTES`` (importing the routes module here would start PETSc
-    before `init_petsc`)."""
+    """The routes of ``--routes``, split; `_check_arguments` checks them once the
+    scene, whose ``ROUTES`` may name some of them, is loaded."""
     return tuple(r.strip() for r in text.split(",") if r.strip())
 
 

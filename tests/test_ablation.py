@@ -57,10 +57,9 @@ def test_ablation_runs_each_lever_and_divides_the_baselines_times(tmp_path):
         if b.get("reduced_seconds") and r.get("reduced_seconds")
     ]
     got = report["effects"]["k2"]["reduced_vs_baseline"]
-    assert got["n"] == len(want)
-    if want:
-        geo = math.exp(sum(map(math.log, want)) / len(want))
-        assert got["geometric_mean"] == pytest.approx(geo, rel=1e-12)
+    assert want and got["n"] == len(want)  # reduced runs reach full accuracy on heat1d quick
+    geo = math.exp(sum(map(math.log, want)) / len(want))
+    assert got["geometric_mean"] == pytest.approx(geo, rel=1e-12)
     assert json.loads((tmp_path / "ablation.json").read_text())["effects"] == report["effects"]
     text = format_ablation(report)
     assert "k2" in text and "k_init=2" in text and "baseline time / lever time" in text

@@ -146,10 +146,66 @@ def test_routes_auto_runs_the_route_a_pilot_picks(tmp_path, monkeypatch):
     assert not any(n.endswith("@cg/gamg") for n in s["runs"])
     from prdp_petsc.training.summary import format_table
 
-    assert "pilot (1 full-fidelity epoch each)" in format_table(s)
+    assert "pilot (1 timed full-fidelity epoch each, after an untimed one)" in format_table(s)
+    # an interrupted comparison has no summary yet: the pick is in pilot.json from the start
+    assert json.loads((tmp_path / "pilot.json").read_text()) == s["pilot"]
+    (tmp_path / "summary.json").unlink()
     s2 = compare(heat2d, preset="quick routes=cg/icc,cg/gamg", epochs=2, out=tmp_path,
                  progress=False, plots=False, routes=("auto",), resume=True)  # fmt: skip
     assert len(calls) == 1 and s2["pilot"] == s["pilot"]  # the resumed comparison's pick
+    assert set(s2["reused"]) == set(s["runs"])  # and its runs, none trained again
+
+
+def test_the_pilot_times_after_a_warm_up_epoch_and_skips_a_candidate_that_stops(monkeypatch):
+    """With the training runs replaced by logs of known epoch times: the pick is the
+    least time of the epochs after the first; a run that stopped is no candidate."""
+    import prdp_petsc.training.compare as compare_module
+    from prdp_petsc.training.compare import pilot_routes
+
+    first_epoch = {"": 0.1, "icc": 50.0, "sor": 0.01, "gamg": 9.0}  # untimed: ignored
+    later = {"": 3.0, "icc": 1.0, "sor": 0.5, "gamg": 2.0}
+
+    def fake_run(scene_file, schedule, *, epochs, **kwargs):
+        opts = PETSc.Options()  # the route's PC, as route_options set it (none: the scene's)
+        pc = opts.getString("heat_pc_type") if opts.hasName("heat_pc_type") else ""
+        walls = [first_epoch[pc]] + [later[pc]] * (epochs - 1)
+        stopped = {"epoch": 1, "reason": "DIVERGED_DTOL", "message": "KSP diverged"}
+        if pc == "sor":  # the fastest, but it diverged after one epoch
+            return {"epochs": [{"wall_time": walls[0]}], "stopped": stopped}
+        return {"epochs": [{"wall_time": w} for w in walls], "stopped": None}
+
+    heat1d = DEMOS / "heat1d.py"
+    module = load_scene(heat1d)
+    monkeypatch.setattr(compare_module, "run", fake_run)
+    monkeypatch.setattr(compare_module, "find_k_full", lambda scene: 7)
+    prefixes = ["heat_"]  # heat1d's solver prefix
+    p = pilot_routes(heat1d, ("cg/icc", "richardson/sor", "cg/gamg"), module=module,
+                     preset="quick", seed=0, prefixes=prefixes, k_full=30, epochs=2)  # fmt: skip
+    c = p["candidates"]
+    assert c["scene solver"] == {"k_full": 30, "epoch_seconds": 3.0}
+    assert c["cg/icc"]["epoch_seconds"] == 1.0 and c["cg/gamg"]["epoch_seconds"] == 2.0
+    assert c["richardson/sor"] == {"skipped": "its pilot run stopped: KSP diverged"}
+    assert p["picked"] == "cg/icc" and p["epochs"] == 2
+    assert pilot_routes(heat1d, (), module=module, preset="quick", seed=0, prefixes=prefixes,
+                        k_full=30) == {"epochs": 0, "candidates": {}, "picked": None}  # fmt: skip
+
+
+def test_a_route_with_sub_options_gets_a_short_folder_of_its_own():
+    from prdp_petsc.training.compare import _folder_name
+
+    ns2d = load_scene(DEMOS / "ns2d.py")
+    long = ns2d.ROUTES["schur"]
+    name = _folder_name(f"rtol@{long}")
+    assert name.startswith("rtol_on_gmres-fieldsplit_") and len(name) < 60
+    assert _folder_name("prdp@gmres/ilu:a=b") != _folder_name("prdp@gmres/ilu:a:b")
+    assert _folder_name("fixed:8@cg/icc") == "fixed_8_on_cg-icc"  # plain pairs as before
+    assert _folder_name("twin:626") == "twin_626"
+
+
+@pytest.mark.parametrize("bad", ["auto", "cg/icc", "scene solver", "a:b", "2nd"])
+def test_a_scene_cannot_name_a_route_like_a_pair_or_the_pilot(bad):
+    with pytest.raises(ValueError, match="ROUTES names a route"):
+        parse_routes("cg/icc", {bad: "gmres/ilu"})
 
 
 def test_the_pilot_picks_the_least_epoch_time_and_skips_what_does_not_fit(monkeypatch):

@@ -60,7 +60,10 @@ def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **k
         (``{lever: {"reduced_vs_baseline": stats, "full_vs_baseline": stats}}``).
     """
     from ..training.harness import write_json
+    from ..training.parallel import Parallel
     from ..training.seeds import compare_seeds
+
+    root = Parallel(kwargs.get("parallel")).root  # rank 0 alone writes files
 
     if BASELINE in levers:
         raise ValueError(f"{BASELINE!r} names the preset as given; choose another lever name")
@@ -83,7 +86,8 @@ def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **k
         report["configs"][name] = {"preset": config, "result": result}
         if name != BASELINE:
             report["effects"][name] = lever_effect(report["configs"][BASELINE]["result"], result)
-        write_json(out / "ablation.json", report)  # after each: an interrupted study keeps it
+        if root:  # after each configuration: an interrupted study keeps what it measured
+            write_json(out / "ablation.json", report)
     return report
 
 

@@ -19,6 +19,7 @@ solver reached full-fidelity accuracy sooner than the best full-fidelity route.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -39,7 +40,7 @@ from .harness import (
 )
 from .parallel import Parallel
 from .provenance import provenance
-from .routes import parse_routes, route_options, route_settings
+from .routes import AUTO, parse_routes, route_options, route_settings
 from .scene import load_scene, preset_config
 from .summary import TWIN, summarize
 
@@ -58,10 +59,10 @@ __all__ = [
 #: The ``twin`` run seeds torch (initial weights, batch order) with ``seed + TWIN_SEED_OFFSET``.
 TWIN_SEED_OFFSET = 1000
 
-#: ``routes="auto"`` (``--routes auto``): a pilot picks one of the scene's routes
-AUTO = "auto"
 #: The pilot's name for the scene's own solver (no route)
 SCENE_SOLVER = "scene solver"
+#: ``out/pilot.json``: the pilot's result, kept for ``resume``
+PILOT = "pilot.json"
 
 #: The reduced-fidelity schedules `compare` can run next to full fidelity (``schedules``)
 REDUCED_SCHEDULES = ("prdp", "rtol")
@@ -156,7 +157,8 @@ def compare(
         adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
         ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why;
         ``provenance`` (`prdp_petsc.training.provenance.provenance`); with
-        ``routes="auto"``, ``pilot`` (`pilot_routes`); with `resume`,
+        ``routes="auto"``, ``pilot`` (`pilot_routes`, also in ``out/pilot.json``
+        from before the first run, so that `resume` keeps the pick); with `resume`,
         ``reused``: the runs read from an earlier comparison; ``schedules``.
 
     Raises
@@ -207,16 +209,17 @@ def compare(
         reused = []  # runs a resumed comparison read instead of training
         pilot = None
         if auto:
-            earlier = out / "summary.json"
-            if resume and earlier.is_file():  # the pick of the comparison being resumed
-                pilot = json.loads(earlier.read_text()).get("pilot")
+            kept = out / PILOT
+            if resume and ranks.root and kept.is_file():  # the pick being resumed
+                pilot = json.loads(kept.read_text())
+            pilot = ranks.agree(pilot)
             if pilot is None:
-                run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed, progress=False,
-                    threads=threads, module=module, parallel=parallel)  # fmt: skip
-                warmed = True  # the pilot's epochs are timed: warm up first
                 pilot = pilot_routes(scene_file, routes, module=module, preset=preset,
                                      seed=seed, prefixes=prefixes, k_full=k_full,
                                      threads=threads, parallel=parallel)  # fmt: skip
+                warmed = warmed or bool(routes)  # the pilot's runs warmed the process up
+                pilot = ranks.agree(pilot)  # each rank timed its own epochs: rank 0 decides
+                write(kept, pilot)  # before anything trains: an interrupted run keeps it
             picked = pilot["picked"]
             routes = () if picked in (None, SCENE_SOLVER) else (picked,)
             k_fulls.update({r: pilot["candidates"][r]["k_full"] for r in routes})
@@ -290,6 +293,8 @@ def compare(
                     logs[name] = json.loads(results.read_text())
                 interrupted = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
                 interrupted["provenance"] = origin
+                if pilot is not None:
+                    interrupted["pilot"] = pilot
                 write(out / "summary.json", interrupted)
                 raise
     summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
@@ -326,6 +331,11 @@ def pilot_routes(
     """Time `epochs` full-fidelity training epochs of the scene's own solver and of each
     route (at its own K_full) and pick the fastest, before anything else trains.
 
+    Each candidate trains ``epochs + 1`` epochs; the first pays its first-use costs
+    (imports, the PC type's first set-up) and is not timed.  A candidate whose run
+    stops (a diverged solve, a non-finite loss) is skipped with the reason, as is one
+    that does not fit; with no `routes` there is nothing to choose (``picked`` None).
+
     The operator is the scene's own, the network and data those of `seed`; each
     candidate trains from the same start.  `prefixes` are the scene's solver prefixes
     (the route's options go under each), `k_full` the scene solver's K_full.  A route
@@ -339,9 +349,11 @@ def pilot_routes(
     -------
     dict
         ``epochs``; ``candidates``: ``{SCENE_SOLVER or route: {"k_full": K,
-        "epoch_seconds": mean wall time of an epoch}}`` or ``{"skipped": why}``;
-        ``picked``: the candidate with the least ``epoch_seconds``.
+        "epoch_seconds": mean wall time of a timed epoch}}`` or ``{"skipped": why}``;
+        ``picked``: the candidate with the least ``epoch_seconds`` (None without one).
     """
+    if not routes:  # nothing to choose between
+        return {"epochs": 0, "candidates": {}, "picked": None}
     candidates = {}
     named = getattr(module, "ROUTES", None)
     for route in (SCENE_SOLVER, *routes):
@@ -358,10 +370,16 @@ def pilot_routes(
                     continue
                 finally:
                     release(probe)
-            log = run(scene_file, f"fixed:{k}", preset=preset, epochs=epochs, seed=seed,
+            log = run(scene_file, f"fixed:{k}", preset=preset, epochs=epochs + 1, seed=seed,
                       progress=False, threads=threads, module=module,
                       parallel=parallel)  # fmt: skip
-        seconds = sum(e["wall_time"] for e in log["epochs"]) / max(1, len(log["epochs"]))
+        timed = log["epochs"][1:]  # the first epoch pays the candidate's first-use costs
+        stop = log.get("stopped")
+        if stop or len(timed) < epochs:  # a candidate that cannot train is no candidate
+            why = stop["message"] if stop and stop.get("message") else str(stop)
+            candidates[route] = {"skipped": f"its pilot run stopped: {' '.join(why.split())}"}
+            continue
+        seconds = sum(e["wall_time"] for e in timed) / len(timed)
         candidates[route] = {"k_full": k, "epoch_seconds": seconds}
         logger.info("pilot: %s at K_full %d, %.3f s per epoch", route, k, seconds)
     timed = {r: c["epoch_seconds"] for r, c in candidates.items() if "epoch_seconds" in c}
@@ -373,11 +391,20 @@ def pilot_routes(
 
 
 def _folder_name(name: str) -> str:
-    """A run's folder: its name with ``:`` and ``=`` as ``_``, ``@`` as ``_on_``, ``/`` as ``-``
-    (``prdp@cg/icc`` → ``prdp_on_cg-icc``)."""
-    for char, text in ((":", "_"), ("=", "_"), ("@", "_on_"), ("/", "-")):
-        name = name.replace(char, text)
-    return name
+    """A run's folder: ``prdp@cg/icc`` → ``prdp_on_cg-icc``, ``fixed:8`` → ``fixed_8``.
+
+    A route with sub-options keeps only its pair and a digest of the whole route
+    (``prdp_on_gmres-fieldsplit_3f2a…``): the options would make a name too long for
+    a file system, and two routes must not share a folder.
+    """
+    schedule, at, route = name.partition("@")
+    text = schedule.replace(":", "_")
+    if at:
+        pair, options, _ = route.partition(":")
+        if options:
+            pair += "_" + hashlib.sha1(route.encode()).hexdigest()[:12]
+        text += "_on_" + pair.replace("/", "-")
+    return text
 
 
 def _finished_run(folder: Path, settings: dict, prdp: dict, epochs: int) -> dict | None:

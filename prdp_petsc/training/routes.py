@@ -15,10 +15,11 @@ A route may carry the sub-options its PC needs after the pair, each as
 without the solver prefix: ``"gmres/fieldsplit:pc_fieldsplit_type=schur:
 fieldsplit_0_pc_type=bjacobi"`` (one string, no spaces) sets
 ``-<prefix>pc_fieldsplit_type schur`` and ``-<prefix>fieldsplit_0_pc_type bjacobi``
-for every prefix too.  A value holds no ``:``, ``,`` or space.  Long ones read
+for every prefix too.  A value holds no ``:``, ``=``, ``,`` or space.  Long ones read
 better by name: a scene module's ``ROUTES`` dict maps a name (``"schur"``) to such a
 string, and its preset key ``routes`` and ``compare --routes`` may use the name;
-the runs are named by it (``prdp@schur``).
+the runs are named by it (``prdp@schur``).  ``auto`` is no route: ``compare --routes
+auto`` lets a pilot pick one (`prdp_petsc.training.compare.pilot_routes`).
 
 A scene declares the routes that fit its operator as the preset key ``routes``, a
 comma-separated string (`parse_routes`); ``compare`` runs them unless told otherwise.
@@ -33,6 +34,7 @@ import warnings
 from collections.abc import Iterator, Mapping
 
 __all__ = [
+    "AUTO",
     "REACH_FACTOR",
     "accuracy_target",
     "fastest",
@@ -46,6 +48,9 @@ __all__ = [
 #: a run "reaches" the full-fidelity error when within this factor of it
 REACH_FACTOR = 1.05
 
+
+#: ``compare --routes auto``: a pilot picks one of the scene's routes; no route's name
+AUTO = "auto"
 
 _OPTION = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_.-]*")
@@ -62,6 +67,7 @@ def route_settings(route: str, named: Mapping[str, str] | None = None) -> dict[s
     """
     if not isinstance(route, str):
         raise ValueError(f"a route is {_FORM}, got {route!r}")
+    _check_names(named)
     if named and route in named:
         text = named[route]
         if not isinstance(text, str) or text in named:
@@ -104,6 +110,17 @@ def route_string(options: Mapping[str, object]) -> str:
     route = ":".join(parts)
     route_settings(route)  # a value a route cannot carry (a space, a colon) fails here
     return route
+
+
+def _check_names(named: Mapping[str, str] | None) -> None:
+    """A scene's route names: letters, digits, ``_ . -``, starting with a letter (so
+    never a pair, never the pilot's ``auto``)."""
+    for name in named or ():
+        if not isinstance(name, str) or not _NAME.fullmatch(name) or name == AUTO:
+            raise ValueError(
+                f"a scene's ROUTES names a route with letters, digits, '_', '.' or '-', "
+                f"starting with a letter, and not {AUTO!r}; got {name!r}"
+            )
 
 
 def parse_route(route: str, named: Mapping[str, str] | None = None) -> tuple[str, str]:

@@ -156,8 +156,10 @@ def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> d
             row["speedup_unavailable"] = detail.get("unavailable", "compare gave no speedup")
         else:
             row["speedup_full"], row["speedup_reduced"] = detail["full"], detail["reduced"]
-            row["full_seconds"] = detail.get("full_seconds")
-            row["reduced_seconds"] = detail.get("reduced_seconds")
+        # the fastest full and reduced times, each where it exists (a seed whose reduced
+        # runs never reached still has its full-fidelity time)
+        row["full_seconds"] = detail.get("full_seconds")
+        row["reduced_seconds"] = detail.get("reduced_seconds")
         if detail.get("solver_bound") is not None:
             row["solver_bound"] = detail["solver_bound"]
         if "savings" in summary:
@@ -268,12 +270,13 @@ def lever_ratios(per_seed: list[dict]) -> dict:
 
     Per comparison ``"A vs B"``: B's time to full-fidelity accuracy over A's, seed by
     seed where both reached it (above 1: A got there sooner), as `ratio_statistics`
-    plus ``seeds`` (how many seeds had both).  The pairs: each route's full fidelity
-    against the scene solver's (``"full@cg/icc vs full"``: the preconditioner's
-    worth); ``prdp`` and ``rtol`` against full fidelity on the same solver, scene's or
-    route's (``"prdp@cg/icc vs full@cg/icc"``: the schedule's worth there); the best
-    constant coarse K against the scene solver's full fidelity.
-    The twin is no lever.  Empty for rows without ``reach_seconds``.
+    (its ``n``: the seeds where both reached) plus ``seeds`` (the seeds compared).
+    The pairs: each route's full fidelity against the scene solver's
+    (``"full@cg/icc vs full"``: the preconditioner's worth); ``prdp`` and ``rtol``
+    against full fidelity on the same solver, scene's or route's
+    (``"prdp@cg/icc vs full@cg/icc"``: the schedule's worth there); the best constant
+    coarse K against the scene solver's full fidelity.  The twin is no lever.  Empty
+    for rows without ``reach_seconds``.
     """
     pairs: dict[str, list[float]] = {}
 

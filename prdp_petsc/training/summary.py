@@ -434,6 +434,8 @@ def _speedup_line(ratio: float | None, detail: dict) -> str:
 
 def _pilot_line(pilot: dict) -> str:
     """The table's line for ``compare --routes auto``'s pilot: each candidate, the pick."""
+    if not pilot["candidates"]:
+        return "pilot: the preset declares no route to choose; the scene's solver ran alone"
     parts = [
         f"{name} skipped ({c['skipped']})"
         if "skipped" in c
@@ -441,8 +443,8 @@ def _pilot_line(pilot: dict) -> str:
         for name, c in pilot["candidates"].items()
     ]
     return (
-        f"pilot ({pilot['epochs']} full-fidelity epoch each): {', '.join(parts)}; "
-        f"picked {pilot['picked']}"
+        f"pilot ({pilot['epochs']} timed full-fidelity epoch each, after an untimed one): "
+        f"{', '.join(parts)}; picked {pilot['picked']}"
     )
 
 
