@@ -197,7 +197,7 @@ def _scene_parser(prog: str | None = None, scene_arg: bool = True) -> argparse.A
                 "as :option=value (gmres/fieldsplit:pc_fieldsplit_type=schur), or a route "
                 "the scene names in ROUTES; the summary names the fastest (default: the "
                 "routes the scene's preset declares; --routes '' runs none; --routes auto: "
-                "a one-epoch pilot at full fidelity picks one of the declared routes)",
+                "a short pilot at full fidelity picks one of the declared routes)",
             )
             p.add_argument(
                 "--schedules",

@@ -119,8 +119,8 @@ def compare(
         the summary says which run reached the full-fidelity validation error in the
         least wall time.  None (the default): the routes the scene declares in its
         preset key ``routes`` (`scene_routes`); ``()`` or ``""`` runs none; ``"auto"``
-        lets a pilot pick one of those (`pilot_routes`: one full-fidelity epoch of the
-        scene's solver and of each route, the fastest one's route runs).  A route
+        lets a pilot pick one of those (`pilot_routes`: a timed full-fidelity epoch of
+        the scene's solver and of each route, the fastest one's route runs).  A route
         that does not fit the scene (a `StructureError`: CG on a non-symmetric
         operator; a `SolverError` of its K_full probe: ILU on a zero diagonal
         block) is skipped and reported.
