@@ -68,7 +68,11 @@ times the velocity std) instead of unrolling — presets ``paper_detached`` and
 ``paper_noise`` (``quick_…`` likewise).  ``paper_k64`` and ``large_k64`` start PRDP at
 K = 64 (8 restart cycles; ``large_k64`` also refines by 64) instead of one cycle;
 ``paper_k64`` trained 48 epochs (``--epochs 48``) reaches full fidelity's validation
-error (README).
+error (README).  ``large_k192`` starts and refines by 192 (24 restart cycles; 24
+iterations on the ``schur`` route, whose K_full is about 80): the time-to-accuracy
+setting.  With ``large_k64``'s steps of 64 (8 on the Schur route) PRDP on that route
+climbed too slowly to reach full-fidelity accuracy within 16 epochs on 4 of 6 seeds;
+with 192 it reaches it on every seed (the ``ns2d_large_k192_speedup`` results page).
 
 Long horizons (`prdp_petsc.training.unroll`): ``unroll: m`` trains on m-step rollouts
 of the hybrid (windows of m + 1 reference states starting every ``window_stride``
@@ -204,6 +208,8 @@ PRESETS = {
 # PRDP from 8 restart cycles, refining by 8 (the reference starts at 1 and steps by 1)
 PRESETS["paper_k64"] = {**PRESETS["paper"], "k_init": 64}
 PRESETS["large_k64"] = {**PRESETS["large"], "k_init": 64, "k_step": 64}
+# time to accuracy with the Schur route: PRDP's step scaled to that route is 24 iterations
+PRESETS["large_k192"] = {**PRESETS["large"], "k_init": 192, "k_step": 192}
 # long horizons (solver in the loop over m steps, 50-step held-out rollouts): a 32² grid,
 # trained and validated with the Schur-complement PC (K counts GMRES(30) iterations)
 PRESETS["long"] = {

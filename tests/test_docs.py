@@ -100,6 +100,7 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
         "heat3d_speedup": "seeds",
         "heat_nonlinear_speedup": "seeds",
         "ns2d_large_routes_speedup": "seeds",
+        "ns2d_large_k192_speedup": "seeds",
         "ns2d_large_ablation": "ablation",
         "heat_nonlinear_ablation": "ablation",
         "heat1d_seeds": "seeds",

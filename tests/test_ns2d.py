@@ -391,3 +391,12 @@ def test_pc_lag_on_the_schur_route_sets_the_pc_up_less_often(tmp_path):
     assert np.isfinite(epoch["val_metric"])
     plain = run(SCENE, "fixed:4", preset="quick", epochs=1, progress=False)
     assert "pc_setups" not in plain["epochs"][0]  # recorded only where a PC is reused
+
+
+def test_large_k192_is_large_with_prdp_steps_of_192_and_the_schur_route():
+    from prdp_petsc.training.compare import scene_routes
+    from prdp_petsc.training.scene import preset_config
+
+    config = preset_config(NS2D, "large_k192")
+    assert config == preset_config(NS2D, "large_k64 k_init=192 k_step=192")
+    assert scene_routes(NS2D, "large_k192") == ("schur",)

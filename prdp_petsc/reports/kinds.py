@@ -502,12 +502,16 @@ def _ablation_headline(ds: DataSet) -> list[tuple[str, str]]:
 
 
 def _setting(ds: DataSet) -> str:
-    """``ns2d --preset large_k64, -ns2d_pc_type fieldsplit``: the scene, the preset and
-    the PC a run set on the command line, from the recorded command."""
+    """``ns2d --preset large_k64 k_init=192, -ns2d_pc_type fieldsplit``: the scene, the
+    preset, its ``--set`` changes and the PC a run set on the command line, from the
+    recorded command."""
     argv = ds.provenance.get("argv", [])
     text = ds.main["scene"]
     if "--preset" in argv[:-1]:
         text += f" --preset {argv[argv.index('--preset') + 1]}"
+    changes = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--set"]
+    if changes:  # --set k_init=192: another setting, another row
+        text += " " + " ".join(changes)
     pcs = [f"{a} {argv[i + 1]}" for i, a in enumerate(argv[:-1]) if a.endswith("_pc_type")]
     return text + (f", {pcs[0]}" if pcs else "")
 
