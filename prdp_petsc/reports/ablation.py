@@ -93,9 +93,9 @@ def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **k
 
 def lever_effect(baseline: dict, lever: dict) -> dict:
     """Per-seed ratios baseline time / lever time of the fastest reduced and the fastest
-    full-fidelity run to full-fidelity accuracy, as `ratio_statistics` (``n`` = 0 and
-    no mean where no seed has both)."""
-    from ..training.seeds import ratio_statistics
+    full-fidelity run to full-fidelity accuracy, as `optional_ratio_statistics` (``n``
+    = 0 and no mean where no seed has both)."""
+    from ..training.seeds import optional_ratio_statistics
 
     base = {r["seed"]: r for r in baseline["per_seed"]}
     effect = {}
@@ -105,8 +105,7 @@ def lever_effect(baseline: dict, lever: dict) -> dict:
             for r in lever["per_seed"]
             if r.get(f"{kind}_seconds") and (base.get(r["seed"]) or {}).get(f"{kind}_seconds")
         ]
-        stats = ratio_statistics(ratios) if ratios else {"geometric_mean": None, "n": 0}
-        effect[f"{kind}_vs_baseline"] = stats
+        effect[f"{kind}_vs_baseline"] = optional_ratio_statistics(ratios)
     return effect
 
 

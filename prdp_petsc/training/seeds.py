@@ -46,6 +46,7 @@ __all__ = [
     "compare_seeds",
     "format_seeds",
     "lever_ratios",
+    "optional_ratio_statistics",
     "parse_seeds",
     "plot_seeds",
     "ratio_statistics",
@@ -101,6 +102,14 @@ def ratio_statistics(ratios: list[float]) -> dict:
         out["interval"] = [math.exp(mean - half), math.exp(mean + half)]
         out["log_sd"] = sd
     return out
+
+
+def optional_ratio_statistics(ratios: list[float]) -> dict:
+    """`ratio_statistics`, or ``geometric_mean`` and ``interval`` None with ``n`` 0 where
+    there is no ratio (no seed where both runs of a comparison reached the target)."""
+    if not ratios:
+        return {"geometric_mean": None, "interval": None, "n": 0}
+    return ratio_statistics(ratios)
 
 
 def _spread(values: list[float]) -> dict:
@@ -309,10 +318,7 @@ def lever_ratios(per_seed: list[dict]) -> dict:
                 if name in reach:
                     add(f"{name} vs full@{route}", reach[fulls[0]], reach[name])
     rows = len([r for r in per_seed if r.get("reach_seconds")])
-    return {
-        label: {**(ratio_statistics(v) if v else {"geometric_mean": None, "n": 0}), "seeds": rows}
-        for label, v in pairs.items()
-    }
+    return {label: {**optional_ratio_statistics(v), "seeds": rows} for label, v in pairs.items()}
 
 
 def _speedups(per_seed: list[dict]) -> dict:
@@ -327,7 +333,7 @@ def _speedups(per_seed: list[dict]) -> dict:
         for r in per_seed
         if r.get("speedup_vs_best_full") is None
     ]
-    out = ratio_statistics(values) if values else {"geometric_mean": None, "interval": None}
+    out = optional_ratio_statistics(values)
     out.update(
         n=len(values),
         seeds=len(per_seed),
