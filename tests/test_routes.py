@@ -202,6 +202,11 @@ def test_a_route_with_sub_options_gets_a_short_folder_of_its_own():
     assert _folder_name("twin:626") == "twin_626"
 
 
+def test_auto_is_no_route_among_others():
+    with pytest.raises(ValueError, match="'auto' lets a pilot pick one of the scene's routes"):
+        parse_routes("auto,cg/icc")
+
+
 @pytest.mark.parametrize("bad", ["auto", "cg/icc", "scene solver", "a:b", "2nd"])
 def test_a_scene_cannot_name_a_route_like_a_pair_or_the_pilot(bad):
     with pytest.raises(ValueError, match="ROUTES names a route"):

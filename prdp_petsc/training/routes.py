@@ -68,6 +68,8 @@ def route_settings(route: str, named: Mapping[str, str] | None = None) -> dict[s
     if not isinstance(route, str):
         raise ValueError(f"a route is {_FORM}, got {route!r}")
     _check_names(named)
+    if route == AUTO:  # compare's pilot, only on its own: never one route among others
+        raise ValueError(f"{AUTO!r} lets a pilot pick one of the scene's routes; give it alone")
     if named and route in named:
         text = named[route]
         if not isinstance(text, str) or text in named:
