@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..core.probe import find_k_full as probe_k_full
 from ..core.results import SolverError
-from ..core.solver import KSPSolver
 from ..errors import InputError, NonFiniteError, stop_reason
 from ..prdp import PRDP, rtol_from_level
 from .checkpoint import CHECKPOINT, load_checkpoint, restore, save_checkpoint
@@ -110,15 +110,8 @@ def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
 
 
 def find_k_full(scene, max_it: int = 100_000) -> int:
-    """Iterations the scene's solver needs to reach ``scene.rtol_full`` on its probe.
-
-    Uses a clone of the first solver (options, prefix, null spaces), so
-    command-line options apply here too.  With a guess x0 in the probe, the count
-    is that of a solve from x0 stopped by PETSc's default test, ``‖r_k‖ ≤ rtol
-    ‖b‖`` in the KSP's norm (not relative to the smaller initial residual), so a
-    good guess also shortens the full-fidelity baseline.
-    """
-    ref: KSPSolver = scene.solvers[0]
+    """`prdp_petsc.find_k_full` of the scene's first solver on its probe, at
+    ``scene.rtol_full``."""
     system = scene.probe()
     if not (isinstance(system, tuple) and len(system) == 3):
         got = f"a {len(system)}-tuple" if isinstance(system, tuple) else type(system).__name__
@@ -127,36 +120,10 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
             f"start from zero; got {got}"
         )
     A, b, x0 = system
-    b = np.atleast_2d(b)
-    x0 = None if x0 is None else np.atleast_2d(x0)
-    iterations = []
-    with ref.clone(max_it=max_it, rtol=scene.rtol_full) as probe:
-        probe.set_operator(A)
-        for i, row in enumerate(b):
-            if x0 is not None:
-                probe.ksp.setConvergenceHistory(max_it + 1, reset=True)
-            count = _probe_solve(probe, row)
-            if x0 is not None:  # ‖b‖ in the KSP's norm, then the history from x0
-                target = scene.rtol_full * probe.ksp.getConvergenceHistory()[0]
-                probe.rtol = scene.rtol_full * 1e-3
-                _probe_solve(probe, row - A @ x0[i])
-                history = probe.ksp.getConvergenceHistory()
-                probe.rtol = scene.rtol_full
-                reached = np.flatnonzero(history <= target)
-                count = int(reached[0]) if len(reached) else count
-            iterations.append(count)
-    return max(iterations)
-
-
-def _probe_solve(probe: KSPSolver, row: np.ndarray) -> int:
-    probe.solve(row)
-    if not probe.last.converged:
-        raise SolverError(
-            f"the scene's solver did not reach rtol={probe.rtol} in {probe.max_it} "
-            f"iterations ({probe.last.reason}); K_full is undefined",
-            reason=probe.last.reason,
-        )
-    return probe.last.iterations
+    try:
+        return probe_k_full(scene.solvers[0], A, b, rtol=scene.rtol_full, x0=x0, max_it=max_it)
+    except SolverError as err:
+        raise SolverError(f"the scene's solver: {err}", reason=err.reason) from err
 
 
 def to_json(value):
