@@ -200,3 +200,13 @@ def test_a_seeds_data_set_headlines_its_error_ratio_and_savings():
     assert figure.startswith(f"{ratio['geometric_mean']:.3f} (95 % interval")
     saved = ds.main["savings"]["iterations_saved"]["mean"]
     assert f"{100 * saved:.1f} % fewer inner iterations" in figure
+
+
+def test_prdp_loop_example_certifies_its_stop():
+    """docs/examples/prdp_loop.py: the default construction in a user's loop ends
+    certified below K_full, with the savings saying so."""
+    ns = runpy.run_path(str(DOCS / "examples" / "prdp_loop.py"))
+    prdp, savings = ns["prdp"], ns["savings"]
+    assert prdp.k_init == -(-ns["k_full"] // 8) and prdp.k_max == ns["k_full"]
+    assert ns["certificate"].certified and savings["certified"] is True
+    assert prdp.k < ns["k_full"] and savings["total"] > 0.4

@@ -69,7 +69,7 @@ class DataSet:
     kind : str
         ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
         ``"work-precision"``, ``"rollouts"``, ``"horizon"``, ``"bench-mpi"`` or
-        ``"ablation"``.
+        ``"ablation"`` or ``"unseen"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -96,6 +96,7 @@ class DataSet:
             "horizon": "horizon.json",
             "bench-mpi": "bench_mpi.json",
             "ablation": "ablation.json",
+            "unseen": "unseen.json",
         }.get(self.kind)
         if key is None:  # work-precision: the one work_precision_<problem>.json
             key = next(k for k in self.files if k.startswith("work_precision_"))
@@ -108,6 +109,8 @@ class DataSet:
 
 
 def _kind(files: dict) -> str:
+    if "unseen.json" in files:
+        return "unseen"
     if "ablation.json" in files:
         return "ablation"
     if "seeds.json" in files:

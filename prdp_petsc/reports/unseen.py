@@ -488,7 +488,8 @@ class HeatSink(DesignProblem):
 def _torch_sparse(A: sp.spmatrix) -> torch.Tensor:
     A = sp.coo_matrix(A)
     index = torch.from_numpy(np.vstack([A.row, A.col]).astype(np.int64))
-    return torch.sparse_coo_tensor(index, torch.from_numpy(A.data), size=A.shape).coalesce()
+    values = torch.from_numpy(A.data)
+    return torch.sparse_coo_tensor(index, values, size=A.shape, check_invariants=True).coalesce()
 
 
 #: problem name -> class
@@ -597,12 +598,16 @@ def table(result: dict) -> str:
 
 
 def main(argv=None) -> int:
-    """``python -m prdp_petsc.reports.unseen --out DIR [--seeds 0 1 2] [--quick]``."""
+    """``prdp-petsc unseen --out DIR [--seeds 0 1 2] [--problems ...] [--quick]``.
+
+    Writes ``DIR/unseen.json`` (every run's record) and prints the table; record it
+    for the results pages with ``prdp-petsc pages record unseen -- unseen --out DIR``.
+    """
     import argparse
     import json
     from pathlib import Path
 
-    parser = argparse.ArgumentParser(prog="python -m prdp_petsc.reports.unseen")
+    parser = argparse.ArgumentParser(prog="prdp-petsc unseen")
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
