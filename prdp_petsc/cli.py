@@ -88,6 +88,7 @@ _TOOLS = {
     "horizon": "prdp_petsc.reports.horizon",
     "ablation": "prdp_petsc.reports.ablation",
     "unseen": "prdp_petsc.reports.unseen",
+    "defaults": "prdp_petsc.reports.defaults",
 }
 
 

@@ -41,6 +41,8 @@ def title(ds: DataSet) -> str:
         return f"Which lever buys what: {d['scene']} {d['preset']}"
     if ds.kind == "unseen":
         return "PRDP's default construction on problems it was never tuned on"
+    if ds.kind == "defaults":
+        return f"Default construction against tuned settings: {d['scene']} {d['preset']}"
     if ds.kind == "bench-mpi":
         return f"One rank against several: {d['mesh']}, {d.get('layout', 'replicated')} layout"
     return f"Error against run time: {d['problem']}"
@@ -326,7 +328,24 @@ def _unseen_body(ds: DataSet) -> list[str]:
     return lines
 
 
+def _defaults_body(ds: DataSet) -> list[str]:
+    from .defaults import format_defaults
+
+    return [
+        "What `prdp-petsc defaults` printed: per seed, full fidelity (constant K_full), the "
+        "scene's tuned PRDP (its preset's settings) and the default construction "
+        "(`PRDP.for_problem(K_full)` with a gradient check on a fixed training batch; the "
+        "scene's PRDP settings unused). Ratios are final validation errors over full "
+        "fidelity's; savings count forward and adjoint inner iterations, the checks included.",
+        "",
+        "```text",
+        format_defaults(ds.main),
+        "```",
+    ]
+
+
 _BODIES = {
+    "defaults": _defaults_body,
     "unseen": _unseen_body,
     "ablation": _ablation_body,
     "bench-mpi": _bench_mpi_body,
@@ -347,6 +366,22 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
     from ..training.summary import ACCURACY_RATIO
 
     d = ds.main
+    if ds.kind == "defaults":
+        rows = []
+        for name in ("default", "tuned"):
+            s = d.get(name)
+            if s is None:
+                continue
+            saved = s["saved_at_equal_accuracy"]
+            rows.append((
+                f"{d['scene']} --preset {d['preset']}, {name} PRDP "
+                f"({'PRDP.for_problem' if name == 'default' else 'the preset'}), seeds "
+                f"{', '.join(map(str, d['seeds']))}: final error over full fidelity's",
+                f"{s['ratio']['geometric_mean']:.3f}; equal accuracy on {s['equal_accuracy']} "
+                f"of {s['compared']} seeds"
+                + (f", {_pct(saved)} fewer inner iterations there" if saved is not None else ""),
+            ))  # fmt: skip
+        return rows
     if ds.kind == "unseen":
         problems = d["problems"].values()
         within = sum(p["geomean_ratio"] <= 1.05 and p["worst_ratio"] <= 1.10 for p in problems)

@@ -609,6 +609,7 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(prog="prdp-petsc unseen")
     parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--debug", action="store_true", help="tracebacks on errors")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
     parser.add_argument("--quick", action="store_true")
