@@ -136,6 +136,7 @@ class NetworkInverse(Problem):
     compares the physics of its c, through the capped solve, with the observations."""
 
     batch = 8
+    step_per_batch = False  # the scheduler steps after every batch, not every epoch
     loss_fn: Callable
 
     def setup(self, obs, coef, net, optimizer, scheduler, n_val: int, seed: int):
@@ -162,10 +163,12 @@ class NetworkInverse(Problem):
                                 self.obs_train[idx])  # fmt: skip
             loss.backward()
             self.optimizer.step()
+            if self.step_per_batch:  # a one-cycle schedule steps with the optimiser
+                self.scheduler.step()
         if isinstance(self.scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
             with torch.no_grad():
                 self.scheduler.step(float(self.validation_loss()))
-        elif self.scheduler is not None and not getattr(self, "step_per_batch", False):
+        elif self.scheduler is not None and not self.step_per_batch:
             self.scheduler.step()
 
     def metric(self) -> float:
@@ -316,20 +319,6 @@ class PlateBackwardHeat(NetworkInverse):
             torch.linalg.norm(pred - o, dim=-1) / torch.linalg.norm(o, dim=-1)
         )
         self.setup(torch.from_numpy(u1), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
-
-    def train_epoch(self, epoch: int) -> None:
-        step = self.optimizer.step
-
-        def stepped(*args, **kwargs):
-            out = step(*args, **kwargs)
-            self.scheduler.step()
-            return out
-
-        self.optimizer.step = stepped
-        try:
-            super().train_epoch(epoch)
-        finally:
-            del self.optimizer.step
 
     def physics(self, coef):
         return solve(self.A, coef @ self.Mphi.T, self.solver)
