@@ -320,9 +320,7 @@ class PRDP:
     ``solver.max_it = k``, ``torch.autograd.grad``, restore).  It may return a
     number instead (the validation loss itself), but a loss is a weak check: a solve
     error orthogonal to the misfit changes a squared loss only to second order,
-    while it biases what training learns to first order (measured on the
-    ``lshape_mlp`` problem of `prdp_petsc.reports.unseen`: a loss gap of 4 %
-    certified a K whose model ended 16 % worse).  Give a check whenever you can:
+    while it biases what training learns to first order.  Give a check whenever you can:
     only then does a stop mean "training sees what full fidelity would" rather than
     "the last refinement bought little", and neither a learning-rate decay (which
     makes a plateau) nor a metric that shifts with K (a compliance computed through
