@@ -43,3 +43,19 @@ def test_table_of_a_comparison():
     p = result["problems"]["heat_sink"]
     assert len(p["runs"]) == 1 and p["geomean_ratio"] == pytest.approx(p["worst_ratio"])
     assert "`heat_sink`" in unseen.table(result)
+
+
+def test_cli_writes_the_json_the_results_page_reads(tmp_path, capsys):
+    from prdp_petsc.cli import main
+
+    rc = main(["unseen", "--problems", "heat_sink", "--seeds", "0", "--quick", "--out",
+               str(tmp_path)])  # fmt: skip
+    assert rc == 0
+    import json
+
+    result = json.loads((tmp_path / "unseen.json").read_text())
+    run = result["problems"]["heat_sink"]["runs"][0]
+    assert run["error_ratio"] == pytest.approx(
+        run["prdp"]["final_error"] / run["full"]["final_error"]
+    )
+    assert "`heat_sink`" in capsys.readouterr().out
