@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from prdp_petsc.cli import main
 from prdp_petsc.reports.defaults import format_defaults
@@ -66,3 +67,15 @@ def test_defaults_report(tmp_path, capsys):
     assert row["tuned"]["certified"] is None  # the tuned controller runs no checks
     assert "default: error ratio" in capsys.readouterr().out
     assert "tuned: error ratio" in format_defaults(result)
+
+
+def test_a_check_never_trains_a_scene_whose_loss_steps_its_optimiser():
+    # poisson_field's loss takes `steps - 1` Adam steps before returning the last loss
+    scene = build_scene(load_scene(HEAT1D.parent / "poisson_field.py"), "quick", 0)
+    theta = scene.optimizer.param_groups[0]["params"][0]
+    before = theta.detach().clone()
+    check = gradient_check(scene)
+    first = check(20)
+    assert torch.equal(theta.detach(), before)
+    assert not scene.optimizer.state  # Adam has taken no step
+    assert np.array_equal(check(20), first)  # the same weights, the same batch

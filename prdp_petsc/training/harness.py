@@ -10,6 +10,7 @@ continues it exactly and `load_trained` loads the trained model.
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import math
@@ -671,13 +672,17 @@ def gradient_check(scene):
 
     The batch is the first of ``scene.batches(0, ...)`` under a generator seeded
     `CHECK_SEED`, the same for every check of the run; parameters the loss does not
-    reach contribute zeros.
+    reach contribute zeros.  A scene's ``loss`` may change state (some take optimiser
+    steps of their own before returning the last loss): the parameters' values and
+    the optimiser's state are restored after every check, so a check never trains.
     """
     batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
     params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]
 
     def check(k: int) -> np.ndarray:
         saved = [s.max_it for s in scene.solvers]
+        values = [p.detach().clone() for p in params]
+        state = copy.deepcopy(scene.optimizer.state_dict())
         for s in scene.solvers:
             s.max_it = k
         try:
@@ -685,6 +690,11 @@ def gradient_check(scene):
         finally:
             for s, k_saved in zip(scene.solvers, saved, strict=True):
                 s.max_it = k_saved
+            with torch.no_grad():
+                for p, value in zip(params, values, strict=True):
+                    p.copy_(value)
+            scene.optimizer.load_state_dict(state)
+            scene.optimizer.zero_grad()
         return np.concatenate(
             [
                 (torch.zeros_like(p) if g is None else g).detach().reshape(-1).double().numpy()
