@@ -52,6 +52,7 @@ _EXPORTS = {
     "use_comm": ".core.parallel",
     "SolveInfo": ".core.results",
     "SolverError": ".errors",
+    "SingularOperatorError": ".errors",
     "InputError": ".errors",
     "NonFiniteError": ".errors",
     "StructureError": ".errors",

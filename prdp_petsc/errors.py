@@ -9,6 +9,11 @@ The taxonomy tells a caller, and the training harness, what to do:
 `SolverError`
     A PETSc solve really failed (NaN in the iteration, breakdown, indefinite PC,
     DIVERGED_DTOL, a PC without a transpose).  Hitting ``max_it`` is not an error.
+
+    `SingularOperatorError`
+        The operator is singular and no null space that covers its kernel was
+        declared (elasticity without Dirichlet conditions, a pure Neumann problem):
+        the iterate blew up along a null vector.  Declare ``nullspace=``.
 `InputError`
     The library was given something it cannot use.  A ``ValueError``, so code that
     catches ``ValueError`` keeps working.  Subclasses name the kind:
@@ -36,6 +41,7 @@ __all__ = [
     "MeshError",
     "NonFiniteError",
     "PrdpPetscError",
+    "SingularOperatorError",
     "SolverError",
     "StructureError",
     "UnusedOptionWarning",
@@ -64,6 +70,23 @@ class SolverError(PrdpPetscError, RuntimeError):
     def __init__(self, message: str, reason: str = "UNKNOWN"):
         super().__init__(message)
         self.reason = reason
+
+
+class SingularOperatorError(SolverError):
+    """The operator is singular and its null space was not declared (or not all of it).
+
+    Raised when a solve returns, or breaks down at, an iterate x that is a null vector
+    of A to the tolerance a declared null vector must meet (``‖A x‖ ≤ 1e-8 ‖A‖ ‖x‖``)
+    while the true residual ``‖b − A x‖`` was not reduced: Krylov iterates grew along
+    the kernel (rigid-body modes of elasticity without Dirichlet conditions, the
+    constants of a pure Neumann problem) instead of converging.  Declare the kernel,
+    e.g. ``KSPSolver(nullspace=rigid_body_modes(basis))`` or ``nullspace="constant"``,
+    or add boundary conditions.  `reason` is ``"SINGULAR"``; the message names PETSc's
+    own reason.
+    """
+
+    def __init__(self, message: str, reason: str = "SINGULAR"):
+        super().__init__(message, reason)
 
 
 class InputError(PrdpPetscError, ValueError):

@@ -26,6 +26,7 @@ from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
 from .parallel import ownership_range
+from .safeguards import operator_norm
 from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 
 __all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr"]
@@ -147,6 +148,7 @@ class OperatorMat:
         self._data: np.ndarray | None = None  # the caller's values array, for an `is` test
         self._values: np.ndarray | None = None
         self._tperm: np.ndarray | None = None
+        self._norm: tuple[int, float] | None = None  # (version, ‖A‖) of `norm`
 
     def update(self, A, symmetric: bool | None = None) -> str:
         """Hold operator `A`; return what changed.
@@ -311,6 +313,13 @@ class OperatorMat:
             )
         self.symmetric = bool(symmetric)
         self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
+
+    def norm(self) -> float:
+        """``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂ of the current values, kept until they change
+        (collective; a caller's Mat edited in place keeps its old norm)."""
+        if self._norm is None or self._norm[0] != self.version:
+            self._norm = (self.version, operator_norm(self.mat))
+        return self._norm[1]
 
     def arrays(self) -> list[np.ndarray]:
         """The numpy arrays kept here: the values, the PETSc-int pattern and the

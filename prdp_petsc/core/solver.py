@@ -407,20 +407,23 @@ class KSPSolver:
         }
         return type(self)(**kwargs)
 
-    def _warn_unused(self, kind: str) -> None:
-        """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
+    def _unused_after(self, kind: str, pushed: PushedOptions) -> str | None:
+        """After the first `kind` call: the message naming options of this solver that
+        PETSc never read (misspelt, or meant for another type or split), or None."""
+        self._unchecked[kind] = False
+        self._used |= pushed.used
         unused = self.config.unused(kind, self._used)
-        if unused:
-            ksp = self._adj if kind == "adjoint" else self._ksp
-            prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
-            warnings.warn(
-                f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
-                f"{ksp.getType()}/{ksp.getPC().getType()}): "
-                + ", ".join("-" + n for n in unused)
-                + "; check their spelling (-help lists the options PETSc reads)",
-                UnusedOptionWarning,
-                stacklevel=4,
-            )
+        if not unused:
+            return None
+        ksp = self._adj if kind == "adjoint" else self._ksp
+        prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
+        return (
+            f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
+            f"{ksp.getType()}/{ksp.getPC().getType()}): "
+            + ", ".join("-" + n for n in unused)
+            + "; check their spelling (-help lists the options PETSc reads; a split's "
+            "options are fieldsplit_<name>_..., with the names of fields=)"
+        )
 
     def host_arrays(self) -> list[np.ndarray]:
         """The numpy arrays this solver keeps of its operator (values, pattern, transpose
@@ -505,7 +508,7 @@ class KSPSolver:
         self._check_finite(batch, kind)
         ksp = self._adj if transpose else self._ksp
         as_transpose = transpose and not self._adjoint_is_forward()
-        step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
+        step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose, self._op.norm)
         out = np.empty_like(batch)
         exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
         if layout.distributed and not layout.replicated:  # each rank holds a part of b
@@ -519,37 +522,44 @@ class KSPSolver:
         # after a new operator (GAMG reads its level options there), and at the first
         # solve, to learn which were never read.  KSPSolve itself reads none.
         setup = check or self._setup_version[kind] != self._op.version
-        with PushedOptions(self._items if setup else [], watch=check) as pushed:
-            if setup and self.check_structure:
-                self._check_structure(ksp, kind)
-            try:
-                for i in range(len(batch)):
-                    iterations += step(batch[i], out[i], int(exponents[i]))
-            except SolverError as err:
-                if age == 0:
-                    raise
-                # failed on a reused PC (a stale GAMG can be indefinite): run the call
-                # again on a fresh one; a failure then is the operator's own
-                logger.warning(
-                    "%s solve failed on a PC %d operator changes old (%s); set up again",
-                    kind,
-                    age,
-                    err.reason,
-                )
-                if len(step.infos) > i:  # the failed row's own work counts too
-                    iterations += step.infos[i].iterations
-                self._lag.mark_stale(slot)
-                age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
-                step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
-                for i in range(len(batch)):
-                    iterations += step(batch[i], out[i], int(exponents[i]))
-            finally:
-                self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
+        pushed = PushedOptions(self._items if setup else [], watch=check)
+        try:
+            with pushed:
+                if setup and self.check_structure:
+                    self._check_structure(ksp, kind)
+                try:
+                    for i in range(len(batch)):
+                        iterations += step(batch[i], out[i], int(exponents[i]))
+                except SolverError as err:
+                    if age == 0:
+                        raise
+                    # failed on a reused PC (a stale GAMG can be indefinite): run the call
+                    # again on a fresh one; a failure then is the operator's own
+                    logger.warning(
+                        "%s solve failed on a PC %d operator changes old (%s); set up again",
+                        kind,
+                        age,
+                        err.reason,
+                    )
+                    if len(step.infos) > i:  # the failed row's own work counts too
+                        iterations += step.infos[i].iterations
+                    self._lag.mark_stale(slot)
+                    age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
+                    step = SolveStep(
+                        ksp, mat, self._b, self._x, layout, kind, as_transpose, self._op.norm
+                    )
+                    for i in range(len(batch)):
+                        iterations += step(batch[i], out[i], int(exponents[i]))
+                finally:
+                    self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
+        except SolverError as err:
+            if check and (unused := self._unused_after(kind, pushed)):
+                # a misspelt option (a split's, say) is often why the set-up failed
+                raise type(err)(f"{err}; {unused}", reason=err.reason) from err
+            raise
         self._setup_version[kind] = self._op.version
-        if check:
-            self._unchecked[kind] = False
-            self._used |= pushed.used
-            self._warn_unused(kind)
+        if check and (unused := self._unused_after(kind, pushed)):
+            warnings.warn(unused, UnusedOptionWarning, stacklevel=3)
         finite = bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))  # sum: fast path
         if layout.distributed and not layout.replicated:
             finite = bool(layout.agree_max(np.array([not finite]))[0] == 0)
