@@ -158,10 +158,20 @@ def _residual(relative, null_ratio):
         (0.96, 4e-11, "capped", None),
         (2e4, 3.6e-6, "failed", None),  # CG + Jacobi diverging: PETSc's DTOL stands
         (2.6e4, 1.6e-12, "failed", "singular"),
+        (113.0, 5.7e-9, "failed", None),  # GAMG breaking down on SIMP contrast 1e-9: no kernel
     ],
 )
 def test_judge(relative, null_ratio, outcome, verdict):
     assert judge(_residual(relative, null_ratio), outcome) == verdict
+
+
+def test_a_stop_is_held_to_its_tolerance():
+    """A stop that tested no residual must meet √rtol: MINRES on a singular Stokes
+    system stopped (step length) at the least-squares floor, 9 % of ‖b‖."""
+    stop = _residual(0.09, 1e-3)
+    assert judge(stop, "stopped") is None
+    assert judge(stop, "stopped", rtol=1e-10) == "not solved"
+    assert judge(_residual(1e-6, 1e-3), "stopped", rtol=1e-10) is None
 
 
 def test_judge_refuses_a_stop_at_zero():

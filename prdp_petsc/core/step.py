@@ -79,6 +79,7 @@ class SolveStep:
         "run",
         "infos",
         "norm",
+        "kernel",
     )
 
     def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool, norm):
@@ -86,6 +87,11 @@ class SolveStep:
         self.b_vec, self.x_vec, self.layout, self.norm = b_vec, x_vec, layout, norm
         self.run = ksp.solveTranspose if transpose else ksp.solve
         self.infos: list[SolveInfo] = []  # one per row solved (the failing one included)
+        # the solutions of a singular system differ by its kernel: null(A), or null(Aᵀ)
+        # for a transpose solve.  A right preconditioner (FGMRES, fieldsplit) can put a
+        # kernel part into x, so it is removed: x is the minimum-norm solution A⁺b
+        kernel = mat.getTransposeNullSpace() if transpose else mat.getNullSpace()
+        self.kernel = kernel if kernel is not None and bool(kernel) else None
 
     def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
         """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
@@ -113,6 +119,8 @@ class SolveStep:
         else:
             self.infos.append(self._info(exponent))
             self._check_iterate(reason)
+        if self.kernel is not None:
+            self.kernel.remove(x_vec)
         x = self.layout.gather(x_vec)
         out[:] = np.ldexp(x, exponent) if exponent else x
         return ksp.getIterationNumber() + rescued
@@ -161,7 +169,8 @@ class SolveStep:
         residual = safeguards.true_residual(
             self.mat, self.b_vec, self.x_vec, transpose=self.transpose, norm=norm or self.norm()
         )
-        verdict = safeguards.judge(residual, outcome)
+        rtol = self.ksp.getTolerances()[0] if outcome == "stopped" else 0.0
+        verdict = safeguards.judge(residual, outcome, rtol)
         if verdict == "singular":
             raise self._singular(self.infos[-1], residual)
         if verdict == "not solved":
