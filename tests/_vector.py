@@ -40,24 +40,27 @@ def clamped(basis, A):
     return pp.Dirichlet(A, basis.get_dofs(lambda x: np.isclose(x[0], 0.0)).all())
 
 
-def stokes(n: int = 4):
-    """Taylor–Hood (P2/P1) Stokes on [0, 2] × [0, 1], viscosity θ per element.
-
-    Returns (basis, A(θ), bc, fields, g): the velocity is fixed on the left (inflow),
-    top and bottom walls, the right side is a do-nothing outflow (so the pressure
-    has no null space); ``fields`` numbers velocity and pressure among the unknowns
-    ``bc.interior``, and ``g`` is a parabolic inflow on ``bc.boundary``.
-    """
-    mesh = skfem.MeshTri.init_tensor(
-        np.linspace(0, 2, 2 * n + 1), np.linspace(0, 1, n + 1)
-    ).with_defaults()
+def taylor_hood(mesh):
+    """(basis, A(θ)) of Stokes on Taylor–Hood (P2/P1) elements, viscosity θ per element."""
     basis = skfem.Basis(mesh, skfem.ElementVector(skfem.ElementTriP2()) * skfem.ElementTriP1())
 
     @BilinearForm
     def form(u, p, v, q, w):
         return w.kappa * ddot(grad(u), grad(v)) - div(v) * p - div(u) * q
 
-    A = pp.from_form(form, basis, basis.with_element(skfem.ElementTriP0()), positive=True)
+    return basis, pp.from_form(form, basis, basis.with_element(skfem.ElementTriP0()), positive=True)
+
+
+def stokes(n: int = 4):
+    """Taylor–Hood Stokes on [0, 2] × [0, 1], viscosity θ per element.
+
+    Returns (basis, A(θ), bc, fields, g): the velocity is fixed on the left (inflow),
+    top and bottom walls, the right side is a do-nothing outflow (so the pressure
+    has no null space); ``fields`` numbers velocity and pressure among the unknowns
+    ``bc.interior``, and ``g`` is a parabolic inflow on ``bc.boundary``.
+    """
+    x, y = np.linspace(0, 2, 2 * n + 1), np.linspace(0, 1, n + 1)
+    basis, A = taylor_hood(skfem.MeshTri.init_tensor(x, y).with_defaults())
     u_dofs, p_dofs = basis.split_indices()
     walls = basis.get_dofs({"left", "top", "bottom"}).all()
     bc = pp.Dirichlet(A, np.intersect1d(walls, u_dofs))

@@ -16,9 +16,7 @@ import pytest
 import scipy.sparse.linalg as spla
 import skfem
 import torch
-from _vector import SCHUR, stokes
-from skfem import BilinearForm
-from skfem.helpers import ddot, div, grad
+from _vector import SCHUR, stokes, taylor_hood
 
 import prdp_petsc as pp
 from prdp_petsc.errors import InputError, SolverError, UnusedOptionWarning
@@ -190,14 +188,7 @@ def test_a_pressure_null_space_gives_the_minimum_norm_solution():
     """A cavity (velocity fixed on every wall): the pressure is determined up to a
     constant.  Declared as null space, FGMRES with the Schur split, whose right
     preconditioner puts a constant into the pressure, still returns A⁺b."""
-    mesh = skfem.MeshTri().refined(2)
-    basis = skfem.Basis(mesh, skfem.ElementVector(skfem.ElementTriP2()) * skfem.ElementTriP1())
-
-    @BilinearForm
-    def form(u, p, v, q, w):
-        return w.kappa * ddot(grad(u), grad(v)) - div(v) * p - div(u) * q
-
-    A = pp.from_form(form, basis, basis.with_element(skfem.ElementTriP0()), positive=True)
+    basis, A = taylor_hood(skfem.MeshTri().refined(2))
     u_dofs, p_dofs = basis.split_indices()
     bc = pp.Dirichlet(A, np.intersect1d(basis.get_dofs().all(), u_dofs))
     pressure = np.isin(bc.interior, p_dofs)

@@ -36,6 +36,7 @@ from test_grid import (
     PCS,
     SOLVES,
     UNCERTIFIED,
+    Outcome,
     Raises,
     relative_error,
 )
@@ -137,16 +138,6 @@ def tolerance(ksp: str, pc: str, operator: str) -> float:
     return 1e-8
 
 
-@dataclass
-class Outcome:
-    error: Exception | None = None
-    stage: str = "forward"
-    x: np.ndarray | None = None
-    grad_b: np.ndarray | None = None
-    grad_theta: np.ndarray | None = None
-    solver_records: tuple = ()
-
-
 def run_cell(ksp: str, pc: str, operator: str, layout: str):
     op = operators()[operator]
     n = op.A.shape[0]
@@ -164,10 +155,10 @@ def run_cell(ksp: str, pc: str, operator: str, layout: str):
     ) as solver:
         try:
             x = pp.solve(op.A, b_t, solver, theta=theta_t)
-            out.solver_records = (solver.last_forward,)
+            out.last_forward = solver.last_forward
             out.stage = "backward"
             (x * torch.from_numpy(g)).sum().backward()
-            out.solver_records += (solver.last_adjoint,)
+            out.last_adjoint = solver.last_adjoint
         except (SolverError, InputError) as err:
             out.error = err
             return out, (b, g, thetas)
@@ -209,16 +200,16 @@ def test_cell(ksp, pc, operator, layout):
     assert out.error is None, f"expected {want}, got {out.error!r}"
     errors = answer_errors(out, operator, layout, b, g, thetas)
     if want == NOT_CONVERGENT:  # capped without an error, never converged, not the answer
-        forward = out.solver_records[0]
+        forward = out.last_forward
         assert forward.reasons == ["DIVERGED_MAX_IT"] * len(forward) and not forward.converged
         assert errors["x"] > 1e3 * tolerance(ksp, pc, operator), errors
         return
     assert max(errors.values()) <= tolerance(ksp, pc, operator), errors
     if want == SOLVES:
-        for call in out.solver_records:
+        for call in (out.last_forward, out.last_adjoint):
             assert call.converged and len(call) == len(np.atleast_2d(b)), call
     else:
-        assert want == UNCERTIFIED and not out.solver_records[0].converged
+        assert want == UNCERTIFIED and not out.last_forward.converged
 
 
 def check_never_converged(out: Outcome, ksp: str, pc: str) -> None:
@@ -233,7 +224,7 @@ def check_never_converged(out: Outcome, ksp: str, pc: str) -> None:
             assert out.error.reason == named, repr(out.error)
         return
     assert pc != "gamg"
-    assert not any(call.converged for call in out.solver_records)
+    assert not any(call.converged for call in (out.last_forward, out.last_adjoint))
 
 
 def test_table_tally():
