@@ -45,6 +45,7 @@ __all__ = [
     "SolverError",
     "StructureError",
     "UnusedOptionWarning",
+    "plain",
     "stop_reason",
 ]
 
@@ -135,3 +136,14 @@ def stop_reason(error: BaseException) -> str | None:
     if isinstance(error, SolverError | InputError):
         return error.reason
     return None
+
+
+def plain(value):
+    """`value` as an error message should show it: numpy scalars and arrays (also
+    inside tuples and lists) as Python numbers and lists, so that a message says
+    ``482``, not ``np.int32(482)`` (numpy 2's repr).  Anything else is returned as is.
+    """
+    if isinstance(value, tuple | list):
+        return type(value)(plain(v) for v in value)
+    tolist = getattr(value, "tolist", None)
+    return tolist() if callable(tolist) and type(value).__module__ == "numpy" else value

@@ -324,3 +324,19 @@ def test_messages_print_plain_numbers():
     with pytest.raises(pp.InputError) as info:
         A + sp.identity(3)
     assert "np." not in str(info.value) and "(25, 25)" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        lambda: pp.KSPSolver(max_it=np.int32(0)),
+        lambda: pp.KSPSolver(max_it=5, rtol=np.float64(-1.0)),
+        lambda: pp.KSPSolver(max_it=5, block_size=np.int64(0)),
+        lambda: pp.KSPSolver(max_it=5, pc_lag=np.int64(0)),
+        lambda: pp.laplacian((np.int32(0), 4)),
+    ],
+)
+def test_validation_messages_print_numpy_values_as_numbers(bad):
+    with pytest.raises(pp.InputError) as info:
+        bad()
+    assert "np." not in str(info.value), str(info.value)

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from petsc4py import PETSc
 
-from ..errors import InputError, NonFiniteError
+from ..errors import InputError, NonFiniteError, plain
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
 from .fields import attach_fields, normalize_fields
@@ -163,8 +163,16 @@ class KSPSolver:
     Hitting the cap (``DIVERGED_MAX_IT``) is a normal outcome; every other
     negative reason raises `SolverError`, except a breakdown (or BiCGStab's late
     divergence) after the residual reached rounding level when run far beyond
-    convergence: the iterate at rounding level is returned and PETSc's reason is
-    kept in `last` (see `prdp_petsc.core.safeguards`).  A right-hand side with
+    convergence: the iterate at rounding level (and below the initial residual) is
+    returned and PETSc's reason is kept in `last` (see `prdp_petsc.core.safeguards`).
+    What PETSc calls converged is checked against the true residual ``‖b − A x‖``
+    (one ``MatMult``), a capped iterate only when it is suspiciously large (two vector
+    norms): an iterate that blew up along the kernel of a singular operator whose
+    null space was not declared raises `prdp_petsc.errors.SingularOperatorError`, a
+    convergence claim the true residual contradicts a `SolverError` with reason
+    ``FALSE_CONVERGENCE``.  With a null space declared, its part is removed from every
+    solution (a right preconditioner may add one), so x is the minimum-norm
+    solution.  A right-hand side with
     entries beyond ``2^±100`` is scaled by a power of two before the solve (exact;
     ``atol`` is scaled along).  The adjoint refuses KSP types whose transpose
     solve is wrong (``cgls``) and reports a PC without ``PCApplyTranspose`` (e.g.
@@ -223,7 +231,7 @@ class KSPSolver:
             else normalize_nullspace(transpose_nullspace, "transpose_nullspace")
         )
         if isinstance(block_size, bool) or not isinstance(block_size, int | np.integer):
-            raise InputError(f"block_size must be an integer >= 1, got {block_size!r}")
+            raise InputError(f"block_size must be an integer >= 1, got {plain(block_size)!r}")
         if block_size < 1:
             raise InputError(f"block_size must be an integer >= 1, got {int(block_size)}")
         self.block_size = int(block_size)
