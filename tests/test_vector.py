@@ -108,3 +108,24 @@ def test_describe_records_the_structure(cantilever):
         record = s.describe()
     assert (record["block_size"], record["near_nullspace"]) == (2, 3)
     assert record["fields"] == {"a": M.shape[0] // 2, "b": M.shape[0] // 2}
+
+
+def test_a_petsc_nullspace_is_read_once():
+    """``MatNullSpaceCreateRigidBody`` from node coordinates (interleaved, block size 2):
+    the same space as `rigid_body_modes`, accepted as a spec and carried like it."""
+    from petsc4py import PETSc
+
+    basis, A = elasticity(n=4)
+    coordinates = PETSc.Vec().createWithArray(basis.doflocs[:, ::2].T.ravel().copy())
+    coordinates.setBlockSize(2)
+    rigid = PETSc.NullSpace().createRigidBody(coordinates)
+    K = A.matrix(np.ones(A.n_params))
+    b = body_load(basis)
+    out = []
+    for spec in (rigid, pp.rigid_body_modes(basis)):
+        with pp.KSPSolver(GAMG, max_it=500, rtol=1e-12, nullspace=spec, near_nullspace=spec) as s:
+            s.set_operator(K)
+            out.append(s.solve(b))
+            with s.clone() as copy:
+                assert copy.nullspace.shape == (3, basis.N)
+    np.testing.assert_allclose(out[0], out[1], atol=1e-9 * np.abs(out[1]).max())
