@@ -13,9 +13,10 @@
   iterate that drifted far from the solution (relative error 2e-4 seen after
   20000 iterations), its recursive residual having underflowed.  `rescue`
   recognises these cases: the iterate is accepted when its backward error is at
-  rounding level; otherwise the (deterministic) iteration is run again up to the
-  first iteration far beyond rounding level (or the one of the smallest recorded
-  residual) and that iterate is accepted if it is at rounding level.  A breakdown
+  rounding level and its true residual is below the initial one; otherwise the
+  (deterministic) iteration is run again up to the first iteration far beyond
+  rounding level (or the one of the smallest recorded residual) and that iterate
+  is accepted if it passes the same test.  A breakdown
   above rounding level stays an error, as does an unrecoverable loss of accuracy.
 * **Iterates that did not solve the system.**  A Krylov method's stopping test
   reads its own residual norm, often the preconditioned one; on a singular
