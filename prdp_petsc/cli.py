@@ -87,6 +87,8 @@ _TOOLS = {
     "rollouts": "prdp_petsc.reports.rollouts",
     "horizon": "prdp_petsc.reports.horizon",
     "ablation": "prdp_petsc.reports.ablation",
+    "unseen": "prdp_petsc.reports.unseen",
+    "defaults": "prdp_petsc.reports.defaults",
 }
 
 

@@ -2,6 +2,15 @@
 
 Progressively Refined Differentiable Physics (reference: tum-pbs/PRDP,
 ``experiments/src/prdp.py``; docs/maths.md §7). Plain Python, no torch or PETSc.
+
+Two constructions:
+
+* ``PRDP.for_problem(k_full)``, the default for a new problem: start, step and cap
+  come from K_full (the iterations a converged solve needs, `prdp_petsc.find_k_full`),
+  and, given a ``check`` (the validation gradient through the solve at a cap k, on
+  the current weights), every stop is certified by one validation at K_full.
+* ``PRDP(k_init=..., k_step=..., ...)``: every setting by hand; its defaults are the
+  reference's constants, for reproducing the paper.
 """
 
 from __future__ import annotations
@@ -9,11 +18,27 @@ from __future__ import annotations
 import logging
 import math
 import operator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-__all__ = ["PRDP", "PRDPStep", "equal_accuracy_k", "rtol_from_level", "savings"]
+__all__ = [
+    "ACCURACY_BAND",
+    "Certificate",
+    "PRDP",
+    "PRDPStep",
+    "equal_accuracy_k",
+    "rtol_from_level",
+    "savings",
+]
 
 logger = logging.getLogger(__name__)
+
+#: relative accuracy that counts as "as accurate as full fidelity" (0.05: within 5 %)
+ACCURACY_BAND = 0.05
+#: `PRDP.for_problem`: the first K is this fraction of K_full (rounded up) ...
+START_FRACTION = 1 / 8
+#: ... and every refinement multiplies K by this factor (capped at K_full)
+GROWTH = 2.0
 
 
 @dataclass(frozen=True)
@@ -30,6 +55,8 @@ class PRDPStep:
         Smoothed metric; over a non-finite metric the last finite one (NaN if none yet).
     refined, k_next : bool, int
         Whether this call raised K; the K it returned for the next epoch.
+    gap : float or None
+        The fidelity gap of a check made in this call (see `Certificate`), else None.
     """
 
     k: int
@@ -37,6 +64,77 @@ class PRDPStep:
     ema: float
     refined: bool
     k_next: int
+    gap: float | None = None
+
+
+@dataclass(frozen=True)
+class Certificate:
+    """Outcome of one fidelity check: the same validation quantity at K and at K_full.
+
+    ``gap = ‖check(k) − check(k_full)‖ / ‖check(k_full)‖`` on the same weights; the
+    model trained at K is *certified* when ``gap ≤ tol``: at its K the solve changes
+    what training sees (the validation gradient, say) by less than the accuracy band.
+
+    Attributes
+    ----------
+    k, k_full : int
+        The cap checked and the converged cap.
+    at_k, at_full : float
+        ``‖check(k)‖`` and ``‖check(k_full)‖`` (the values themselves for numbers).
+    gap, tol : float
+        Relative fidelity gap and the band it is held to.
+    epoch : int
+        Number of `PRDP.update` calls before the check (the end of training for
+        `PRDP.certify` after the last epoch).
+    """
+
+    k: int
+    k_full: int
+    at_k: float
+    at_full: float
+    gap: float
+    tol: float
+    epoch: int
+
+    @property
+    def certified(self) -> bool:
+        """``gap ≤ tol`` (never for a NaN gap)."""
+        return bool(self.gap <= self.tol)
+
+    def describe(self) -> str:
+        """One line for logs and savings reports."""
+        verdict = "certified" if self.certified else "NOT certified"
+        return (
+            f"{verdict}: check at K={self.k} {self.at_k:.4g}, at K_full={self.k_full} "
+            f"{self.at_full:.4g} (gap {100 * self.gap:.2f} %, band {100 * self.tol:.3g} %)"
+        )
+
+
+def fidelity_gap(at_k, at_full) -> float:
+    """``‖at_k − at_full‖ / ‖at_full‖`` of two numbers or two arrays (any shape, flattened);
+    0 for two zeros, inf for a zero `at_full` only, NaN when either is not finite."""
+    diff = _norm([a - b for a, b in zip(_flat(at_k), _flat(at_full), strict=True)])
+    ref = _norm(_flat(at_full))
+    if not (math.isfinite(diff) and math.isfinite(ref)):
+        return math.nan
+    if ref == 0:
+        return 0.0 if diff == 0 else math.inf
+    return diff / ref
+
+
+def _flat(value) -> list[float]:
+    """A number, or anything array-like (numpy, torch, nested lists), as a flat list."""
+    if hasattr(value, "detach"):  # a torch tensor, without importing torch
+        value = value.detach().cpu().numpy()
+    if hasattr(value, "ravel"):
+        return [float(v) for v in value.ravel()]
+    if isinstance(value, list | tuple):
+        return [v for item in value for v in _flat(item)]
+    return [float(value)]
+
+
+def _norm(values: list[float]) -> float:
+    return math.sqrt(math.fsum(v * v for v in values))
 
 
 def _ratio(num: float, den: float) -> float:
@@ -91,7 +189,7 @@ def savings(ks=None, k_full=None, *, costs=None, cost_full=None) -> dict[str, fl
     return {"total": total, "pr": total - ic, "ic": ic}
 
 
-def equal_accuracy_k(errors: dict, k_full: int, tol: float = 0.05) -> dict:
+def equal_accuracy_k(errors: dict, k_full: int, tol: float = ACCURACY_BAND) -> dict:
     """Smallest constant cap K that trains to within ``tol`` of full fidelity.
 
     Model (docs/maths.md §7, "How far incomplete convergence can go"): a network
@@ -163,18 +261,23 @@ class PRDP:
        (``use_ema=False`` or ``ema_window=1``: E = H).
     2. While len(E) <= window keep K.
     3. r = E[-1] / E[-window]. If r <= tau_step the metric still improves: keep K.
-    4. Plateau: r_c = E[-1] / checkpoint (checkpoint starts at +inf). If r_c < tau_stop or
-       r_c > tau_worse: K <- min(K + k_step, k_max), checkpoint <- E[-1]. Otherwise the
-       last refinement bought less than 1 - tau_stop: ``refining`` becomes False.
+    4. Plateau.  With a ``check`` and `k_full` (the certified test): evaluate it once
+       at K and once at K_full on the same weights; if the two agree within `tol`, K
+       is enough (certified: stop refining), else refine.  Without a check (the
+       reference's test): r_c = E[-1] / checkpoint (checkpoint starts at +inf); if
+       r_c < tau_stop or r_c > tau_worse refine, otherwise the last refinement bought
+       less than 1 - tau_stop and ``refining`` becomes False.
+
+    Refining sets K <- min(max(K + k_step, ceil(growth K)), k_max).
 
     Parameters
     ----------
     k_init, k_step, k_max : int
-        First K, its increment (>= 1) and cap (>= k_init; None: no cap).
+        First K, its increment (>= 1) and cap (>= k_init; None: `k_full`, or no cap).
     tau_step : float
         Plateau threshold (> 0); r == tau_step still counts as improving.
     tau_stop : float
-        Required gain per refinement, in (0, 1].
+        Required gain per refinement, in (0, 1] (the reference's test only).
     ema_window, window : int
         EMA span and plateau window (>= 1).
     k_min : int
@@ -183,18 +286,48 @@ class PRDP:
     use_ema : bool
         Smooth the metric (reference: yes, except Poisson).
     restart_window : bool
-        Not in the reference. If True, each refinement starts a new EMA from the first
-        metric measured with the new K, and the plateau test waits for ``window`` such
+        Not in the reference. If True, each refinement (and each check) starts a new
+        EMA from the next metric, and the plateau test waits for ``window`` such
         metrics: the tests then see the current K only.  Without it a metric that
-        blows up at a small K (an unstable rollout: 1e4 where the plateau is 1) stays
-        in the EMA for dozens of epochs and reads as "still improving" while the
-        metric measured with the new K rises.
+        blows up at a small K stays in the EMA for dozens of epochs and reads as
+        "still improving" while the metric measured with the new K rises.
     tau_worse : float
         "Got worse" threshold (>= 1); the reference uses 1.
+    k_full : int, optional
+        The converged cap (`prdp_petsc.find_k_full`): what a check compares with, and
+        the default `k_max`.  Without it there is nothing to certify against.
+    growth : float
+        Geometric refinement factor (>= 1; 1: the reference's additive steps).
+    tol : float
+        Accuracy band of a check (`ACCURACY_BAND`, 0.05).
+    recheck : float
+        With a ``check``: a check is due `window` epochs into every K, then after
+        intervals that double while K stays certified (at epochs 3, 6, 12, 24, ...
+        of a level), on a plateau while K is not yet certified (at most once per
+        `window` epochs), and as soon as
+        the metric falls below ``recheck`` times its value at the last certified
+        check (in (0, 1]; 0.5: halved).  A model specialises as it trains, and the
+        solve's effect matters more as the loss falls: a K certified early is
+        checked again, a few times (about log2(epochs)) per level.
 
     Notes
     -----
-    Semantics as in the reference's ``should_refine``, verified against its source:
+    **Which metric.**  `update` takes the validation metric the user cares about (an
+    error against ground truth, or the validation loss).  The ``check`` callable
+    ``check(k)`` must depend on K: the gradient of the validation loss with respect
+    to what is trained (weights, or the design in an optimisation loop), *through the
+    solve capped at k*, on the current weights, without a training step (set
+    ``solver.max_it = k``, ``torch.autograd.grad``, restore).  It may return a
+    number instead (the validation loss itself), but a loss is a weak check: a solve
+    error orthogonal to the misfit changes a squared loss only to second order,
+    while it biases what training learns to first order.  Give a check whenever you can:
+    only then does a stop mean "training sees what full fidelity would" rather than
+    "the last refinement bought little", and neither a learning-rate decay (which
+    makes a plateau) nor a metric that shifts with K (a compliance computed through
+    the capped solve reads low at small K) can fool it: a plateau only triggers a
+    check, and the check decides.
+
+    Semantics of the reference's test, verified against its source:
 
     * ``E[-window]`` is Python indexing: with window 3 the test compares E_t with
       E_{t-2}, and the first test comes at the (window+1)-th call, so E_0 only seeds the
@@ -214,12 +347,10 @@ class PRDP:
     the checkpoint becomes the last finite E, and the metric stays out of the EMA and
     out of the window count (it is kept in :attr:`history`).
 
-    The harness owns how K reaches the solver. `prdp_petsc.training.harness.run` sets
-    ``solver.max_it = K`` on every scene solver, and the adjoint follows (forward and
-    adjoint together). To drive them separately, set ``solver.adjoint_max_it`` (e.g.
-    ``ceil(adjoint_ratio * K)``) or give the solver ``AdjointSettings(max_it=...)``; to
-    make one K one GMRES restart cycle (reference Navier-Stokes), set
-    ``max_it = 8 * K``. For Krylov methods whose count varies, read K as a level and
+    The caller owns how K reaches the solver: ``solver.max_it = controller.k`` before
+    each epoch (the adjoint follows unless ``solver.adjoint_max_it`` or
+    ``AdjointSettings(max_it=...)`` sets it apart; one GMRES restart cycle per K is
+    ``max_it = 8 * K``).  For Krylov methods whose count varies, read K as a level and
     control the tolerance instead: ``solver.set_tolerances(rtol=controller.to_rtol())``
     with a generous ``max_it`` (see :func:`rtol_from_level`).
     """
@@ -227,6 +358,7 @@ class PRDP:
     def __init__(
         self, k_init=1, k_step=1, k_max=None, tau_step=0.98, tau_stop=0.9, ema_window=6,
         window=3, k_min=1, use_ema=True, *, restart_window=False, tau_worse=1.0,
+        k_full=None, growth=1.0, tol=ACCURACY_BAND, recheck=0.5,
     ):  # fmt: skip
         def _int(name, value, low):
             value = operator.index(value)
@@ -236,6 +368,9 @@ class PRDP:
 
         self.k_init = _int("k_init", k_init, 1)
         self.k_step = _int("k_step", k_step, 1)
+        self.k_full = None if k_full is None else _int("k_full", k_full, 1)
+        if k_max is None:
+            k_max = None if self.k_full is None else max(self.k_full, self.k_init)
         self.k_max = None if k_max is None else _int("k_max", k_max, self.k_init)
         self.k_min = _int("k_min", k_min, 1)
         if self.k_min > self.k_init:
@@ -246,11 +381,15 @@ class PRDP:
             ("tau_step", tau_step, lambda v: v > 0, "> 0"),
             ("tau_stop", tau_stop, lambda v: 0 < v <= 1, "in (0, 1]"),
             ("tau_worse", tau_worse, lambda v: v >= 1, ">= 1"),
+            ("growth", growth, lambda v: v >= 1, ">= 1"),
+            ("tol", tol, lambda v: v > 0, "> 0"),
+            ("recheck", recheck, lambda v: 0 < v <= 1, "in (0, 1]"),
         ):
             if not (math.isfinite(float(value)) and ok(float(value))):
                 raise ValueError(f"{name} must be finite and {rule}, got {value}")
         self.tau_step, self.tau_stop = float(tau_step), float(tau_stop)
-        self.tau_worse = float(tau_worse)
+        self.tau_worse, self.growth = float(tau_worse), float(growth)
+        self.tol, self.recheck = float(tol), float(recheck)
         self.use_ema, self.restart_window = bool(use_ema), bool(restart_window)
         self.alpha = 2.0 / (self.ema_window + 1.0) if self.use_ema else 1.0
         self._k, self._refining, self._checkpoint = self.k_init, True, math.inf
@@ -258,6 +397,44 @@ class PRDP:
         self._start = 1  # E[-window] must have index >= _start for a plateau test
         self._fresh = False  # the next finite metric starts a new EMA (restart_window)
         self._history: list[PRDPStep] = []
+        self._checks: list[Certificate] = []
+        self._checked_at: float | None = None  # E at the last certified check, or at
+        # the first metric of the current K: the reference of the `recheck` fall
+        self._level_start = 0  # epoch at which the current K began
+        self._next_check = self.window  # epoch of the next due check
+        self._last_check = -self.window  # epoch of the last check
+
+    @classmethod
+    def for_problem(cls, k_full: int, *, tol: float = ACCURACY_BAND, **settings) -> PRDP:
+        """The controller for a new problem, from its K_full alone.
+
+        K starts at ``ceil(k_full / 8)`` (`START_FRACTION`) and doubles at every
+        refinement (`GROWTH`) up to `k_full`: one decade of residual reduction at the
+        start for a solve that needs eight to converge, and at most four levels
+        (1/8, 1/4, 1/2, 1 of K_full) whatever the size of K_full, so that the
+        refinement tests run often enough at every scale.  The plateau test restarts
+        after every refinement (``restart_window``).  Pass ``check=`` to `update` so
+        that each plateau is decided by a certified check against `k_full`.
+
+        Parameters
+        ----------
+        k_full : int
+            Iterations a converged solve needs (`prdp_petsc.find_k_full`).
+        tol : float
+            Accuracy band of the checks.
+        **settings
+            Any other `PRDP` argument, overriding these defaults.
+        """
+        k_full = operator.index(k_full)
+        if k_full < 1:
+            raise ValueError(f"k_full must be >= 1, got {k_full}")
+        defaults = {
+            "k_init": max(1, math.ceil(k_full * START_FRACTION)),
+            "k_step": 1,
+            "growth": GROWTH,
+            "restart_window": True,
+        }
+        return cls(**{**defaults, **settings, "k_full": k_full, "tol": tol})
 
     @property
     def k(self) -> int:
@@ -271,7 +448,8 @@ class PRDP:
 
     @property
     def refining(self) -> bool:
-        """False once the last checkpoint test found the last refinement bought too little."""
+        """False once a check certified K, or the reference's test found that the last
+        refinement bought too little."""
         return self._refining
 
     @property
@@ -279,9 +457,40 @@ class PRDP:
         """One :class:`PRDPStep` per :meth:`update` call (a copy)."""
         return list(self._history)
 
-    def update(self, metric) -> int:
-        """Record the metric of the epoch just trained with :attr:`k`; return K for the next."""
+    @property
+    def checks(self) -> list[Certificate]:
+        """Every fidelity check made so far, in order (a copy)."""
+        return list(self._checks)
+
+    @property
+    def certificate(self) -> Certificate | None:
+        """The last check if it was made at the current K, else None (not checked)."""
+        if self._checks and self._checks[-1].k == self._k:
+            return self._checks[-1]
+        return None
+
+    def next_k(self, k: int | None = None) -> int:
+        """K after one refinement from `k` (default: the current K)."""
+        k = self._k if k is None else operator.index(k)
+        following = max(k + self.k_step, math.ceil(k * self.growth - 1e-9))
+        return following if self.k_max is None else min(following, self.k_max)
+
+    def update(self, metric, check: Callable[[int], object] | None = None) -> int:
+        """Record the metric of the epoch just trained with :attr:`k`; return K for the next.
+
+        Parameters
+        ----------
+        metric : float
+            Validation metric of that epoch (lower is better, >= 0).
+        check : callable ``k -> array or float``, optional
+            The validation gradient (or loss) through the solve capped at ``k`` on the
+            current weights (see the Notes); called twice (at K and at `k_full`), and
+            only when a check is due.  Needs `k_full`.
+        """
         value, k = float(metric), self._k
+        if check is not None and self.k_full is None:
+            raise ValueError("a check needs k_full (PRDP.for_problem(k_full) sets it)")
+        gap = None
         if not math.isfinite(value):
             reason = f"non-finite metric {value}"
             ema = self._ema[-1] if self._ema else math.nan
@@ -294,15 +503,12 @@ class PRDP:
             else:
                 ema = self.alpha * value + (1 - self.alpha) * self._ema[-1]
             self._ema.append(ema)
-            refine, reason = self._test()
+            if self._checked_at is None:
+                self._checked_at = ema
+            refine, reason, gap = self._test(check)
         if refine:
-            if self._ema:
-                self._checkpoint = self._ema[-1]
-            if self.restart_window:
-                self._start, self._fresh = len(self._ema), True
-            self._refining = True
-            self._k = k + self.k_step if self.k_max is None else min(k + self.k_step, self.k_max)
-        step = PRDPStep(k=k, metric=value, ema=ema, refined=self._k > k, k_next=self._k)
+            self._refine()
+        step = PRDPStep(k=k, metric=value, ema=ema, refined=self._k > k, k_next=self._k, gap=gap)
         self._history.append(step)
         if refine:
             logger.info("PRDP epoch %d: K %d -> %d (%s)", len(self._history), k, self._k, reason)
@@ -310,32 +516,118 @@ class PRDP:
             logger.debug("PRDP epoch %d: keep K=%d (%s)", len(self._history), k, reason)
         return self._k
 
-    def _test(self) -> tuple[bool, str]:
-        """Plateau and checkpoint tests on the EMA; updates ``refining`` on a stop."""
+    def _refine(self) -> None:
+        if self._ema:
+            self._checkpoint = self._ema[-1]
+        self._restart()
+        self._refining = True
+        self._checked_at = None
+        epoch = len(self._history) + 1
+        self._level_start, self._next_check = epoch, epoch + self.window
+        self._k = self.next_k()
+
+    def _restart(self) -> None:
+        if self.restart_window:
+            self._start, self._fresh = len(self._ema), True
+
+    def _test(self, check) -> tuple[bool, str, float | None]:
+        """The certified test (with `check`), else the reference's plateau and
+        checkpoint tests; updates ``refining`` on a stop."""
+        if check is not None:
+            return self._check_test(check)
         e = self._ema
         if len(e) - self.window < self._start:
-            return False, "window not filled"
+            return False, "window not filled", None
         r = _ratio(e[-1], e[-self.window])
         if r <= self.tau_step:
-            return False, f"improving, r={r:.4g}"
+            return False, f"improving, r={r:.4g}", None
         r_c = _ratio(e[-1], self._checkpoint)
         if r_c < self.tau_stop or r_c > self.tau_worse:
-            return True, f"plateau r={r:.4g}, checkpoint ratio {r_c:.4g}"
+            return True, f"plateau r={r:.4g}, checkpoint ratio {r_c:.4g}", None
         if self._refining:
             logger.info(
                 "PRDP: stop refining at K=%d (checkpoint ratio %.4g: last refinement "
                 "gained less than %.3g%%)", self._k, r_c, 100 * (1 - self.tau_stop),
             )  # fmt: skip
         self._refining = False
-        return False, f"plateau r={r:.4g}, stopped, checkpoint ratio {r_c:.4g}"
+        return False, f"plateau r={r:.4g}, stopped, checkpoint ratio {r_c:.4g}", None
+
+    def _check_test(self, check) -> tuple[bool, str, float | None]:
+        """Check when one is due (`window` epochs into a level, then at doubling
+        intervals), on a plateau, or after the metric fell by `recheck`: certify K
+        or refine."""
+        epoch, e = len(self._history) + 1, self._ema
+        if self.k_max is not None and self._k >= self.k_max:
+            self._refining = False
+            return False, f"at the cap K={self._k}", None
+        filled = len(e) - self.window >= self._start
+        r = _ratio(e[-1], e[-self.window]) if filled else 0.0
+        plateau = self._refining and r > self.tau_step and epoch - self._last_check >= self.window
+        fell = e[-1] <= self.recheck * self._checked_at
+        if not (epoch >= self._next_check or plateau or fell):
+            return False, f"r={r:.4g}, next check at epoch {self._next_check}", None
+        cert = self._check(check)
+        self._last_check = epoch
+        if not cert.certified:
+            return True, cert.describe(), cert.gap
+        self._refining = False
+        self._checked_at = e[-1]
+        self._next_check = epoch + max(self.window, epoch - self._level_start)
+        logger.info("PRDP epoch %d: %s", epoch, cert.describe())
+        return False, cert.describe(), cert.gap
+
+    def _check(self, check) -> Certificate:
+        at_k, at_full = check(self._k), check(self.k_full)
+        size = (lambda v: _norm(_flat(v))) if not isinstance(at_full, float | int) else float
+        cert = Certificate(
+            k=self._k, k_full=self.k_full, at_k=size(at_k), at_full=size(at_full),
+            gap=fidelity_gap(at_k, at_full), tol=self.tol, epoch=len(self._history),
+        )  # fmt: skip
+        self._checks.append(cert)
+        return cert
+
+    def certify(self, check: Callable[[int], object]) -> Certificate:
+        """Check the current K against `k_full` now (at the end of training).
+
+        One validation at K and one at K_full on the same weights (see `update`);
+        the result is kept in :attr:`checks`, read by :meth:`savings`.  A failed
+        certificate does not raise: K is not enough for the accuracy band, and the
+        savings of the run are reported as not certified.
+        """
+        if self.k_full is None:
+            raise ValueError("certify needs k_full (PRDP.for_problem(k_full) sets it)")
+        cert = self._check(check)
+        logger.info("PRDP end: %s", cert.describe())
+        return cert
 
     def to_rtol(self, rtol_init: float = 1e-1, factor: float = 0.5, rtol_min: float = 1e-10):
         """``rtol_from_level(self.level, ...)``: the Krylov rtol for the current K."""
         return rtol_from_level(self.level, rtol_init, factor, rtol_min)
 
-    def savings(self, k_full=None, *, costs=None, cost_full=None) -> dict[str, float]:
-        """:func:`savings` over the K's of :attr:`history` (or the given per-epoch costs)."""
-        return savings([s.k for s in self._history], k_full, costs=costs, cost_full=cost_full)
+    def savings(self, k_full=None, *, costs=None, cost_full=None) -> dict:
+        """:func:`savings` over the K's of :attr:`history`, with the accuracy status.
+
+        Besides ``total``, ``pr`` and ``ic``: ``certified`` (True / False from the
+        last check if it was made at the final K, see :meth:`certify`; None: not
+        checked, so the savings say nothing about accuracy), ``gap`` (that check's
+        fidelity gap or None) and ``checks`` (how many fidelity checks ran; each
+        cost one validation at K and one at K_full, which `costs` should include).
+        """
+        out = savings(
+            [s.k for s in self._history],
+            self.k_full if k_full is None else k_full,
+            costs=costs,
+            cost_full=cost_full,
+        )
+        cert = self._checks[-1] if self._checks else None
+        final = self._history[-1].k if self._history else self._k
+        if self.k_full is not None and final >= self.k_full:  # full fidelity itself
+            certified, gap = True, 0.0
+        elif cert is not None and cert.k == final:
+            certified, gap = cert.certified, cert.gap
+        else:
+            certified, gap = None, None
+        return {**out, "certified": certified, "gap": gap, "checks": len(self._checks)}
 
     def state_dict(self) -> dict:
         """Mutable state as plain (JSON-serialisable) Python objects; settings excluded."""
@@ -343,6 +635,9 @@ class PRDP:
             "k": self._k, "refining": self._refining, "checkpoint": self._checkpoint,
             "ema": list(self._ema), "start": self._start, "fresh": self._fresh,
             "history": [asdict(s) for s in self._history],
+            "checks": [asdict(c) for c in self._checks], "checked_at": self._checked_at,
+            "level_start": self._level_start, "next_check": self._next_check,
+            "last_check": self._last_check,
         }  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
@@ -358,3 +653,9 @@ class PRDP:
         self._fresh = bool(state.get("fresh", False))  # absent in older checkpoints
         self._ema = [float(x) for x in state["ema"]]
         self._history = [PRDPStep(**s) for s in state["history"]]
+        self._checks = [Certificate(**c) for c in state.get("checks", [])]
+        checked_at = state.get("checked_at")
+        self._checked_at = None if checked_at is None else float(checked_at)
+        self._level_start = int(state.get("level_start", 0))
+        self._next_check = int(state.get("next_check", self.window))
+        self._last_check = int(state.get("last_check", -self.window))

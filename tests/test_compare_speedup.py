@@ -211,7 +211,7 @@ def test_cli_routes_default_to_the_scene_and_empty_means_none():
     assert args.routes == ()
     args = parser.parse_args(["compare", "scene.py", "--out", "o", "--schedules", "prdp,rtol"])
     assert args.schedules == ("prdp", "rtol")
-    with pytest.raises(ValueError, match="schedules must be some of prdp, rtol"):
+    with pytest.raises(ValueError, match="schedules must be some of prdp, auto, rtol"):
         compare(HEAT1D, schedules=("prdp", "adaptive"), progress=False)
 
 

@@ -247,3 +247,13 @@ def test_the_elasticity_page_supports_the_guide():
     assert d["sizes"][0] == 8 and d["sizes"][-1] == 32 and 16 in d["sizes"]
     assert d["growth"]["modes"] <= 1.5 < d["growth"]["scalar"]
     assert all(r["reason"] == "CONVERGED_RTOL" for r in d["rows"])
+
+
+def test_prdp_loop_example_certifies_its_stop():
+    """docs/examples/prdp_loop.py: the default construction in a user's loop ends
+    certified below K_full, with the savings saying so."""
+    ns = runpy.run_path(str(DOCS / "examples" / "prdp_loop.py"))
+    prdp, savings = ns["prdp"], ns["savings"]
+    assert prdp.k_init == -(-ns["k_full"] // 8) and prdp.k_max == ns["k_full"]
+    assert ns["certificate"].certified and savings["certified"] is True
+    assert prdp.k < ns["k_full"] and savings["total"] > 0.4

@@ -124,9 +124,16 @@ def test_aggregate_on_hand_computed_rows():
     # (2 × 0.5 × 1)^(1/3) = 1; (1 × 1 × 4)^(1/3) = 4^(1/3)
     assert result["prdp_ratio"]["geometric_mean"] == pytest.approx(1.0)
     assert result["twin_ratio"]["geometric_mean"] == pytest.approx(4 ** (1 / 3))
+    # savings count only the seeds at equal accuracy (ratios 0.5 and 1.0 <= 1.05): the
+    # seed whose PRDP ended 2x full fidelity's error saved nothing
+    assert result["savings"]["seeds"] == 2
     saved = result["savings"]["iterations_saved"]
-    assert saved == pytest.approx({"mean": 0.5, "min": 0.2, "max": 0.8})
-    assert result["equal_accuracy"] == 2 and result["compared"] == 3  # 0.5 and 1.0 <= 1.05
+    assert saved == pytest.approx({"mean": 0.65, "min": 0.5, "max": 0.8})
+    assert result["equal_accuracy"] == 2 and result["compared"] == 3
+    assert "savings over the 2 of 3 seeds at equal accuracy" in format_seeds(result)
+    behind = _aggregate("s", [0], [_row(0, 2.0, twin=1.0, saved=0.9)])
+    assert behind["savings"] is None
+    assert "savings: none at equal accuracy" in format_seeds(behind)
 
 
 def test_cli_compare_seeds(tmp_path, capsys):

@@ -69,7 +69,7 @@ class DataSet:
     kind : str
         ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
         ``"work-precision"``, ``"rollouts"``, ``"horizon"``, ``"bench-mpi"``,
-        ``"bench-elasticity"`` or ``"ablation"``.
+        ``"bench-elasticity"``, ``"ablation"``, ``"unseen"`` or ``"defaults"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -97,6 +97,8 @@ class DataSet:
             "bench-mpi": "bench_mpi.json",
             "bench-elasticity": "bench_elasticity.json",
             "ablation": "ablation.json",
+            "unseen": "unseen.json",
+            "defaults": "defaults.json",
         }.get(self.kind)
         if key is None:  # work-precision: the one work_precision_<problem>.json
             key = next(k for k in self.files if k.startswith("work_precision_"))
@@ -109,6 +111,10 @@ class DataSet:
 
 
 def _kind(files: dict) -> str:
+    if "unseen.json" in files:
+        return "unseen"
+    if "defaults.json" in files:
+        return "defaults"
     if "ablation.json" in files:
         return "ablation"
     if "seeds.json" in files:

@@ -65,7 +65,7 @@ SCENE_SOLVER = "scene solver"
 PILOT = "pilot.json"
 
 #: The reduced-fidelity schedules `compare` can run next to full fidelity (``schedules``)
-REDUCED_SCHEDULES = ("prdp", "rtol")
+REDUCED_SCHEDULES = ("prdp", "auto", "rtol")
 
 
 def scene_routes(module, preset: str) -> tuple[str, ...]:
@@ -126,9 +126,10 @@ def compare(
         block) is skipped and reported.
     schedules : sequence of str
         The reduced-fidelity schedules to run on the scene's solver and on every
-        route, from `REDUCED_SCHEDULES`: ``"prdp"`` (the default) and ``"rtol"``, PRDP
-        moving PETSc's rtol under a generous cap instead of K
-        (`prdp_petsc.training.harness.run`).
+        route, from `REDUCED_SCHEDULES`: ``"prdp"`` (the default, the scene's PRDP
+        settings), ``"auto"`` (`PRDP.for_problem` from the route's K_full, with a
+        gradient check; the summary's ``auto``) and ``"rtol"``, PRDP moving PETSc's
+        rtol under a generous cap instead of K (`prdp_petsc.training.harness.run`).
     parallel : {None, "domain", "batch"}
         Every run uses the MPI ranks this way (`prdp_petsc.training.parallel`);
         rank 0 writes the files.
@@ -259,6 +260,8 @@ def compare(
                     prdp = (
                         _prdp_for(scene.prdp, k_full, k_fulls.get(route, k_full))
                         if schedule == "prdp"
+                        else {"k_full": k_fulls.get(route, k_full)}
+                        if schedule == "auto"
                         else {}  # rtol counts levels; fixed has no controller
                     )
                     done = _finished_run(folder, settings, prdp, target) if resume else None

@@ -19,13 +19,14 @@ import random
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..core.probe import find_k_full as probe_k_full
 from ..core.results import SolverError
-from ..core.solver import KSPSolver
 from ..errors import InputError, NonFiniteError, stop_reason
 from ..prdp import PRDP, rtol_from_level
 from .checkpoint import CHECKPOINT, load_checkpoint, restore, save_checkpoint
@@ -42,10 +43,12 @@ from .schedules import (
 )
 
 __all__ = [
+    "CHECK_SEED",
     "RESULTS",
     "build_scene",
     "check_epochs",
     "find_k_full",
+    "gradient_check",
     "load_trained",
     "release",
     "run",
@@ -58,6 +61,8 @@ logger = logging.getLogger(__name__)
 
 #: File name of a run's results in its output folder.
 RESULTS = "results.json"
+#: Seed of the generator that draws the ``auto`` schedule's fixed check batch
+CHECK_SEED = 20_261_125
 
 
 def positive_int(value, name: str) -> int:
@@ -110,15 +115,8 @@ def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
 
 
 def find_k_full(scene, max_it: int = 100_000) -> int:
-    """Iterations the scene's solver needs to reach ``scene.rtol_full`` on its probe.
-
-    Uses a clone of the first solver (options, prefix, null spaces), so
-    command-line options apply here too.  With a guess x0 in the probe, the count
-    is that of a solve from x0 stopped by PETSc's default test, ``‖r_k‖ ≤ rtol
-    ‖b‖`` in the KSP's norm (not relative to the smaller initial residual), so a
-    good guess also shortens the full-fidelity baseline.
-    """
-    ref: KSPSolver = scene.solvers[0]
+    """`prdp_petsc.find_k_full` of the scene's first solver on its probe, at
+    ``scene.rtol_full``."""
     system = scene.probe()
     if not (isinstance(system, tuple) and len(system) == 3):
         got = f"a {len(system)}-tuple" if isinstance(system, tuple) else type(system).__name__
@@ -127,36 +125,10 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
             f"start from zero; got {got}"
         )
     A, b, x0 = system
-    b = np.atleast_2d(b)
-    x0 = None if x0 is None else np.atleast_2d(x0)
-    iterations = []
-    with ref.clone(max_it=max_it, rtol=scene.rtol_full) as probe:
-        probe.set_operator(A)
-        for i, row in enumerate(b):
-            if x0 is not None:
-                probe.ksp.setConvergenceHistory(max_it + 1, reset=True)
-            count = _probe_solve(probe, row)
-            if x0 is not None:  # ‖b‖ in the KSP's norm, then the history from x0
-                target = scene.rtol_full * probe.ksp.getConvergenceHistory()[0]
-                probe.rtol = scene.rtol_full * 1e-3
-                _probe_solve(probe, row - A @ x0[i])
-                history = probe.ksp.getConvergenceHistory()
-                probe.rtol = scene.rtol_full
-                reached = np.flatnonzero(history <= target)
-                count = int(reached[0]) if len(reached) else count
-            iterations.append(count)
-    return max(iterations)
-
-
-def _probe_solve(probe: KSPSolver, row: np.ndarray) -> int:
-    probe.solve(row)
-    if not probe.last.converged:
-        raise SolverError(
-            f"the scene's solver did not reach rtol={probe.rtol} in {probe.max_it} "
-            f"iterations ({probe.last.reason}); K_full is undefined",
-            reason=probe.last.reason,
-        )
-    return probe.last.iterations
+    try:
+        return probe_k_full(scene.solvers[0], A, b, rtol=scene.rtol_full, x0=x0, max_it=max_it)
+    except SolverError as err:
+        raise SolverError(f"the scene's solver: {err}", reason=err.reason) from err
 
 
 def to_json(value):
@@ -372,6 +344,16 @@ def run(
             if plan.kind == "prdp" and "k_max" not in scene.prdp:  # past K_full buys nothing
                 with ranks.solvers():
                     scene.prdp["k_max"] = _k_cap(scene)
+            if plan.kind == "auto":  # the default construction: the scene's settings unused
+                if ranks.size > 1:
+                    raise InputError(
+                        "the 'auto' schedule's gradient check runs on one rank; use 'prdp' "
+                        "with --parallel"
+                    )
+                known = (prdp or {}).get("k_full") or ((recorded or {}).get("prdp") or {}).get(
+                    "k_full"
+                )  # compare's probe, or the resumed run's
+                scene.prdp = {"k_full": known or find_k_full(scene)}
             if plan.kind == "rtol":
                 with ranks.solvers():
                     result["rtol"] = _rtol_plan(scene, recorded)
@@ -574,7 +556,11 @@ def _train(
     from tqdm.auto import tqdm
 
     generator = torch.Generator().manual_seed(torch_seed)
-    controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
+    check = gradient_check(scene) if plan.kind == "auto" else None
+    if plan.kind == "auto":
+        controller = PRDP.for_problem(scene.prdp["k_full"])
+    else:
+        controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
     levels = result.get("rtol") if plan.kind == "rtol" else None
     start = 0
     if state is not None:
@@ -611,6 +597,10 @@ def _train(
                     scene.scheduler.step()
                 metric = ranks.validate(scene)
                 _check_finite(metric, "the validation metric")
+                if controller is not None:  # its checks' solves count in this epoch's costs
+                    following = ranks.agree(controller.update(metric, check=check))
+                if check is not None and epoch == epochs - 1:  # the certified end
+                    _certify(controller, check, result)
             except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
                 logger.error("epoch %d: %s", epoch, err)
                 result["stopped"] = {
@@ -650,7 +640,6 @@ def _train(
             result["epochs"].append(record)
             bar.set_postfix(K=k, val=f"{metric:.3e}", **({"rtol": f"{rtol:.0e}"} if rtol else {}))
             if controller is not None:
-                following = ranks.agree(controller.update(metric))
                 if levels:  # rtol: the level moves, the cap stays
                     level = following - controller.k_min
                 else:
@@ -667,6 +656,43 @@ def _train(
                 write_json(out / RESULTS, result)
     finally:
         bar.close()
+
+
+def _certify(controller: PRDP, check, result: dict) -> None:
+    """The last epoch's certificate into ``result["certificate"]``."""
+    cert = controller.certify(check)
+    result["certificate"] = {**asdict(cert), "certified": cert.certified}
+    logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
+
+
+def gradient_check(scene):
+    """The ``auto`` schedule's check: ``k -> ∂L/∂w`` of the training loss on one fixed
+    batch, every scene solver capped at k, no optimiser step (see `prdp_petsc.PRDP`).
+
+    The batch is the first of ``scene.batches(0, ...)`` under a generator seeded
+    `CHECK_SEED`, the same for every check of the run; parameters the loss does not
+    reach contribute zeros.
+    """
+    batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
+    params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]
+
+    def check(k: int) -> np.ndarray:
+        saved = [s.max_it for s in scene.solvers]
+        for s in scene.solvers:
+            s.max_it = k
+        try:
+            grads = torch.autograd.grad(scene.loss(batch), params, allow_unused=True)
+        finally:
+            for s, k_saved in zip(scene.solvers, saved, strict=True):
+                s.max_it = k_saved
+        return np.concatenate(
+            [
+                (torch.zeros_like(p) if g is None else g).detach().reshape(-1).double().numpy()
+                for p, g in zip(params, grads, strict=True)
+            ]
+        )
+
+    return check
 
 
 def _check_finite(value: float, what: str) -> None:

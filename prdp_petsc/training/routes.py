@@ -33,6 +33,8 @@ import re
 import warnings
 from collections.abc import Iterator, Mapping
 
+from ..prdp import ACCURACY_BAND
+
 __all__ = [
     "AUTO",
     "REACH_FACTOR",
@@ -46,7 +48,7 @@ __all__ = [
 ]
 
 #: a run "reaches" the full-fidelity error when within this factor of it
-REACH_FACTOR = 1.05
+REACH_FACTOR = 1.0 + ACCURACY_BAND
 
 
 #: ``compare --routes auto``: a pilot picks one of the scene's routes; no route's name

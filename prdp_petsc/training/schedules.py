@@ -1,7 +1,9 @@
-"""K schedules of a training run: ``"prdp"``, ``"fixed:K"`` and ``"rtol"``.
+"""K schedules of a training run: ``"prdp"``, ``"auto"``, ``"fixed:K"`` and ``"rtol"``.
 
 ``prdp`` lets `prdp_petsc.PRDP` raise the iteration cap K (``max_it``, with
-``rtol = atol = 0``); ``fixed:K`` keeps K; ``rtol`` is the same controller moving
+``rtol = atol = 0``) with the scene's own settings; ``auto`` does the same with the
+default construction, ``PRDP.for_problem(K_full)`` and a gradient check (the scene's
+settings ignored); ``fixed:K`` keeps K; ``rtol`` is the same controller moving
 PETSc's own relative tolerance instead, one refinement level at a time
 (`prdp_petsc.rtol_from_level`), under a generous cap.  The harness
 (`prdp_petsc.training.harness.run`) applies them.
@@ -32,23 +34,26 @@ RTOL_MAX_IT_FACTOR = 10
 
 
 class Schedule(NamedTuple):
-    """A parsed schedule: ``kind`` ``"prdp"``, ``"fixed"`` or ``"rtol"``; ``k`` for fixed."""
+    """A parsed schedule: ``kind`` ``"prdp"``, ``"auto"``, ``"fixed"`` or ``"rtol"``; ``k``
+    for fixed."""
 
     kind: str
     k: int | None = None
 
 
 def parse_schedule(schedule: str) -> Schedule:
-    """``"prdp"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`; ValueError else.
+    """``"prdp"``, ``"auto"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`.
 
     ``"prdp"`` raises the iteration cap K (``max_it``, with ``rtol = atol = 0``) as
-    `prdp_petsc.PRDP` decides; ``"fixed:K"`` keeps it at K; ``"rtol"`` is PRDP moving
-    PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖`` under a
-    generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol = ``rtol_from_level(level,
-    RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and the same controller's
-    plateau test raises the level by one (see `run`).
+    `prdp_petsc.PRDP` decides with the scene's settings; ``"auto"`` as
+    ``PRDP.for_problem(K_full)`` decides, certifying with the gradient of the training
+    loss on a fixed batch at K against K_full; ``"fixed:K"`` keeps it at K; ``"rtol"``
+    is PRDP moving PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖``
+    under a generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol =
+    ``rtol_from_level(level, RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and
+    the same controller's plateau test raises the level by one (see `run`).
     """
-    if schedule in ("prdp", "rtol"):
+    if schedule in ("prdp", "auto", "rtol"):
         return Schedule(schedule)
     if isinstance(schedule, str) and schedule.startswith("fixed:"):
         try:
@@ -57,7 +62,9 @@ def parse_schedule(schedule: str) -> Schedule:
             k = 0
         if k >= 1:
             return Schedule("fixed", k)
-    raise ValueError(f"schedule must be 'prdp', 'rtol' or 'fixed:K' with K >= 1, got {schedule!r}")
+    raise ValueError(
+        f"schedule must be 'prdp', 'auto', 'rtol' or 'fixed:K' with K >= 1, got {schedule!r}"
+    )
 
 
 def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR):

@@ -44,6 +44,7 @@ from .summary import ACCURACY_RATIO, format_table, stopped_runs
 __all__ = [
     "SPEEDUP_GOAL",
     "compare_seeds",
+    "equal_accuracy_savings",
     "format_seeds",
     "lever_ratios",
     "optional_ratio_statistics",
@@ -114,6 +115,21 @@ def optional_ratio_statistics(ratios: list[float]) -> dict:
 
 def _spread(values: list[float]) -> dict:
     return {"mean": sum(values) / len(values), "min": min(values), "max": max(values)}
+
+
+def equal_accuracy_savings(per_seed: list[dict]) -> dict | None:
+    """Savings over the seeds whose PRDP run reached full-fidelity accuracy only.
+
+    A seed whose PRDP ended more than `ACCURACY_RATIO` times full fidelity's error
+    saved nothing at equal accuracy, so its iterations do not count.  Returns
+    ``{"seeds": n, "iterations_saved": spread, "wall_time_saved": spread}`` (mean,
+    min, max over those n seeds), or None when no seed reached equal accuracy.
+    """
+    equal = [r for r in per_seed if r.get("equal_accuracy")]
+    if not equal:
+        return None
+    keys = ("iterations_saved", "wall_time_saved")
+    return {"seeds": len(equal), **{key: _spread([r[key] for r in equal]) for key in keys}}
 
 
 def compare_seeds(scene_file, seeds: list[int], *, out="results", **kwargs) -> dict:
@@ -266,9 +282,7 @@ def _aggregate(scene: str, seeds: list[int], per_seed: list[dict]) -> dict:
     twins = [r["twin_ratio"] for r in done if r.get("twin_ratio") is not None]
     if twins:
         result["twin_ratio"] = ratio_statistics(twins)
-    result["savings"] = {
-        key: _spread([r[key] for r in done]) for key in ("iterations_saved", "wall_time_saved")
-    }
+    result["savings"] = equal_accuracy_savings(done)
     result["equal_accuracy"] = sum(r["equal_accuracy"] for r in done)
     result["compared"] = len(done)
     return result
@@ -389,11 +403,7 @@ def format_seeds(result: dict) -> str:
     speedup = _speedup_lines(result.get("speedup"))
     if "prdp_ratio" not in result:
         return "\n".join([*lines, "no seed gave PRDP and K_full over the same epochs", *speedup])
-    s = result["savings"]
-    lines.append(
-        f"savings over {result['compared']} seeds: inner iterations "
-        f"{_pct(s['iterations_saved'])}, wall time {_pct(s['wall_time_saved'])}"
-    )
+    lines.append(_savings_line(result))
     lines.append(_ratio_line("PRDP / full", result["prdp_ratio"]))
     if "twin_ratio" in result:
         lines.append(_ratio_line("twin / full", result["twin_ratio"]))
@@ -468,3 +478,17 @@ def _ratio_line(name: str, stats: dict) -> str:
         lo, hi = stats["interval"]
         line += f", 95 % interval {lo:.3f}–{hi:.3f}"
     return line + f" (n = {stats['n']})"
+
+
+def _savings_line(result: dict) -> str:
+    """Savings over the seeds at equal accuracy only, saying how many of them there were."""
+    s = equal_accuracy_savings(result["per_seed"])
+    if s is None:
+        return (
+            f"savings: none at equal accuracy (PRDP ended more than {ACCURACY_RATIO}x full "
+            f"fidelity's error on all {result['compared']} seeds compared)"
+        )
+    return (
+        f"savings over the {s['seeds']} of {result['compared']} seeds at equal accuracy: "
+        f"inner iterations {_pct(s['iterations_saved'])}, wall time {_pct(s['wall_time_saved'])}"
+    )

@@ -1,0 +1,138 @@
+"""A shipped scene with PRDP's default construction beside its tuned settings.
+
+``prdp-petsc defaults SCENE_FILE --preset P --seeds 0-2 --out DIR`` trains, per seed,
+full fidelity (constant K_full), the scene's tuned PRDP (schedule ``prdp``, its
+preset's ``k_init``, ``k_step``, ``tau_step``, ...) and the default construction
+(schedule ``auto``: ``PRDP.for_problem(K_full)`` with a gradient check, the scene's
+settings unused), and writes ``DIR/defaults.json``: every run's final validation
+error, inner iterations (forward and adjoint, the checks included), final K and
+certificate, and per schedule the geometric mean of the error ratios over full
+fidelity with the savings over the seeds at equal accuracy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+__all__ = ["SCHEDULES", "defaults", "format_defaults", "main"]
+
+logger = logging.getLogger(__name__)
+
+#: the reduced schedules compared, by the name the page gives them
+SCHEDULES = {"tuned": "prdp", "default": "auto"}
+
+
+def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None) -> dict:
+    """Full fidelity, the tuned PRDP and the default construction on every seed."""
+    from ..training.harness import build_scene, find_k_full, load_scene, release, run
+    from ..training.seeds import ratio_statistics
+    from ..training.summary import ACCURACY_RATIO
+
+    module = load_scene(scene_file)
+    per_seed = []
+    for seed in seeds:
+        scene = build_scene(module, preset, seed)
+        k_full = find_k_full(scene)
+        release(scene)
+        row = {"seed": seed, "k_full": k_full}
+        runs = {"full": f"fixed:{k_full}", **SCHEDULES}
+        for name, schedule in runs.items():
+            folder = None if out is None else Path(out) / f"seed_{seed}" / name
+            prdp = {"k_full": k_full} if schedule == "auto" else None
+            log = run(scene_file, schedule, preset=preset, seed=seed, threads=threads,
+                      progress=False, module=module, out=folder, prdp=prdp)  # fmt: skip
+            t = log["totals"]
+            row[name] = {
+                "final_val_error": t.get("final_val_error"),
+                "iterations": t.get("fwd_iterations", 0) + t.get("adj_iterations", 0),
+                "wall_time": t.get("wall_time"),
+                "k_final": t.get("k_final"),
+                "stopped": log["stopped"],
+                "certified": (log.get("certificate") or {}).get("certified"),
+            }
+        full = row["full"]
+        for name in SCHEDULES:
+            r = row[name]
+            if r["stopped"] or full["stopped"]:
+                continue
+            r["ratio"] = r["final_val_error"] / full["final_val_error"]
+            r["saved"] = 1.0 - r["iterations"] / full["iterations"]
+            r["equal_accuracy"] = r["ratio"] <= ACCURACY_RATIO
+        per_seed.append(row)
+    result = {"scene": Path(scene_file).stem, "preset": preset, "seeds": list(seeds),
+              "per_seed": per_seed, "schedules": dict(SCHEDULES)}  # fmt: skip
+    for name in SCHEDULES:
+        done = [r[name] for r in per_seed if "ratio" in r[name]]
+        if not done:
+            continue
+        equal = [r for r in done if r["equal_accuracy"]]
+        result[name] = {
+            "ratio": ratio_statistics([r["ratio"] for r in done]),
+            "equal_accuracy": len(equal),
+            "compared": len(done),
+            "saved_at_equal_accuracy": (
+                sum(r["saved"] for r in equal) / len(equal) if equal else None
+            ),
+            "certified": sum(bool(r["certified"]) for r in done),
+        }
+    return result
+
+
+def format_defaults(result: dict) -> str:
+    """The table ``prdp-petsc defaults`` prints: one row per seed, then the summary."""
+    lines = [
+        f"{result['scene']} --preset {result['preset']}: full fidelity, tuned PRDP "
+        "(the preset's settings) and the default construction (PRDP.for_problem)",
+        f"{'seed':>4}{'K_full':>8}{'full error':>12}"
+        + "".join(f"{n + ' ratio':>15}{n + ' saved':>14}{n + ' K':>10}" for n in SCHEDULES),
+    ]
+    for row in result["per_seed"]:
+        cells = f"{row['seed']:>4}{row['k_full']:>8}{row['full']['final_val_error']:>12.4e}"
+        for name in SCHEDULES:
+            r = row[name]
+            if "ratio" not in r:
+                cells += f"{'stopped':>15}{'':>14}{'':>10}"
+                continue
+            mark = "" if r["certified"] is None else (" c" if r["certified"] else " !")
+            cells += f"{r['ratio']:>15.3f}{100 * r['saved']:>13.1f}%{r['k_final']:>8}{mark:>2}"
+        lines.append(cells)
+    for name in SCHEDULES:
+        s = result.get(name)
+        if s is None:
+            lines.append(f"{name}: no seed finished")
+            continue
+        ci = s["ratio"]["interval"]
+        interval = "" if not ci else f" (95 % interval {ci[0]:.3f}-{ci[1]:.3f})"
+        saved = s["saved_at_equal_accuracy"]
+        lines.append(
+            f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{interval}; "
+            f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
+            + (f", {100 * saved:.1f} % fewer inner iterations there" if saved is not None else "")
+            + (f"; certified on {s['certified']}" if name == "default" else "")
+        )
+    lines.append("(c: the default construction's last check certified its final K; !: it did not)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    from ..training.harness import torch_threads
+    from ..training.seeds import parse_seeds
+
+    parser = argparse.ArgumentParser(prog="prdp-petsc defaults", description=__doc__.split("\n")[0])
+    parser.add_argument("scene_file")
+    parser.add_argument("--preset", default="paper")
+    parser.add_argument("--seeds", default="0-2", type=parse_seeds)
+    parser.add_argument("--threads", default=1, type=int)
+    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--debug", action="store_true", help="tracebacks on errors")
+    args = parser.parse_args(argv)
+    with torch_threads(args.threads):
+        result = defaults(args.scene_file, args.preset, args.seeds, threads=args.threads,
+                          out=args.out)  # fmt: skip
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "defaults.json").write_text(json.dumps(result, indent=1))
+    print(format_defaults(result))
+    return 0
