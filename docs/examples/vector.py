@@ -155,9 +155,7 @@ ROBUST_GAMG = {
 def simp_contrast(n: int = 30, e_min: float = 1e-9) -> dict:
     """A clamped 2:1 plate (E = 1) with four void holes (E = 1e-9), SIMP penalty 3."""
     x, y = np.linspace(0.0, 2.0, 2 * n + 1), np.linspace(0.0, 1.0, n + 1)
-    basis = skfem.Basis(
-        skfem.MeshTri.init_tensor(x, y), skfem.ElementVector(skfem.ElementTriP1())
-    )
+    basis = skfem.Basis(skfem.MeshTri.init_tensor(x, y), skfem.ElementVector(skfem.ElementTriP1()))
     A = pp.elasticity_operator(basis)
     bc = pp.Dirichlet(A, basis.get_dofs(lambda x: np.isclose(x[0], 0.0)).all())
     cx, cy = basis.mesh.p[:, basis.mesh.t].mean(axis=1)  # element centroids
