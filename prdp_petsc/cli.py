@@ -13,7 +13,7 @@ Sub-commands::
                    [--checkpoint-every N] [--resume]
                    --out DIR [PETSc options]
     prdp-petsc scene SCENE_FILE [NAME [ARGS ...]] [--debug] [PETSc options]
-    prdp-petsc bench bridge|mpi --out DIR
+    prdp-petsc bench bridge|mpi|elasticity --out DIR
     prdp-petsc work-precision PROBLEM --out DIR [--k-max K] [--routes cg/gamg,...]
     prdp-petsc stability --out DIR
     prdp-petsc pages --out docs/results

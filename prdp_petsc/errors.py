@@ -9,6 +9,11 @@ The taxonomy tells a caller, and the training harness, what to do:
 `SolverError`
     A PETSc solve really failed (NaN in the iteration, breakdown, indefinite PC,
     DIVERGED_DTOL, a PC without a transpose).  Hitting ``max_it`` is not an error.
+
+    `SingularOperatorError`
+        The operator is singular and no null space that covers its kernel was
+        declared (elasticity without Dirichlet conditions, a pure Neumann problem):
+        the iterate blew up along a null vector.  Declare ``nullspace=``.
 `InputError`
     The library was given something it cannot use.  A ``ValueError``, so code that
     catches ``ValueError`` keeps working.  Subclasses name the kind:
@@ -36,9 +41,11 @@ __all__ = [
     "MeshError",
     "NonFiniteError",
     "PrdpPetscError",
+    "SingularOperatorError",
     "SolverError",
     "StructureError",
     "UnusedOptionWarning",
+    "plain",
     "stop_reason",
 ]
 
@@ -64,6 +71,23 @@ class SolverError(PrdpPetscError, RuntimeError):
     def __init__(self, message: str, reason: str = "UNKNOWN"):
         super().__init__(message)
         self.reason = reason
+
+
+class SingularOperatorError(SolverError):
+    """The operator is singular and its null space was not declared (or not all of it).
+
+    Raised when a solve returns, or breaks down at, an iterate x that is a null vector
+    of A to the tolerance a declared null vector must meet (``‖A x‖ ≤ 1e-8 ‖A‖ ‖x‖``)
+    while the true residual ``‖b − A x‖`` was not reduced: Krylov iterates grew along
+    the kernel (rigid-body modes of elasticity without Dirichlet conditions, the
+    constants of a pure Neumann problem) instead of converging.  Declare the kernel,
+    e.g. ``KSPSolver(nullspace=rigid_body_modes(basis))`` or ``nullspace="constant"``,
+    or add boundary conditions.  `reason` is ``"SINGULAR"``; the message names PETSc's
+    own reason.
+    """
+
+    def __init__(self, message: str, reason: str = "SINGULAR"):
+        super().__init__(message, reason)
 
 
 class InputError(PrdpPetscError, ValueError):
@@ -112,3 +136,14 @@ def stop_reason(error: BaseException) -> str | None:
     if isinstance(error, SolverError | InputError):
         return error.reason
     return None
+
+
+def plain(value):
+    """`value` as an error message should show it: numpy scalars and arrays (also
+    inside tuples and lists) as Python numbers and lists, so that a message says
+    ``482``, not ``np.int32(482)`` (numpy 2's repr).  Anything else is returned as is.
+    """
+    if isinstance(value, tuple | list):
+        return type(value)(plain(v) for v in value)
+    tolist = getattr(value, "tolist", None)
+    return tolist() if callable(tolist) and type(value).__module__ == "numpy" else value

@@ -286,3 +286,57 @@ def test_unrolled_mode_refuses_a_null_space():
     solver = pp.KSPSolver({"ksp_type": "cg"}, max_it=3, nullspace="constant")
     with pytest.raises(ValueError, match="null space"):
         pp.solve(fd_poisson(3), randn(9, seed=1), solver, mode="unrolled")
+
+
+# -- torch.func and the numbers in messages ------------------------------------------------------
+@pytest.mark.parametrize("transform", ["vmap", "grad", "jacrev", "vmap_b"])
+def test_torch_func_transforms_are_refused_by_name(problem, transform):
+    """torch.func passes tensors without storage, which no PETSc solve can read: an
+    `InputError` that points to the batch of operators, θ of shape (B, p)."""
+    _, A, theta = problem
+    b = torch.ones(A.shape[0], dtype=torch.float64)
+    solver = fresh_solver(max_it=20)
+
+    def loss(t):
+        return pp.solve(A, b, solver, theta=t).sum()
+
+    run = {
+        "vmap": lambda: torch.func.vmap(loss)(theta.expand(3, -1).clone()),
+        "grad": lambda: torch.func.grad(loss)(theta),
+        "jacrev": lambda: torch.func.jacrev(lambda t: pp.solve(A, b, solver, theta=t))(theta),
+        "vmap_b": lambda: torch.func.vmap(lambda v: pp.solve(A, v, solver, theta=theta))(
+            b.expand(3, -1).clone()
+        ),
+    }[transform]
+    with pytest.raises(pp.InputError, match=r"theta of shape \(B, p\)") as info:
+        run()
+    assert "torch.autograd" in str(info.value)
+    assert_untouched(solver)
+
+
+def test_messages_print_plain_numbers():
+    """scikit-fem counts dofs in int32: a shape built from them printed
+    ``(np.int32(81), np.int32(81))``."""
+    import scipy.sparse as sp
+
+    A = pp.diffusion_operator(unit_square(2))
+    assert all(type(s) is int for s in A.shape)
+    with pytest.raises(pp.InputError) as info:
+        A + sp.identity(3)
+    assert "np." not in str(info.value) and "(25, 25)" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        lambda: pp.KSPSolver(max_it=np.int32(0)),
+        lambda: pp.KSPSolver(max_it=5, rtol=np.float64(-1.0)),
+        lambda: pp.KSPSolver(max_it=5, block_size=np.int64(0)),
+        lambda: pp.KSPSolver(max_it=5, pc_lag=np.int64(0)),
+        lambda: pp.laplacian((np.int32(0), 4)),
+    ],
+)
+def test_validation_messages_print_numpy_values_as_numbers(bad):
+    with pytest.raises(pp.InputError) as info:
+        bad()
+    assert "np." not in str(info.value), str(info.value)

@@ -188,3 +188,27 @@ def test_child_env_drops_the_mpi_runtime_of_this_process(monkeypatch):
         k.startswith("PMIX_") or k in ("OMPI_MCA_ess", "OMPI_MCA_orte_launch") for k in env
     )
     assert env["OMPI_MCA_rmaps_base_oversubscribe"] == "1" and env["OMP_NUM_THREADS"] == "1"
+
+
+def test_bench_elasticity_records_every_declaration(tmp_path):
+    """`prdp-petsc bench elasticity --quick`: three declarations per size, the modes'
+    error at K against its own converged solution, and growth from the counts."""
+    assert main(["elasticity", "--quick", "--out", str(tmp_path)]) == 0
+    data = json.loads((tmp_path / "bench_elasticity.json").read_text())
+    rows = data["rows"]
+    assert [(r["cells"], r["variant"]) for r in rows] == [
+        (n, v) for n in (2, 4) for v in ("scalar", "block", "modes")
+    ]
+    for r in rows:
+        assert r["reason"] == "CONVERGED_RTOL" and r["relative_residual"] <= 1e-6
+        assert (r["block_size"], r["near_nullspace"]) == {
+            "scalar": (1, 0), "block": (3, 0), "modes": (3, 6)
+        }[r["variant"]]  # fmt: skip
+    assert rows[3]["unknowns"] == 3 * 5 * 5 * 4  # 4³ cells, the face x = 0 clamped
+    for v in ("scalar", "block", "modes"):
+        counts = [r["iterations"] for r in rows if r["variant"] == v]
+        assert data["growth"][v] == counts[-1] / counts[0]
+    assert "machine" in data and data["settings"]["quick"] is True
+    from prdp_petsc.reports.bench_elasticity import format_report
+
+    assert "| 4³ | 300 | block size 3, 6 modes |" in format_report(data)

@@ -130,3 +130,13 @@ def test_owned_layout_on_one_process_equals_the_serial_bridge():
     for got, expected in zip(results[1], results[0], strict=True):
         assert np.abs(got - expected).max() <= 1e-12 * np.abs(expected).max()
     piece.destroy()
+
+
+def test_the_owned_layout_refuses_vector_fields_clearly():
+    """An elasticity operator (3 unknowns per vertex) on a partitioned mesh: refused,
+    saying what the owned layout holds and what to use instead."""
+    mesh = _tets()
+    piece = PartitionedMesh.distribute(mesh, PETSc.COMM_SELF)
+    vector = skfem.Basis(piece.mesh, skfem.ElementVector(skfem.ElementTetP1()))
+    with pytest.raises(pp.InputError, match="3 unknowns per vertex.*replicated layout"):
+        DistributedParametricMatrix.from_local(pp.elasticity_operator(vector), piece)

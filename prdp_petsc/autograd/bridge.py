@@ -87,7 +87,7 @@ def _solve_each(
         try:
             out[i] = run(rhs[i])
         except SolverError as err:
-            raise SolverError(f"sample {i} of the batch: {err}", reason=err.reason) from err
+            raise type(err)(f"sample {i} of the batch: {err}", reason=err.reason) from err
         calls[i] = getattr(solver, kind)
     # one record of the whole batch, in batch order (the solves ran one per sample)
     setattr(solver, kind, CallInfo.concat(calls[i] for i in range(len(data))))

@@ -4,6 +4,13 @@ Shared by `prdp_petsc.autograd.bridge`, `~prdp_petsc.autograd.dirichlet` and
 `~prdp_petsc.autograd.nonlinear`, so every entry point refuses the same inputs
 with the same errors: a wrong type is a ``TypeError``, a wrong shape an
 `prdp_petsc.errors.InputError`, NaN or Inf a `prdp_petsc.errors.NonFiniteError`.
+
+PETSc solves numbers, so every tensor is read as a numpy array.  Under a
+``torch.func`` transform (``vmap``, ``grad``, ``jacrev``, ...) the tensors a
+function sees are wrappers without storage, which no numpy code (and so no PETSc
+solve) can read: they are refused with an `InputError` that names what works
+instead (a batch of operators θ of shape (B, p); ``torch.autograd`` for
+gradients), rather than torch's own "Cannot access data pointer" error.
 """
 
 from __future__ import annotations
@@ -26,7 +33,18 @@ def as_numpy(t: torch.Tensor, name: str, *, finite: bool = True) -> np.ndarray:
         raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
     if t.dtype != torch.float64:
         raise TypeError(f"{name} must be float64 (got {t.dtype}); call .double() first")
-    arr = t.detach().cpu().numpy()
+    try:
+        arr = t.detach().cpu().numpy()
+    except RuntimeError as err:
+        if "storage" not in str(err):
+            raise
+        raise InputError(
+            f"{name} is a tensor without storage, as torch.func transforms (vmap, grad, "
+            "jacrev, ...) pass them: they cannot see inside a PETSc solve. For one solve per "
+            "sample pass a batch of operators, theta of shape (B, p) with b of shape (B, n), "
+            "in one call (each sample gets its own dL/dtheta_i); for gradients use "
+            "torch.autograd (loss.backward() or torch.autograd.grad)"
+        ) from err
     if finite:
         check_finite(arr, name)
     return arr

@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 from petsc4py import PETSc
 
-from ..errors import InputError, UnusedOptionWarning
+from ..errors import InputError, UnusedOptionWarning, plain
 from .options import option_value, parse_options, prefixed_options
 from .settings import AdjointSettings, check_tolerances
 
@@ -44,7 +44,7 @@ class Configuration:
     def __init__(self, options, prefix: str, max_it, rtol, atol, adjoint, divtol):
         check_tolerances(max_it, rtol, atol)
         if divtol is not None and not (np.isfinite(divtol) and divtol > 0):
-            raise InputError(f"divtol must be finite and > 0, got {divtol!r}")
+            raise InputError(f"divtol must be finite and > 0, got {plain(divtol)!r}")
         self.options = parse_options(options)
         refuse_tolerance_options(self.options, "options", "max_it=, rtol=, atol=, divtol=")
         if adjoint is None:

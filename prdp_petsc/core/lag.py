@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 from petsc4py import PETSc
 
-from ..errors import InputError
+from ..errors import InputError, plain
 from .results import SolveInfo, SolverStats
 
 __all__ = ["PCLag"]
@@ -76,9 +76,9 @@ class PCLag:
 
     def __init__(self, lag: int, tol: float) -> None:
         if isinstance(lag, bool) or not isinstance(lag, int) or lag < 1:
-            raise InputError(f"pc_lag must be an integer >= 1, got {lag!r}")
+            raise InputError(f"pc_lag must be an integer >= 1, got {plain(lag)!r}")
         if isinstance(tol, bool) or not isinstance(tol, int | float) or not (1 <= tol < math.inf):
-            raise InputError(f"pc_lag_tol must be a finite number >= 1, got {tol!r}")
+            raise InputError(f"pc_lag_tol must be a finite number >= 1, got {plain(tol)!r}")
         self.lag = lag
         self.tol = float(tol)
         self.changes = 0  # operator value changes (and new Mats) so far

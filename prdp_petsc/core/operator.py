@@ -9,6 +9,10 @@ PETSc sets the preconditioner up again only when the values really changed.
 Symmetry decides which maths the adjoint runs, so it is declared by the caller
 where known, otherwise tested entry against mirror whenever the values change.
 
+A block size (the d unknowns of a node of a d-dimensional vector field) is given
+to every Mat made here (``MatSetBlockSize``), and the rows of the replicated
+layout are split between the ranks by whole blocks; a caller's Mat gets it too.
+
 An `OwnedCSR` holds only this rank's rows of a distributed matrix (the *owned*
 layout of `prdp_petsc.core.parallel`); it becomes an MPIAIJ Mat built from those
 rows alone, and later values with the same pattern are set the same way.  Every
@@ -26,6 +30,7 @@ from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
 from .parallel import ownership_range
+from .safeguards import operator_norm
 from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 
 __all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr"]
@@ -132,10 +137,13 @@ class OperatorMat:
         True when the Mat was made here from a CSR matrix every rank holds in full
         (vectors are full length), False for a caller's Mat (vectors hold the
         rank's own rows).
+    block_size : int
+        Rows per block (``MatSetBlockSize``) of every Mat held here.
     """
 
-    def __init__(self, comm=None):
+    def __init__(self, comm=None, block_size: int = 1):
         self.comm = PETSc.COMM_SELF if comm is None else comm
+        self.block_size = int(block_size)
         self.mat: PETSc.Mat | None = None
         self.replicated = True
         self.symmetric = False
@@ -147,6 +155,7 @@ class OperatorMat:
         self._data: np.ndarray | None = None  # the caller's values array, for an `is` test
         self._values: np.ndarray | None = None
         self._tperm: np.ndarray | None = None
+        self._norm: tuple[int, float] | None = None  # (version, ‖A‖) of `norm`
 
     def update(self, A, symmetric: bool | None = None) -> str:
         """Hold operator `A`; return what changed.
@@ -159,6 +168,7 @@ class OperatorMat:
         if isinstance(A, PETSc.Mat):
             if A is self.mat:
                 return "same"
+            self._set_block_size(A)
             self.destroy()
             self.mat = A
             self.replicated = False
@@ -190,6 +200,10 @@ class OperatorMat:
             self._mark_symmetry(symmetric)
             self.version += 1
             return "values"
+        if shape[0] % self.block_size:
+            raise InputError(
+                f"the operator has {shape[0]} rows, not a multiple of block_size={self.block_size}"
+            )
         self.destroy()
         ip = np.asarray(indptr, dtype=PETSc.IntType)
         ix = np.asarray(indices, dtype=PETSc.IntType)
@@ -227,13 +241,19 @@ class OperatorMat:
             self.mat.setValuesCSR(self._pattern[0], self._pattern[1], A.data)
             self.mat.assemble()
         else:
+            (m, n), (M, N) = A.local_shape, A.shape
+            if not _all_ranks(A.comm, m % self.block_size == 0 and n % self.block_size == 0)[0]:
+                raise InputError(
+                    f"block_size={self.block_size} does not divide the rows of every rank "
+                    f"(here {m}): the owned layout splits rows by mesh vertices, so it "
+                    "carries a block size only if every rank owns whole blocks"
+                )
             self.destroy()
             ip = np.asarray(A.indptr, dtype=PETSc.IntType)
             ix = np.asarray(A.indices, dtype=PETSc.IntType)
             self._pattern = (ip, ix, ("owned", A.shape, A.local_shape))
-            (m, n), (M, N) = A.local_shape, A.shape
             self.mat = PETSc.Mat().createAIJ(
-                size=((m, M), (n, N)), csr=(ip, ix, A.data), comm=A.comm
+                size=((m, M), (n, N)), bsize=self.block_size, csr=(ip, ix, A.data), comm=A.comm
             )
             self.mat.assemble()
             self._owned = True
@@ -250,7 +270,7 @@ class OperatorMat:
         ip, ix, shape = self._pattern
         if self.comm.getSize() == 1:
             return ip, ix, data
-        start, end = ownership_range(shape[0], self.comm)
+        start, end = ownership_range(shape[0], self.comm, self.block_size)
         lo, hi = int(ip[start]), int(ip[end])
         return ip[start : end + 1] - ip[start], ix[lo:hi], data[lo:hi]
 
@@ -262,8 +282,23 @@ class OperatorMat:
         else:
             rows = len(ip) - 1
             size = ((rows, shape[0]), (rows, shape[1]))
-        self.mat = PETSc.Mat().createAIJ(size=size, csr=(ip, ix, local), comm=self.comm)
+        self.mat = PETSc.Mat().createAIJ(
+            size=size, bsize=self.block_size, csr=(ip, ix, local), comm=self.comm
+        )
         self.mat.assemble()
+
+    def _set_block_size(self, mat: PETSc.Mat) -> None:
+        """Give a caller's Mat the block size (``MatSetBlockSize``), if it has another."""
+        if self.block_size == 1 or mat.getBlockSize() == self.block_size:
+            return
+        try:
+            mat.setBlockSize(self.block_size)
+        except PETSc.Error as err:
+            raise InputError(
+                f"the caller's Mat has block size {mat.getBlockSize()} and PETSc refused "
+                f"block_size={self.block_size} ({err}); create it with that block size "
+                "(MatSetBlockSize before its preallocation)"
+            ) from err
 
     def _set_values(self, data: np.ndarray) -> None:
         ip, ix, local = self._local_rows(data)
@@ -311,6 +346,13 @@ class OperatorMat:
             )
         self.symmetric = bool(symmetric)
         self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
+
+    def norm(self) -> float:
+        """``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂ of the current values, kept until they change
+        (collective; a caller's Mat edited in place keeps its old norm)."""
+        if self._norm is None or self._norm[0] != self.version:
+            self._norm = (self.version, operator_norm(self.mat))
+        return self._norm[1]
 
     def arrays(self) -> list[np.ndarray]:
         """The numpy arrays kept here: the values, the PETSc-int pattern and the

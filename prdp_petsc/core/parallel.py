@@ -97,15 +97,17 @@ def as_petsc_comm(comm: PETSc.Comm | MPI.Comm | None) -> PETSc.Comm:
     return PETSc.Comm(comm)  # an mpi4py communicator
 
 
-def ownership_range(n: int, comm: PETSc.Comm) -> tuple[int, int]:
+def ownership_range(n: int, comm: PETSc.Comm, block_size: int = 1) -> tuple[int, int]:
     """Rows ``[start, end)`` of an n-row object owned by this rank (PETSc's default split).
 
-    The first ``n % size`` ranks get one row more, as ``PetscSplitOwnership`` does.
+    The split is by blocks of `block_size` rows (n must be a multiple of it): the
+    first ``(n / block_size) % size`` ranks get one block more, as
+    ``PetscSplitOwnershipBlock`` does.
     """
     size, rank = comm.getSize(), comm.getRank()
-    base, extra = divmod(n, size)
+    base, extra = divmod(n // block_size, size)
     start = rank * base + min(rank, extra)
-    return start, start + base + (rank < extra)
+    return start * block_size, (start + base + (rank < extra)) * block_size
 
 
 class RowLayout:

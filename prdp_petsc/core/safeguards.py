@@ -13,10 +13,48 @@
   iterate that drifted far from the solution (relative error 2e-4 seen after
   20000 iterations), its recursive residual having underflowed.  `rescue`
   recognises these cases: the iterate is accepted when its backward error is at
-  rounding level; otherwise the (deterministic) iteration is run again up to the
-  first iteration far beyond rounding level (or the one of the smallest recorded
-  residual) and that iterate is accepted if it is at rounding level.  A breakdown
+  rounding level and its true residual is below the initial one; otherwise the
+  (deterministic) iteration is run again up to the first iteration far beyond
+  rounding level (or the one of the smallest recorded residual) and that iterate
+  is accepted if it passes the same test.  A breakdown
   above rounding level stays an error, as does an unrecoverable loss of accuracy.
+* **Iterates that did not solve the system.**  A Krylov method's stopping test
+  reads its own residual norm, often the preconditioned one; on a singular
+  operator whose null space nobody declared (elasticity without Dirichlet
+  conditions) GAMG's coarse solve blows the iterate up along the kernel, the
+  preconditioned norm falls by 1e-14 in one iteration, and PETSc reports
+  ``CONVERGED_RTOL`` for an x of size 1e14 whose true residual is 50 times the
+  right-hand side.  Its backward error ``‖b − A x‖ / (‖A‖ ‖x‖ + ‖b‖)`` is tiny
+  precisely because ‖x‖ exploded, so it cannot tell.  `judge` looks at the true
+  residual ``‖b − A x‖`` against the initial one ``‖b‖`` (a solve starts from
+  zero) and at whether x is a null vector of A (`Residual.null_vector`).  What
+  is checked when (`prdp_petsc.core.step.SolveStep` applies it):
+
+  - a *converged* solve: always, one ``MatMult``.  Met a tolerance
+    (``CONVERGED_RTOL``/``ATOL``): it must have reduced the true residual
+    (``‖b − A x‖ ≤ ‖b‖``; the tolerance was tested in the KSP's norm, which may
+    be far from the true one), and an x that is a null vector to
+    `NULL_TOLERANCE` must have reduced it below `STALLED` ``‖b‖``.  Stopped
+    for another reason (``CONVERGED_STEP_LENGTH``, ``HAPPY_BREAKDOWN``, ...: no
+    residual was tested): it must have reduced the true residual below
+    ``√rtol ‖b‖`` (at most `STALLED` ``‖b‖``): MINRES stops with ``STEP_LENGTH``
+    at the least-squares floor of an incompatible singular system, even at x = 0;
+  - a *capped* solve (``DIVERGED_MAX_IT``, or ``CONVERGED_ITS``: K iterations
+    without a norm to test): two vector norms, and a ``MatMult``
+    only when ``‖A‖ ‖x‖ > ‖b‖ / NULL_TOLERANCE`` (an x only an operator of
+    condition number ≥ 1e8 explains).  A capped iterate may legitimately have a
+    larger residual than zero, so it is refused only when it is a null vector to
+    rounding level (`ROUNDING_LEVEL`) and did not reduce the residual;
+  - an iterate accepted after a late breakdown (`rescue`) must also have
+    reduced the true residual;
+  - a failed solve is diagnosed (no cost on the hot path): an x that is a null
+    vector to rounding level with a residual above `STALLED` ``‖b‖`` is reported
+    as `prdp_petsc.errors.SingularOperatorError`, which says to declare the null
+    space; otherwise PETSc's reason stands.  A capped or failed solve is relabelled
+    only at rounding level because an ill-conditioned operator has null vectors to
+    `NULL_TOLERANCE` too (a SIMP stiffness with contrast 1e-9 : 1 breaks GAMG's
+    default smoothers with an x that is one to 6e-9; that is ``DIVERGED_INDEFINITE_PC``,
+    not a missing null space), while a singular one blows x up to 1e-12..1e-17.
 * **KSP types without a correct transpose.**  `NO_TRANSPOSE_KSP` lists the types
   whose ``KSPSolveTranspose`` runs without error but does not apply the transposed
   iteration (found by comparing with a forward solve on an explicit Aᵀ); the
@@ -26,10 +64,12 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from petsc4py import PETSc
 
+from .nullspace import NULL_TOLERANCE
 from .results import SolverError
 
 __all__ = [
@@ -37,13 +77,19 @@ __all__ = [
     "LATE_BREAKDOWNS",
     "LATE_REASONS",
     "NO_TRANSPOSE_KSP",
-    "check_transpose_ksp",
+    "NULL_TOLERANCE",
     "ROUNDING_LEVEL",
     "SAFE_RANGE",
+    "STALLED",
+    "Residual",
     "backward_error",
+    "check_transpose_ksp",
+    "judge",
+    "operator_norm",
     "rescue",
     "rhs_exponent",
     "rhs_exponents",
+    "true_residual",
     "went_far",
 ]
 
@@ -70,6 +116,11 @@ LATE_BREAKDOWNS = frozenset(
 LATE_REASONS = frozenset(getattr(PETSc.KSP.ConvergedReason, name) for name in LATE_BREAKDOWNS)
 #: KSP types whose transpose solve silently runs another iteration (PETSc 3.26)
 NO_TRANSPOSE_KSP = frozenset({"cgls"})
+#: a true residual above this fraction of the initial one has not moved towards a
+#: solution: for an x that is a null vector of A, the sign of a singular operator
+#: (measured: 0.87-1.9 at MINRES's least-squares floor, ≤ 2e-8 for converged solves
+#: of contrast 1e12 Poisson and 1e9 elasticity, whose x are null vectors to 5e-15)
+STALLED = 0.1
 
 
 def check_transpose_ksp(ksp) -> None:
@@ -101,20 +152,125 @@ def rhs_exponent(row: np.ndarray) -> int:
     return int(rhs_exponents(np.asarray(row, dtype=np.float64).reshape(1, -1))[0])
 
 
+def operator_norm(mat: PETSc.Mat) -> float:
+    """``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂: one pass over the entries (collective)."""
+    return max(mat.norm(PETSc.NormType.INFINITY), mat.norm(PETSc.NormType.NORM_1))
+
+
+@dataclass(frozen=True)
+class Residual:
+    """How well an iterate x solves ``A x = b`` (``Aᵀ x = b`` for a transpose solve).
+
+    Attributes
+    ----------
+    norm : float
+        ``‖b − A x‖``, its part in the transpose null space removed (KSPSolve
+        projects b onto the range of A).
+    initial : float
+        ``‖b‖``, projected alike: the residual of the initial guess x = 0.
+    product : float
+        ``‖A x‖``.
+    scale : float
+        ``‖A‖ ‖x‖`` (`operator_norm`); NaN when x is not finite.
+    rhs : float
+        ``‖b‖`` unprojected (for the backward error).
+    """
+
+    norm: float
+    initial: float
+    product: float
+    scale: float
+    rhs: float
+
+    @property
+    def reduced(self) -> bool:
+        """Whether x is no worse than the initial guess: ``‖b − A x‖ ≤ ‖b‖``."""
+        return bool(self.norm <= self.initial)
+
+    @property
+    def relative(self) -> float:
+        """``‖b − A x‖ / ‖b‖`` (0 for b = 0 = r)."""
+        if self.initial > 0:
+            return self.norm / self.initial
+        return np.inf if self.norm > 0 else 0.0
+
+    @property
+    def backward(self) -> float:
+        """Backward error ``‖b − A x‖ / (‖A‖ ‖x‖ + ‖b‖)``."""
+        denom = self.scale + self.rhs
+        return float(self.norm / denom) if denom > 0 else 0.0
+
+    def null_vector(self, tolerance: float) -> bool:
+        """Whether x is a null vector of A to `tolerance`: ``‖A x‖ ≤ tolerance ‖A‖ ‖x‖``."""
+        return bool(self.scale > 0 and self.product <= tolerance * self.scale)
+
+    def describe(self) -> str:
+        return (
+            f"‖b − A x‖/‖b‖ = {self.relative:.3g}, ‖A x‖/(‖A‖ ‖x‖) = "
+            f"{self.product / self.scale if self.scale > 0 else 0.0:.3g}"
+        )
+
+
+def true_residual(
+    mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: bool, norm: float | None = None
+) -> Residual:
+    """The `Residual` of `x` (one ``MatMult``; `norm` is `operator_norm`, if known)."""
+    product = b.duplicate()
+    (mat.multTranspose if transpose else mat.mult)(x, product)
+    r = b.copy()
+    r.axpy(-1.0, product)  # r = b − A x
+    ns = mat.getNullSpace() if transpose else mat.getTransposeNullSpace()
+    rhs = b.norm()
+    initial = rhs
+    if ns is not None and bool(ns):
+        ns.remove(r)  # the incompatible part of b is projected away by KSPSolve
+        projected = b.copy()
+        ns.remove(projected)
+        initial = projected.norm()
+        projected.destroy()
+    scale = (operator_norm(mat) if norm is None else norm) * x.norm()
+    out = Residual(float(r.norm()), float(initial), float(product.norm()), float(scale), rhs)
+    for vec in (r, product):
+        vec.destroy()
+    return out
+
+
+def judge(residual: Residual, outcome: str, rtol: float = 0.0) -> str | None:
+    """None if the iterate stands, else ``"singular"`` or ``"not solved"``.
+
+    `outcome` is ``"converged"`` (a tolerance was met: ``CONVERGED_RTOL``,
+    ``CONVERGED_ATOL``, their ``_NORMAL_EQUATIONS`` forms, ``CONVERGED_USER``),
+    ``"stopped"`` (another ``CONVERGED_*`` claim that tests no residual: ``STEP_LENGTH``,
+    ``HAPPY_BREAKDOWN``, ``NEG_CURVE``), ``"capped"`` (``DIVERGED_MAX_IT``,
+    ``CONVERGED_ITS``) or ``"failed"`` (a solve that raises anyway: only the
+    diagnosis matters).  `rtol` is the solve's relative tolerance, which a stop
+    must meet loosely (``√rtol``, at most `STALLED`).  See the module notes.
+    """
+    stalled = residual.norm > STALLED * residual.initial
+    if outcome in ("capped", "failed"):  # PETSc's outcome stands unless x is a null
+        # vector to rounding level (singular to working precision); ill-conditioned is
+        # not singular: a stiffness contrast of 1e-9 has null vectors to 6e-9
+        if residual.null_vector(ROUNDING_LEVEL):
+            grew = not residual.reduced if outcome == "capped" else stalled
+            return "singular" if grew else None
+        return None
+    if residual.null_vector(NULL_TOLERANCE) and stalled:
+        return "singular"
+    if outcome == "converged" and not residual.reduced:
+        return "not solved"
+    if outcome == "stopped":
+        limit = min(STALLED, float(np.sqrt(rtol))) if rtol > 0 else STALLED
+        if residual.norm > limit * residual.initial:
+            return "not solved"
+    return None
+
+
 def backward_error(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: bool) -> float:
     """``‖b − A x‖ / (‖A‖ ‖x‖ + ‖b‖)`` (Aᵀ with `transpose`), null-space part removed.
 
     ‖A‖ is ``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂.  NaN when x is not finite.
     """
-    r = b.duplicate()
-    (mat.multTranspose if transpose else mat.mult)(x, r)
-    r.aypx(-1.0, b)  # r = b − A x
-    ns = mat.getNullSpace() if transpose else mat.getTransposeNullSpace()
-    if ns is not None and bool(ns):
-        ns.remove(r)  # the incompatible part of b is projected away by KSPSolve
-    norm_a = max(mat.norm(PETSc.NormType.INFINITY), mat.norm(PETSc.NormType.NORM_1))
-    denom = norm_a * x.norm() + b.norm()
-    return float(r.norm() / denom) if denom > 0 else 0.0
+    return true_residual(mat, b, x, transpose=transpose).backward
 
 
 def went_far(ksp: PETSc.KSP) -> bool:
@@ -153,12 +309,13 @@ def rescue(
     is not at rounding level and cannot be recovered (the caller raises), otherwise
     the number of iterations of a discarded run (0 when the returned iterate was
     accepted as it is); `x` then holds an iterate with backward error ≤
-    `ROUNDING_LEVEL` and ``ksp`` the state of the run that produced it.  The
+    `ROUNDING_LEVEL` and a true residual below the initial one (`_at_rounding`),
+    and ``ksp`` the state of the run that produced it.  The
     recovery re-runs the (deterministic) iteration from zero up to the first
     iteration far beyond rounding level, or else the one of the smallest residual.
     """
     iterations = ksp.getIterationNumber()
-    if backward_error(mat, b, x, transpose=transpose) <= ROUNDING_LEVEL:
+    if _at_rounding(mat, b, x, transpose):
         logger.info(
             "%s after %d iterations at rounding level: iterate accepted",
             ksp.getConvergedReason(),
@@ -175,7 +332,7 @@ def rescue(
         (ksp.solveTranspose if transpose else ksp.solve)(b, x)
     finally:
         ksp.setTolerances(rtol=rtol, atol=atol, divtol=divtol, max_it=max_it)
-    if backward_error(mat, b, x, transpose=transpose) <= ROUNDING_LEVEL:
+    if _at_rounding(mat, b, x, transpose):
         logger.info(
             "the iterate after %d iterations is not at rounding level; the one of "
             "iteration %d is and is returned",
@@ -184,3 +341,13 @@ def rescue(
         )
         return iterations
     return None
+
+
+def _at_rounding(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, transpose: bool) -> bool:
+    """Backward error at rounding level, and the true residual below the initial one.
+
+    The second condition refuses an iterate that exploded along a null vector of a
+    singular operator: its backward error is tiny because ‖x‖ is huge.
+    """
+    residual = true_residual(mat, b, x, transpose=transpose)
+    return residual.backward <= ROUNDING_LEVEL and residual.reduced

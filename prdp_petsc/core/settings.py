@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, plain
 
 __all__ = ["AdjointSettings", "check_tolerances"]
 
@@ -47,7 +47,7 @@ class AdjointSettings:
 def check_tolerances(max_it, rtol, atol, what: str = "") -> None:
     """Raise ValueError unless ``max_it >= 1`` (int) and rtol, atol are finite and >= 0."""
     if isinstance(max_it, bool) or not isinstance(max_it, int | np.integer) or max_it < 1:
-        raise InputError(f"{what}max_it must be an integer >= 1, got {max_it!r}")
+        raise InputError(f"{what}max_it must be an integer >= 1, got {plain(max_it)!r}")
     for name, val in (("rtol", rtol), ("atol", atol)):
         if isinstance(val, bool) or not np.isfinite(val) or val < 0:
-            raise InputError(f"{what}{name} must be finite and >= 0, got {val!r}")
+            raise InputError(f"{what}{name} must be finite and >= 0, got {plain(val)!r}")

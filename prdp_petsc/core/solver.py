@@ -18,11 +18,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from petsc4py import PETSc
 
-from ..errors import InputError, NonFiniteError
+from ..errors import InputError, NonFiniteError, plain
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
+from .fields import attach_fields, normalize_fields
 from .lag import PCLag
-from .nullspace import attach_nullspaces, check_nullspaces, normalize_nullspace
+from .nullspace import (
+    attach_near_nullspace,
+    attach_nullspaces,
+    check_nullspaces,
+    normalize_nullspace,
+)
 from .operator import OperatorMat, OwnedCSR
 from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
@@ -76,6 +82,27 @@ class KSPSolver:
         right for symmetric operators.  Both are checked against every new operator
         (``‖A v‖ ≤ 1e-8 ‖A‖ ‖v‖``), since a wrong one would silently solve another
         problem.
+    block_size : int
+        Unknowns per node of a vector field (2 or 3 for elasticity), set on every
+        Mat (``MatSetBlockSize``): GAMG aggregates whole nodes, point-block
+        preconditioners (``pbjacobi``) invert d × d blocks.  Only right when the
+        operator's dofs are numbered node by node (scikit-fem's ``ElementVector``
+        numbering is; see `prdp_petsc.fem.vector.block_size`) and every node keeps
+        all of its components.  Default 1.
+    near_nullspace : "constant", array_like (k, n) or PETSc.NullSpace, optional
+        Vectors A maps to almost nothing without boundary conditions, attached with
+        ``MatSetNearNullSpace``: GAMG builds its coarse spaces from them.  For
+        elasticity the rigid-body modes (`prdp_petsc.fem.vector.rigid_body_modes`,
+        on the dofs the operator keeps), with ``block_size`` the dimension.  Not
+        checked against A (a near-null vector is no null vector).
+    fields : mapping of str to array of int, optional
+        The fields of a block operator, e.g. ``{"u": u_dofs, "p": p_dofs}`` for a
+        saddle point: row indices of the operator (after any Dirichlet
+        elimination), together covering every row once.  Given to the forward PC
+        and, if it has its own, to the adjoint PC (``PCFieldSplitSetIS``, once per
+        PC) for ``pc_type fieldsplit``; other PCs ignore them.  The name is the
+        split's: its solver reads ``-{prefix}fieldsplit_{name}_ksp_type`` and so
+        on, ``fieldsplit_p_pc_type`` in `options`.
     symmetric : bool, optional
         Declared structure of every operator this solver gets: ``True`` (A = Aᵀ),
         ``False``, or ``None`` (default) to take the operator's own declaration
@@ -113,7 +140,17 @@ class KSPSolver:
     Notes
     -----
     Options that apply: any ``-{prefix}ksp_*`` / ``-{prefix}pc_*`` option, and the
-    same under the adjoint prefix (``-{prefix}adj_ksp_type``).  The KSPs are built
+    same under the adjoint prefix (``-{prefix}adj_ksp_type``).  An option that is a
+    flag (``-pc_fieldsplit_detect_saddle_point``) is given in an options dict with
+    the value None or True (``{"pc_fieldsplit_detect_saddle_point": None}``); False
+    writes the value ``false``.
+
+    Structure is declared once, here: `nullspace`, `transpose_nullspace`,
+    `near_nullspace` and `block_size` are set on every Mat the solver gets (a new
+    pattern, a new size, another communicator, every operator of a batch; new
+    values of the same pattern keep the Mat and with it what was set), `fields` on
+    the PCs; `clone` copies them, and the adjoint solve uses the same Mat and, with
+    a shared PC, the same fields.  The KSPs are built
     at construction, so a bad option value raises ``ValueError`` here, and after
     the first forward (adjoint) solve an option of this solver that PETSc never
     read (a misspelt ``pc_typ``) is named in an `UnusedOptionWarning`.  Given a
@@ -126,8 +163,16 @@ class KSPSolver:
     Hitting the cap (``DIVERGED_MAX_IT``) is a normal outcome; every other
     negative reason raises `SolverError`, except a breakdown (or BiCGStab's late
     divergence) after the residual reached rounding level when run far beyond
-    convergence: the iterate at rounding level is returned and PETSc's reason is
-    kept in `last` (see `prdp_petsc.core.safeguards`).  A right-hand side with
+    convergence: the iterate at rounding level (and below the initial residual) is
+    returned and PETSc's reason is kept in `last` (see `prdp_petsc.core.safeguards`).
+    What PETSc calls converged is checked against the true residual ``‖b − A x‖``
+    (one ``MatMult``), a capped iterate only when it is suspiciously large (two vector
+    norms): an iterate that blew up along the kernel of a singular operator whose
+    null space was not declared raises `prdp_petsc.errors.SingularOperatorError`, a
+    convergence claim the true residual contradicts a `SolverError` with reason
+    ``FALSE_CONVERGENCE``.  With a null space declared, its part is removed from every
+    solution (a right preconditioner may add one), so x is the minimum-norm
+    solution.  A right-hand side with
     entries beyond ``2^±100`` is scaled by a power of two before the solve (exact;
     ``atol`` is scaled along).  The adjoint refuses KSP types whose transpose
     solve is wrong (``cgls``) and reports a PC without ``PCApplyTranspose`` (e.g.
@@ -164,6 +209,9 @@ class KSPSolver:
         divtol: float | None = None,
         nullspace: str | np.ndarray | None = None,
         transpose_nullspace: str | np.ndarray | None = None,
+        block_size: int = 1,
+        near_nullspace: str | np.ndarray | PETSc.NullSpace | None = None,
+        fields: dict | None = None,
         symmetric: bool | None = None,
         check_structure: bool = True,
         pc_lag: int = 1,
@@ -182,11 +230,18 @@ class KSPSolver:
             if transpose_nullspace is None
             else normalize_nullspace(transpose_nullspace, "transpose_nullspace")
         )
+        if isinstance(block_size, bool) or not isinstance(block_size, int | np.integer):
+            raise InputError(f"block_size must be an integer >= 1, got {plain(block_size)!r}")
+        if block_size < 1:
+            raise InputError(f"block_size must be an integer >= 1, got {int(block_size)}")
+        self.block_size = int(block_size)
+        self.near_nullspace = normalize_nullspace(near_nullspace, "near_nullspace")
+        self.fields = normalize_fields(fields)
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
         self.last_forward: CallInfo | None = None
         self.last_adjoint: CallInfo | None = None
-        self._op = OperatorMat(self.comm)
+        self._op = OperatorMat(self.comm, self.block_size)
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
         self._layout: RowLayout | None = None
@@ -246,6 +301,7 @@ class KSPSolver:
         self._setup_version = {"forward": -1, "adjoint": -1}
         self._lag.reset()  # new KSPs: every PC is set up at its first solve
         self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
+        self._has_fields = {"forward": False, "adjoint": False}  # PCFieldSplitSetIS done
         ksp = adj = None
         pushed = PushedOptions(self._items, watch=True)
         try:
@@ -384,20 +440,26 @@ class KSPSolver:
             "ranks": self.ksp.getComm().getSize(),
             "pc_lag": self.pc_lag,
             "pc_lag_tol": self.pc_lag_tol,
+            "block_size": self.block_size,
+            "near_nullspace": _describe_space(self.near_nullspace),
+            "fields": None if self.fields is None else {k: v.size for k, v in self.fields.items()},
         }
 
     def clone(self, **changes: Any) -> KSPSolver:
         """A new solver with the same settings, some of them changed.
 
-        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces, the
-        symmetry declaration, the structure check, the PC lag and the communicator
-        are copied;
+        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces,
+        block size, near-null space, fields, the symmetry declaration, the
+        structure check, the PC lag and the communicator are copied;
         keyword arguments (any of `KSPSolver`'s) replace them.
         """
         kwargs = {
             **self.config.arguments(),
             "nullspace": self.nullspace,
             "transpose_nullspace": self.transpose_nullspace,
+            "block_size": self.block_size,
+            "near_nullspace": self.near_nullspace,
+            "fields": self.fields,
             "symmetric": self.declared_symmetric,
             "check_structure": self.check_structure,
             "pc_lag": self.pc_lag,
@@ -407,20 +469,23 @@ class KSPSolver:
         }
         return type(self)(**kwargs)
 
-    def _warn_unused(self, kind: str) -> None:
-        """Warn (`UnusedOptionWarning`) about options of this solver PETSc never read."""
+    def _unused_after(self, kind: str, pushed: PushedOptions) -> str | None:
+        """After the first `kind` call: the message naming options of this solver that
+        PETSc never read (misspelt, or meant for another type or split), or None."""
+        self._unchecked[kind] = False
+        self._used |= pushed.used
         unused = self.config.unused(kind, self._used)
-        if unused:
-            ksp = self._adj if kind == "adjoint" else self._ksp
-            prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
-            warnings.warn(
-                f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
-                f"{ksp.getType()}/{ksp.getPC().getType()}): "
-                + ", ".join("-" + n for n in unused)
-                + "; check their spelling (-help lists the options PETSc reads)",
-                UnusedOptionWarning,
-                stacklevel=4,
-            )
+        if not unused:
+            return None
+        ksp = self._adj if kind == "adjoint" else self._ksp
+        prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
+        return (
+            f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
+            f"{ksp.getType()}/{ksp.getPC().getType()}): "
+            + ", ".join("-" + n for n in unused)
+            + "; check their spelling (-help lists the options PETSc reads; a split's "
+            "options are fieldsplit_<name>_..., with the names of fields=)"
+        )
 
     def host_arrays(self) -> list[np.ndarray]:
         """The numpy arrays this solver keeps of its operator (values, pattern, transpose
@@ -459,19 +524,37 @@ class KSPSolver:
                 check_nullspaces(self._op.mat)
 
     def _attach(self, mat: PETSc.Mat) -> None:
+        """Put a new Mat (new pattern, size or communicator) under both KSPs, with the
+        declared structure: null spaces, near-null space, fields."""
         if mat.getComm().getSize() != self._ksp.getComm().getSize():
             self.setup(mat.getComm())
         if self.nullspace is not None:
             attach_nullspaces(mat, self.nullspace, self.transpose_nullspace)
+        if self.near_nullspace is not None:
+            attach_near_nullspace(mat, self.near_nullspace)
         if self._x is not None and self._x.getSizes() != mat.getSizes()[1]:
             for ksp in (self._ksp, self._adj):  # another size: KSPReset, options stay
                 ksp.reset()
+            self._has_fields = {"forward": False, "adjoint": False}  # the reset dropped them
         self._ksp.setOperators(mat)
         self._adj.setOperators(mat)
+        if self.fields is not None:
+            self._attach_fields(mat)
         self._free_vecs()
         self._x, self._b = mat.createVecs()
         self._layout = RowLayout(self._b, replicated=self._op.replicated)
         self.stats.operator_updates += 1
+
+    def _attach_fields(self, mat: PETSc.Mat) -> None:
+        """``PCFieldSplitSetIS`` on the forward PC and on an adjoint PC of its own, once
+        per PC (PETSc keeps them for a new Mat, and a second call adds them twice)."""
+        for kind, ksp in (("forward", self._ksp), ("adjoint", self._adj)):
+            if kind == "adjoint" and self._shared_pc:
+                continue  # the forward PC's fields serve both
+            if self._has_fields[kind]:
+                continue
+            attach_fields(ksp.getPC(), self.fields, mat)
+            self._has_fields[kind] = True
 
     def _adjoint_is_forward(self) -> bool:
         """True when ``Aᵀλ = g`` can run as a forward solve of the adjoint KSP."""
@@ -505,7 +588,7 @@ class KSPSolver:
         self._check_finite(batch, kind)
         ksp = self._adj if transpose else self._ksp
         as_transpose = transpose and not self._adjoint_is_forward()
-        step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
+        step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose, self._op.norm)
         out = np.empty_like(batch)
         exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
         if layout.distributed and not layout.replicated:  # each rank holds a part of b
@@ -519,37 +602,44 @@ class KSPSolver:
         # after a new operator (GAMG reads its level options there), and at the first
         # solve, to learn which were never read.  KSPSolve itself reads none.
         setup = check or self._setup_version[kind] != self._op.version
-        with PushedOptions(self._items if setup else [], watch=check) as pushed:
-            if setup and self.check_structure:
-                self._check_structure(ksp, kind)
-            try:
-                for i in range(len(batch)):
-                    iterations += step(batch[i], out[i], int(exponents[i]))
-            except SolverError as err:
-                if age == 0:
-                    raise
-                # failed on a reused PC (a stale GAMG can be indefinite): run the call
-                # again on a fresh one; a failure then is the operator's own
-                logger.warning(
-                    "%s solve failed on a PC %d operator changes old (%s); set up again",
-                    kind,
-                    age,
-                    err.reason,
-                )
-                if len(step.infos) > i:  # the failed row's own work counts too
-                    iterations += step.infos[i].iterations
-                self._lag.mark_stale(slot)
-                age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
-                step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose)
-                for i in range(len(batch)):
-                    iterations += step(batch[i], out[i], int(exponents[i]))
-            finally:
-                self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
+        pushed = PushedOptions(self._items if setup else [], watch=check)
+        try:
+            with pushed:
+                if setup and self.check_structure:
+                    self._check_structure(ksp, kind)
+                try:
+                    for i in range(len(batch)):
+                        iterations += step(batch[i], out[i], int(exponents[i]))
+                except SolverError as err:
+                    if age == 0:
+                        raise
+                    # failed on a reused PC (a stale GAMG can be indefinite): run the call
+                    # again on a fresh one; a failure then is the operator's own
+                    logger.warning(
+                        "%s solve failed on a PC %d operator changes old (%s); set up again",
+                        kind,
+                        age,
+                        err.reason,
+                    )
+                    if len(step.infos) > i:  # the failed row's own work counts too
+                        iterations += step.infos[i].iterations
+                    self._lag.mark_stale(slot)
+                    age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
+                    step = SolveStep(
+                        ksp, mat, self._b, self._x, layout, kind, as_transpose, self._op.norm
+                    )
+                    for i in range(len(batch)):
+                        iterations += step(batch[i], out[i], int(exponents[i]))
+                finally:
+                    self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
+        except SolverError as err:
+            if check and (unused := self._unused_after(kind, pushed)):
+                # a misspelt option (a split's, say) is often why the set-up failed
+                raise type(err)(f"{err}; {unused}", reason=err.reason) from err
+            raise
         self._setup_version[kind] = self._op.version
-        if check:
-            self._unchecked[kind] = False
-            self._used |= pushed.used
-            self._warn_unused(kind)
+        if check and (unused := self._unused_after(kind, pushed)):
+            warnings.warn(unused, UnusedOptionWarning, stacklevel=3)
         finite = bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))  # sum: fast path
         if layout.distributed and not layout.replicated:
             finite = bool(layout.agree_max(np.array([not finite]))[0] == 0)
@@ -593,3 +683,8 @@ class KSPSolver:
             f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self.max_it}, "
             f"rtol={self.rtol}, atol={self.atol}, adjoint_max_it={self.adjoint_max_it})"
         )
+
+
+def _describe_space(spec) -> str | int | None:
+    """A (near-)null space in a JSON record: ``"constant"``, its vector count, or None."""
+    return spec if spec is None or isinstance(spec, str) else len(spec)

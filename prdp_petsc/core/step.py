@@ -3,6 +3,10 @@
 `SolveStep` is the inner loop of `KSPSolver`; it runs once per right-hand side,
 so the common case (a finished solve, capped or converged) costs a handful of
 PETSc queries, and everything else (rescue, errors) happens off that path.
+
+What a finished solve costs besides PETSc's own work: a capped one two vector
+norms (``‖x‖``, ``‖b‖``; ``‖A‖`` is kept per operator), a converged one a
+``MatMult`` for its true residual (`prdp_petsc.core.safeguards.judge`).
 """
 
 from __future__ import annotations
@@ -10,12 +14,21 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
+from ..errors import SingularOperatorError
 from . import safeguards
 from .results import SolveInfo, SolverError, reason_name
 
 __all__ = ["SolveStep", "reduction_rate"]
 
 _MAX_IT = PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
+_REASON = PETSc.KSP.ConvergedReason
+#: convergence claims that met a residual tolerance (or a user's test); CONVERGED_ITS
+#: (K iterations run without a norm to test: preonly, Richardson+SOR) is a capped solve
+_TOLERANCE_MET = frozenset(
+    {_REASON.CONVERGED_RTOL, _REASON.CONVERGED_ATOL, _REASON.CONVERGED_USER}
+    | {_REASON.CONVERGED_RTOL_NORMAL_EQUATIONS, _REASON.CONVERGED_ATOL_NORMAL_EQUATIONS}
+)
+_ITS = _REASON.CONVERGED_ITS
 _NO_NORM = PETSc.KSP.NormType.NONE
 
 
@@ -50,15 +63,35 @@ class SolveStep:
         Named in error messages.
     transpose : bool
         Run ``KSPSolveTranspose`` instead of ``KSPSolve``.
+    norm : callable
+        Returns ``max(‖A‖₁, ‖A‖_∞)`` of the operator (kept by its owner per set of
+        values; called only when a finished solve is checked).
     """
 
-    __slots__ = ("ksp", "mat", "b_vec", "x_vec", "layout", "kind", "transpose", "run", "infos")
+    __slots__ = (
+        "ksp",
+        "mat",
+        "b_vec",
+        "x_vec",
+        "layout",
+        "kind",
+        "transpose",
+        "run",
+        "infos",
+        "norm",
+        "kernel",
+    )
 
-    def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool):
+    def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool, norm):
         self.ksp, self.mat, self.kind, self.transpose = ksp, mat, kind, transpose
-        self.b_vec, self.x_vec, self.layout = b_vec, x_vec, layout
+        self.b_vec, self.x_vec, self.layout, self.norm = b_vec, x_vec, layout, norm
         self.run = ksp.solveTranspose if transpose else ksp.solve
         self.infos: list[SolveInfo] = []  # one per row solved (the failing one included)
+        # the solutions of a singular system differ by its kernel: null(A), or null(Aᵀ)
+        # for a transpose solve.  A right preconditioner (FGMRES, fieldsplit) can put a
+        # kernel part into x, so it is removed: x is the minimum-norm solution A⁺b
+        kernel = mat.getTransposeNullSpace() if transpose else mat.getNullSpace()
+        self.kernel = kernel if kernel is not None and bool(kernel) else None
 
     def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
         """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
@@ -82,9 +115,12 @@ class SolveStep:
             rescued = self._verify(reason, exponent)
         elif reason < 0 and reason != _MAX_IT:
             self.infos.append(self._info(exponent))
-            raise self._diverged(self.infos[-1])
+            raise self._diverged(self.infos[-1], self._diagnose())
         else:
             self.infos.append(self._info(exponent))
+            self._check_iterate(reason)
+        if self.kernel is not None:
+            self.kernel.remove(x_vec)
         x = self.layout.gather(x_vec)
         out[:] = np.ldexp(x, exponent) if exponent else x
         return ksp.getIterationNumber() + rescued
@@ -110,6 +146,58 @@ class SolveStep:
             reduction_rate(history) if computed else None,
         )
 
+    def _check_iterate(self, reason: int) -> None:
+        """Refuse a finished solve's x that did not solve the system (`safeguards.judge`).
+
+        Converged: its true residual, one ``MatMult``.  Capped: only when
+        ``‖A‖ ‖x‖ > ‖b‖ / NULL_TOLERANCE`` (two vector norms decide).
+        """
+        size = self.x_vec.norm()
+        if not np.isfinite(size):
+            return  # the caller's finiteness check raises (DIVERGED_NANORINF)
+        if reason in _TOLERANCE_MET:
+            outcome = "converged"
+        elif reason > 0 and reason != _ITS:
+            outcome = "stopped"
+        else:
+            outcome = "capped"
+        norm = None
+        if outcome == "capped":
+            norm = self.norm()
+            if not norm * size > self.b_vec.norm() / safeguards.NULL_TOLERANCE:
+                return
+        residual = safeguards.true_residual(
+            self.mat, self.b_vec, self.x_vec, transpose=self.transpose, norm=norm or self.norm()
+        )
+        rtol = self.ksp.getTolerances()[0] if outcome == "stopped" else 0.0
+        verdict = safeguards.judge(residual, outcome, rtol)
+        if verdict == "singular":
+            raise self._singular(self.infos[-1], residual)
+        if verdict == "not solved":
+            info = self.infos[-1]
+            raise SolverError(
+                f"{self.kind} solve ({self._types()}) reported {info.reason} after "
+                f"{info.iterations} iterations, but its iterate does not solve the system "
+                f"({residual.describe()}): PETSc tested no residual, or the KSP's own "
+                "(often preconditioned) norm, which the true one contradicts. Check the "
+                "preconditioner and whether the operator is singular (declare nullspace=); "
+                "-ksp_norm_type unpreconditioned tests the true residual",
+                reason="FALSE_CONVERGENCE",
+            )
+
+    def _singular(self, info: SolveInfo, residual) -> SingularOperatorError:
+        declared = self.mat.getNullSpace()
+        has = declared is not None and bool(declared)
+        what = "a null space the declared nullspace= does not cover" if has else "a null space"
+        return SingularOperatorError(
+            f"{self.kind} solve ({self._types()}): the operator is singular, with {what}: "
+            f"after {info.iterations} iterations ({info.reason}) x is a null vector of A, "
+            f"{residual.describe()}. Declare the whole null space, e.g. "
+            "KSPSolver(nullspace=rigid_body_modes(basis)) for elasticity without Dirichlet "
+            "conditions or nullspace='constant' for a pure Neumann problem, or add boundary "
+            "conditions",
+        )
+
     def _verify(self, reason: int, exponent: int) -> int:
         """A solve that ran past rounding level: accept, re-run (`safeguards.rescue`) or raise.
 
@@ -117,13 +205,14 @@ class SolveStep:
         """
         reported = self._info(exponent)  # PETSc's own outcome, before any re-run
         late = reported.reason in safeguards.LATE_BREAKDOWNS
+        found = self._diagnose() if late else None  # of PETSc's iterate, before a re-run
         rescued = safeguards.rescue(
             self.ksp, self.mat, self.b_vec, self.x_vec, transpose=self.transpose
         )
         if rescued is None:
             self.infos.append(reported)
             if late:
-                raise self._diverged(reported)
+                raise self._diverged(reported, found)
             raise SolverError(
                 f"{self.kind} solve ({self._types()}) ran far beyond convergence and its "
                 f"iterate lost accuracy after {reported.iterations} iterations; lower "
@@ -133,7 +222,20 @@ class SolveStep:
         self.infos.append(self._info(exponent))
         return rescued
 
-    def _diverged(self, info: SolveInfo) -> SolverError:
+    def _diagnose(self) -> safeguards.Residual | None:
+        """The `Residual` of the iterate of a failed solve (None if it is not finite):
+        one ``MatMult``, off the hot path."""
+        if not np.isfinite(self.x_vec.norm()):
+            return None
+        return safeguards.true_residual(
+            self.mat, self.b_vec, self.x_vec, transpose=self.transpose, norm=self.norm()
+        )
+
+    def _diverged(self, info: SolveInfo, found: safeguards.Residual | None) -> SolverError:
+        """The error of a failed solve: `SingularOperatorError` if its iterate `found`
+        says so (`safeguards.judge`), else PETSc's reason."""
+        if found is not None and safeguards.judge(found, "failed") == "singular":
+            return self._singular(info, found)
         residual = "not computed" if info.residual_norm is None else f"{info.residual_norm:.3e}"
         hint = "check the operator and the PC"
         if self.ksp.getType() == "richardson":

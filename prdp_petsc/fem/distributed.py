@@ -124,10 +124,19 @@ class DistributedParametricMatrix:
         params = spaces[theta]
         n = part.vertices.local_size
         if A.shape != (n, n) or A.n_params != params.local_size:
+            vector = A.shape[0] % n == 0 and A.shape[0] > n
             raise InputError(
                 f"A must be assembled on part.mesh with vertex dofs: shape ({n}, {n}) and "
                 f"{params.local_size} parameters (one per local {theta[:-1]}), got "
                 f"{A.shape} and {A.n_params}"
+                + (
+                    f"; {A.shape[0] // n} unknowns per vertex: the owned layout holds one "
+                    "scalar unknown per mesh vertex (P1/Q1), not vector or mixed fields. "
+                    "For those use the replicated layout (a scipy or ParametricMatrix "
+                    "operator on every rank) or a distributed PETSc Mat of your own"
+                    if vector
+                    else ""
+                )
             )
         if symmetric is None:
             symmetric = not _any_rank(part.comm, not A.is_symmetric)[0]

@@ -31,7 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import InputError
+from ..errors import InputError, plain
 
 __all__ = ["BCS", "grid_points", "laplacian", "second_difference"]
 
@@ -43,14 +43,14 @@ def _axes(shape, spacing, bc) -> list[tuple[int, float, str]]:
     """Normalise ``shape``, ``spacing`` and ``bc`` to one ``(n, h, bc)`` per axis."""
     dims = (shape,) if np.ndim(shape) == 0 else tuple(shape)
     if not 1 <= len(dims) <= 3:
-        raise InputError(f"shape must be an int or a tuple of 1 to 3 ints, got {shape!r}")
+        raise InputError(f"shape must be an int or a tuple of 1 to 3 ints, got {plain(shape)!r}")
     if not all(isinstance(n, int | np.integer) and n >= 1 for n in dims):
-        raise InputError(f"shape entries must be integers >= 1, got {shape!r}")
+        raise InputError(f"shape entries must be integers >= 1, got {plain(shape)!r}")
     ndim = len(dims)
 
     bcs = (bc,) * ndim if isinstance(bc, str) else tuple(bc)
     if len(bcs) != ndim or any(b not in BCS for b in bcs):
-        raise InputError(f"bc must be one of {BCS} or a tuple of them per axis, got {bc!r}")
+        raise InputError(f"bc must be one of {BCS} or a tuple of them per axis, got {plain(bc)!r}")
 
     if spacing is None:
         hs = tuple(1.0 / (n + 1 if b == "dirichlet" else n) for n, b in zip(dims, bcs, strict=True))
@@ -58,7 +58,8 @@ def _axes(shape, spacing, bc) -> list[tuple[int, float, str]]:
         hs = (spacing,) * ndim if np.ndim(spacing) == 0 else tuple(spacing)
         if len(hs) != ndim or not all(np.isfinite(h) and h > 0 for h in hs):
             raise InputError(
-                f"spacing must be a positive number or one per axis ({ndim}), got {spacing!r}"
+                f"spacing must be a positive number or one per axis ({ndim}), "
+                f"got {plain(spacing)!r}"
             )
     return [(int(n), float(h), b) for n, h, b in zip(dims, hs, bcs, strict=True)]
 

@@ -1,4 +1,4 @@
-"""Parametric operators from scikit-fem forms: ``from_form``, diffusion, mass.
+"""Parametric operators from scikit-fem forms: ``from_form``, diffusion, elasticity, mass.
 
 `from_form` builds ``A(θ) = a₀ + Gθ`` of a `ParametricMatrix` from a
 `BilinearForm` affine in a coefficient field, on scikit-fem's public API only
@@ -25,7 +25,7 @@ from .parametric import ParametricMatrix, csr_pattern
 if TYPE_CHECKING:
     import skfem
 
-__all__ = ["AFFINE_RTOL", "diffusion_operator", "from_form", "mass_matrix"]
+__all__ = ["AFFINE_RTOL", "diffusion_operator", "elasticity_operator", "from_form", "mass_matrix"]
 
 logger = logging.getLogger(__name__)
 
@@ -208,6 +208,50 @@ def diffusion_operator(
 
     A = from_form(stiffness, basis, coefficient_basis, positive=True)
     return A + reaction * mass_matrix(basis) if reaction > 0 else A
+
+
+def elasticity_operator(
+    basis: skfem.CellBasis, coefficient: str = "P0", *, poisson_ratio: float = 0.3
+) -> ParametricMatrix:
+    """Linear elasticity ``−∇·σ(u)`` with Young's modulus E = θ per element or per node.
+
+    ``σ = E (λ̂ tr ε(u) I + 2 μ̂ ε(u))`` with ``λ̂ = ν / ((1 + ν)(1 − 2ν))`` and
+    ``μ̂ = 1 / (2 (1 + ν))``: plane strain in 2D, the isotropic solid in 3D; a SIMP
+    stiffness is ``θ = E_min + ρ^p (E_0 − E_min)``.
+
+    Parameters
+    ----------
+    basis : skfem.CellBasis
+        A vector basis, ``Basis(mesh, ElementVector(ElementTriP1()))`` (any Lagrange
+        element on triangles, tetrahedra, quadrilaterals or hexahedra).  Its dofs
+        are numbered node by node, so ``KSPSolver(block_size=mesh.dim())`` fits;
+        `prdp_petsc.fem.vector.rigid_body_modes` gives the near-null space.
+    coefficient : {"P0", "P1"}
+        Where E lives: θ per element or per mesh vertex, as in `diffusion_operator`.
+    poisson_ratio : float
+        ν in [0, 0.5).
+
+    Returns
+    -------
+    ParametricMatrix
+        Marked ``positive`` (E > 0).  Without Dirichlet conditions it is singular,
+        with the rigid-body modes as kernel.
+    """
+    from skfem import BilinearForm
+    from skfem.helpers import ddot, sym_grad, trace
+
+    if not 0.0 <= poisson_ratio < 0.5:
+        raise InputError(f"poisson_ratio must lie in [0, 0.5), got {poisson_ratio}")
+    nu = float(poisson_ratio)
+    lam, mu = nu / ((1 + nu) * (1 - 2 * nu)), 1.0 / (2 * (1 + nu))
+    coefficient_basis = basis.with_element(_coefficient_element(basis.mesh, coefficient))
+
+    @BilinearForm
+    def stiffness(u, v, w):
+        eu, ev = sym_grad(u), sym_grad(v)
+        return w.kappa * (lam * trace(eu) * trace(ev) + 2.0 * mu * ddot(eu, ev))
+
+    return from_form(stiffness, basis, coefficient_basis, positive=True)
 
 
 def _coefficient_element(mesh, coefficient: str):

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import skfem
 
-from ..errors import InputError, MeshError
+from ..errors import InputError, MeshError, plain
 
 __all__ = ["available_meshes", "load_mesh", "mesh_dir", "min_angle_degrees"]
 
@@ -235,7 +235,7 @@ def load_mesh(name_or_path: str | os.PathLike, refine: int = 0) -> skfem.Mesh:
     refinement of triangle meshes but not of tetrahedral ones.
     """
     if not isinstance(refine, int | np.integer) or refine < 0:
-        raise InputError(f"refine must be a non-negative integer, got {refine!r}")
+        raise InputError(f"refine must be a non-negative integer, got {plain(refine)!r}")
     from skfem.io.meshio import from_meshio
 
     path = _resolve(name_or_path)

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import InputError
+from ..errors import InputError, plain
 from .forms import mass_matrix
 from .parametric import csr_pattern
 
@@ -79,7 +79,7 @@ class NonlinearHeat:
         self, basis: skfem.CellBasis, dt: float, *, dirichlet: np.ndarray | None = None
     ) -> None:
         if not (np.isfinite(dt) and dt > 0):
-            raise InputError(f"dt must be finite and > 0, got {dt!r}")
+            raise InputError(f"dt must be finite and > 0, got {plain(dt)!r}")
         self.basis = basis
         self.dt = float(dt)
         n = basis.N

@@ -70,6 +70,8 @@ class ParametricMatrix:
     symmetric: bool | None = None
 
     def __post_init__(self):
+        # plain ints: a shape from scikit-fem's int32 counts would print as np.int32(482)
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
         # immutable: what a backward pass uses is what its forward used
         for name, dtype in (("indptr", None), ("indices", None), ("a0", np.float64)):
             object.__setattr__(self, name, _frozen(getattr(self, name), dtype))

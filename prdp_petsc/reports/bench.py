@@ -264,7 +264,11 @@ def machine_info() -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench", description=__doc__.split("\n")[0])
-    p.add_argument("which", choices=["bridge", "mpi"], help="benchmark to run (mpi: bench_mpi)")
+    p.add_argument(
+        "which",
+        choices=["bridge", "mpi", "elasticity"],
+        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity)",
+    )
     p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     p.add_argument(
@@ -294,6 +298,10 @@ def main(argv: list[str]) -> int:
         from .bench_mpi import main as bench_mpi
 
         return bench_mpi(argv[1:])
+    if argv and argv[0] == "elasticity":
+        from .bench_elasticity import main as bench_elasticity
+
+        return bench_elasticity(argv[1:])
     args = _parser().parse_args(argv)
     import torch
 

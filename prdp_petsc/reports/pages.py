@@ -68,8 +68,8 @@ class DataSet:
         Folder name under ``docs/data``; also the page's file name.
     kind : str
         ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
-        ``"work-precision"``, ``"rollouts"``, ``"horizon"``, ``"bench-mpi"`` or
-        ``"ablation"``, ``"unseen"`` or ``"defaults"``.
+        ``"work-precision"``, ``"rollouts"``, ``"horizon"``, ``"bench-mpi"``,
+        ``"bench-elasticity"``, ``"ablation"``, ``"unseen"`` or ``"defaults"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -95,6 +95,7 @@ class DataSet:
             "rollouts": "rollouts.json",
             "horizon": "horizon.json",
             "bench-mpi": "bench_mpi.json",
+            "bench-elasticity": "bench_elasticity.json",
             "ablation": "ablation.json",
             "unseen": "unseen.json",
             "defaults": "defaults.json",
@@ -130,6 +131,8 @@ def _kind(files: dict) -> str:
         return "horizon"
     if "bench_mpi.json" in files:
         return "bench-mpi"
+    if "bench_elasticity.json" in files:
+        return "bench-elasticity"
     if any(k.startswith("work_precision_") for k in files):
         return "work-precision"
     raise ValueError(f"no known result file among {sorted(files)}")
