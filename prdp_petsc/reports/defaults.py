@@ -114,7 +114,34 @@ def format_defaults(result: dict) -> str:
             + (f"; certified on {s['certified']}" if name == "default" else "")
         )
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
+    lines += _notes(result)
     return "\n".join(lines)
+
+
+def _notes(result: dict) -> list[str]:
+    """What the per-seed rows mean for the default construction, read off the data."""
+    rows = [r for r in result["per_seed"] if "ratio" in r["default"]]
+    if not rows:
+        return []
+    at_full = all(r["default"]["k_final"] >= r["k_full"] for r in rows)
+    behind = [r for r in rows if not r["default"]["equal_accuracy"]]
+    notes = []
+    if at_full:
+        notes.append(
+            "The default construction ended at K_full on every seed: no smaller K passed its "
+            "check, so what it saved is the cheap early epochs, less the checks' solves."
+        )
+    if behind and all(r["default"]["k_final"] >= r["k_full"] for r in behind):
+        notes.append(
+            f"On {len(behind)} of {len(rows)} seeds it ended behind full fidelity although its "
+            "final K was K_full: the accuracy was lost in its early epochs at small K, which "
+            "the network did not recover from in the epochs left; a certificate speaks of "
+            "the final K, not of the path."
+        )
+    tuned = [r for r in rows if "ratio" in r["tuned"]]
+    if tuned and all(r["default"]["ratio"] <= r["tuned"]["ratio"] for r in tuned):
+        notes.append("Its error ratio is at most the tuned settings' on every seed.")
+    return notes
 
 
 def main(argv: list[str]) -> int:
