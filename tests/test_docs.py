@@ -146,7 +146,14 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
         "bench_mpi_owned_cube101": "bench-mpi",
         "bench_mpi_replicated_cube101": "bench-mpi",
         "elasticity_gamg": "bench-elasticity",
+        "unseen": "unseen",
+        **{
+            name: "defaults"
+            for name in sorted(ds.name for ds in sets)
+            if name.startswith("defaults_")
+        },
     }
+    assert {"defaults_heat1d", "defaults_heat2d", "defaults_heat3d"} <= {ds.name for ds in sets}
     for ds in sets:
         p = ds.provenance
         assert p["command"].startswith("prdp-petsc ") and p["exit_status"] == 0
