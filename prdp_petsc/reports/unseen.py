@@ -192,38 +192,49 @@ def _exact_solutions(A: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     return np.stack([lu.solve(r) for r in rhs])
 
 
-class LShapeMLP(NetworkInverse):
-    name = "lshape_mlp"
+class LogCoefficient(NetworkInverse):
+    """−∇·(κ∇u) = 1, u = 0 on the boundary, κ = exp(Σ c_j φ_j) per element from smooth
+    modes; the network maps noisy observations of u to c (one operator per sample)."""
 
-    def __init__(self, seed: int, quick: bool = False):
-        from skfem import Basis, ElementTriP1
+    def coefficient_data(self, mesh, element, modes: int, n: int, noise: float, rng):
+        """Operator, modes and noisy observations; returns (observations, c)."""
+        from skfem import Basis
 
-        rng = np.random.default_rng(1000 + seed)
-        torch.manual_seed(seed)
-        mesh = load_mesh("lshape")
-        basis = Basis(mesh, ElementTriP1())
+        basis = Basis(mesh, element)
         self.dir = Dirichlet(diffusion_operator(basis, "P0"), basis.get_dofs().all())
-        self.phi = torch.from_numpy(_modes(mesh.p[:, mesh.t].mean(axis=1), 6, rng))
-        n = 64 if quick else 160
-        coef = rng.normal(0.0, 0.5, size=(n, 6))
+        self.phi = torch.from_numpy(_modes(mesh.p[:, mesh.t].mean(axis=1), modes, rng))
+        coef = rng.normal(0.0, 0.5, size=(n, modes))
         theta = np.exp(coef @ self.phi.numpy().T)
         b = fem_rhs(basis)[self.dir.interior]
         u = _exact_solutions_batch(self.dir.A_II, theta, b)
-        u *= 1.0 + 0.005 * rng.standard_normal(u.shape)
+        u *= 1.0 + noise * rng.standard_normal(u.shape)
         self.b = torch.from_numpy(b)
+        self.probe = (self.dir.A_II.matrix(theta[0]), b)
+        return u, coef
+
+    def physics(self, coef):
+        theta = torch.exp(coef @ self.phi.T)
+        return solve(self.dir.A_II, self.b.expand(len(coef), -1), self.solver, theta=theta)
+
+
+class LShapeMLP(LogCoefficient):
+    name = "lshape_mlp"
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import ElementTriP1
+
+        rng = np.random.default_rng(1000 + seed)
+        torch.manual_seed(seed)
+        n = 64 if quick else 160
+        u, coef = self.coefficient_data(load_mesh("lshape"), ElementTriP1(), 6, n, 0.005, rng)
         self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, prefix="u1_",
                                 max_it=1)  # fmt: skip
-        self.probe = (self.dir.A_II.matrix(theta[0]), b)
         net = _mlp(u.shape[1], 6, 64)
         opt = torch.optim.Adam(net.parameters(), lr=3e-3)
         self.epochs = 20 if quick else 60
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=self.epochs)
         self.loss_fn = _mse
         self.setup(torch.from_numpy(u), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
-
-    def physics(self, coef):
-        theta = torch.exp(coef @ self.phi.T)
-        return solve(self.dir.A_II, self.b.expand(len(coef), -1), self.solver, theta=theta)
 
 
 def fem_rhs(basis) -> np.ndarray:
@@ -324,37 +335,23 @@ class PlateBackwardHeat(NetworkInverse):
         return solve(self.A, coef @ self.Mphi.T, self.solver)
 
 
-class Box3DRegions(NetworkInverse):
+class Box3DRegions(LogCoefficient):
     name = "box3d_regions"
 
     def __init__(self, seed: int, quick: bool = False):
-        from skfem import Basis, ElementTetP1
+        from skfem import ElementTetP1
 
         rng = np.random.default_rng(4000 + seed)
         torch.manual_seed(seed)
-        mesh = load_mesh("box3d")
-        basis = Basis(mesh, ElementTetP1())
-        self.dir = Dirichlet(diffusion_operator(basis, "P0"), basis.get_dofs().all())
-        self.phi = torch.from_numpy(_modes(mesh.p[:, mesh.t].mean(axis=1), 4, rng))
         n = 48 if quick else 128
-        coef = rng.normal(0.0, 0.5, size=(n, 4))
-        theta = np.exp(coef @ self.phi.numpy().T)
-        b = fem_rhs(basis)[self.dir.interior]
-        u = _exact_solutions_batch(self.dir.A_II, theta, b)
-        u *= 1.0 + 0.002 * rng.standard_normal(u.shape)
-        self.b = torch.from_numpy(b)
+        u, coef = self.coefficient_data(load_mesh("box3d"), ElementTetP1(), 4, n, 0.002, rng)
         self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "gamg"}, prefix="u6_", max_it=1)
-        self.probe = (self.dir.A_II.matrix(theta[0]), b)
         net = _mlp(u.shape[1], 4, 32)
         opt = torch.optim.SGD(net.parameters(), lr=0.02, momentum=0.9)
         self.epochs = 15 if quick else 40
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.3, patience=3)
         self.loss_fn = _mse
         self.setup(torch.from_numpy(u), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
-
-    def physics(self, coef):
-        theta = torch.exp(coef @ self.phi.T)
-        return solve(self.dir.A_II, self.b.expand(len(coef), -1), self.solver, theta=theta)
 
 
 class DesignProblem(Problem):
