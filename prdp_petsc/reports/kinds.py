@@ -387,21 +387,25 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
 
     d = ds.main
     if ds.kind == "defaults":
-        rows = []
+        parts = []
         for name in ("default", "tuned"):
             s = d.get(name)
             if s is None:
+                parts.append(f"{name}: no seed finished")
                 continue
             saved = s["saved_at_equal_accuracy"]
-            rows.append((
-                f"{d['scene']} --preset {d['preset']}, {name} PRDP "
-                f"({'PRDP.for_problem' if name == 'default' else 'the preset'}), seeds "
-                f"{', '.join(map(str, d['seeds']))}: final error over full fidelity's",
-                f"{s['ratio']['geometric_mean']:.3f}; equal accuracy on {s['equal_accuracy']} "
-                f"of {s['compared']} seeds"
-                + (f", {_pct(saved)} fewer inner iterations there" if saved is not None else ""),
-            ))  # fmt: skip
-        return rows
+            parts.append(
+                f"{name} {s['ratio']['geometric_mean']:.3f} (equal accuracy on "
+                f"{s['equal_accuracy']} of {s['compared']}"
+                + (f", {_pct(saved)} fewer inner iterations there" if saved is not None else "")
+                + ")"
+            )
+        what = (
+            f"{d['scene']} --preset {d['preset']}, seeds {', '.join(map(str, d['seeds']))}: "
+            "final error over full fidelity's, default construction (PRDP.for_problem) "
+            "and tuned settings"
+        )
+        return [(what, "; ".join(parts))]
     if ds.kind == "unseen":
         problems = d["problems"].values()
         within = sum(p["geomean_ratio"] <= 1.05 and p["worst_ratio"] <= 1.10 for p in problems)
