@@ -17,7 +17,7 @@ import json
 import logging
 from pathlib import Path
 
-__all__ = ["SCHEDULES", "defaults", "format_defaults", "main"]
+__all__ = ["SCHEDULES", "defaults", "format_defaults", "main", "notes"]
 
 logger = logging.getLogger(__name__)
 
@@ -81,8 +81,9 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
     return result
 
 
-def format_defaults(result: dict) -> str:
-    """The table ``prdp-petsc defaults`` prints: one row per seed, then the summary."""
+def format_defaults(result: dict, *, with_notes: bool = True) -> str:
+    """The table ``prdp-petsc defaults`` prints: one row per seed, the summary, and
+    (`with_notes`) what the rows mean (`notes`)."""
     lines = [
         f"{result['scene']} --preset {result['preset']}: full fidelity, tuned PRDP "
         "(the preset's settings) and the default construction (PRDP.for_problem)",
@@ -114,11 +115,12 @@ def format_defaults(result: dict) -> str:
             + (f"; certified on {s['certified']}" if name == "default" else "")
         )
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
-    lines += _notes(result)
+    if with_notes:
+        lines += notes(result)
     return "\n".join(lines)
 
 
-def _notes(result: dict) -> list[str]:
+def notes(result: dict) -> list[str]:
     """What the per-seed rows mean for the default construction, read off the data."""
     rows = [r for r in result["per_seed"] if "ratio" in r["default"]]
     if not rows:

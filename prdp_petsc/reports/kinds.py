@@ -332,7 +332,7 @@ def _unseen_body(ds: DataSet) -> list[str]:
 
 
 def _defaults_body(ds: DataSet) -> list[str]:
-    from .defaults import format_defaults
+    from .defaults import format_defaults, notes
 
     return [
         "What `prdp-petsc defaults` printed: per seed, full fidelity (constant K_full), the "
@@ -342,8 +342,9 @@ def _defaults_body(ds: DataSet) -> list[str]:
         "fidelity's; savings count forward and adjoint inner iterations, the checks included.",
         "",
         "```text",
-        format_defaults(ds.main),
+        format_defaults(ds.main, with_notes=False),
         "```",
+        *[line for note in notes(ds.main) for line in ("", note)],
     ]
 
 
