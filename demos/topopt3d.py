@@ -68,7 +68,7 @@ import prdp_petsc as pp
 PRESETS = {
     "quick": {
         "n": 3,
-        "epochs": 12,
+        "epochs": 20,
         "volfrac": 0.3,
         "penal": 3.0,
         "e_min": 1e-9,
