@@ -39,8 +39,10 @@ every design iteration with a converged solve afterwards, outside the clock.
 
 Presets: ``quick`` (n = 3: 6 × 3 × 3 elements; tests), ``paper`` (n = 10: 20 × 10 × 10
 = 2 000 elements, 7 623 unknowns) and ``large`` (n = 40: 128 000 elements,
-393 600 unknowns; not run by the tests).  ``--parallel domain`` is refused: the owned
-MPI layout (`prdp_petsc.DistributedParametricMatrix`) holds scalar unknowns only.
+393 600 unknowns; not run by the tests).  ``--parallel domain`` runs in the replicated
+layout (each solve one distributed PETSc solve, rows split by whole nodes); the owned
+layout (`prdp_petsc.DistributedParametricMatrix`) refuses it: it holds one scalar
+unknown per mesh vertex, not vector fields.
 
 Run ``python demos/topopt3d.py run --preset paper --schedule auto`` for one
 optimisation; ``python demos/topopt3d.py results --preset paper --out DIR`` for the
@@ -408,25 +410,6 @@ def plot_designs(data: dict, out_png, labels=("converged", "PRDP (auto)")) -> No
     plt.close(fig)
 
 
-def format_results(data: dict) -> str:
-    """The table of `results`: one line per load case and route."""
-    lines = [f"{'case':>5} {'route':<13} {'C (converged)':>13} {'C/C_conv':>9} {'inner its':>9} "
-             f"{'saved':>6} {'wall s':>7} {'t→1% s':>7} {'K final':>7}"]  # fmt: skip
-    for case in data["cases"]:
-        for label, r in case["routes"].items():
-            if "compliance" not in r:
-                lines.append(f"{case['seed']:>5} {label:<13} stopped: {r['stopped']['reason']}")
-                continue
-            t = "—" if r["time_to_1pct"] is None else f"{r['time_to_1pct']:.2f}"
-            k_final = "conv" if label == "converged" else str(r["ks"][-1])
-            lines.append(
-                f"{case['seed']:>5} {label:<13} {r['compliance']:>13.5g} {r['ratio']:>9.4f} "
-                f"{r['iterations']:>9d} {100 * r['saved']:>5.1f}% {r['wall_time']:>7.2f} "
-                f"{t:>7} {k_final:>7}"
-            )
-    return "\n".join(lines)
-
-
 def results_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
     """Converged solves, constant K, PRDP (auto) and rtol on three load cases."""
     parser.add_argument("--preset", default="quick", help="preset (default quick)")
@@ -435,6 +418,8 @@ def results_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Names
     parser.add_argument("--out", required=True, help="folder for topopt.json and the picture")
 
     def run_results(args: argparse.Namespace) -> int:
+        from prdp_petsc.reports.topopt import format_results
+
         seeds = [int(s) for s in args.seeds.split(",")]
         ks = [int(k) for k in args.ks.split(",")]
         data = results(args.preset, seeds, ks)
