@@ -47,8 +47,8 @@ unknown per mesh vertex, not vector fields.
 Run ``python demos/topopt3d.py run --preset paper --schedule auto`` for one
 optimisation; ``python demos/topopt3d.py results --preset paper --out DIR`` for the
 comparison of schedules (converged, constant K, PRDP, rtol) on three load cases,
-and ``prdp-petsc pages record topopt3d -- python demos/topopt3d.py results ...`` to
-record it for the results page.  Things to try: ``--set e_min=1e-6``,
+and ``prdp-petsc pages record topopt3d_paper -- scene demos/topopt3d.py results ...``
+to record it for the results page.  Things to try: ``--set e_min=1e-6``,
 ``-to_mg_levels_ksp_type chebyshev`` (watch it fail), ``--set rmin=2.5``.
 """
 
@@ -66,44 +66,25 @@ import torch
 from scipy.spatial import cKDTree
 
 import prdp_petsc as pp
+from prdp_petsc.training.emulators import torch_sparse
+
+#: the settings every preset shares: SIMP p = 3, E_min = 1e-9 E_0, 30 % volume, a filter
+#: of 1.5 element widths, OC's move limit 0.2, fixed-K solves (rtol 0)
+_SETTINGS = {
+    "volfrac": 0.3,
+    "penal": 3.0,
+    "e_min": 1e-9,
+    "rmin": 1.5,
+    "move": 0.2,
+    "rtol": 0.0,
+    "k_init": 4,
+    "k_step": 4,
+}
 
 PRESETS = {
-    "quick": {
-        "n": 3,
-        "epochs": 20,
-        "volfrac": 0.3,
-        "penal": 3.0,
-        "e_min": 1e-9,
-        "rmin": 1.5,
-        "move": 0.2,
-        "rtol": 0.0,
-        "k_init": 4,
-        "k_step": 4,
-    },
-    "paper": {
-        "n": 10,
-        "epochs": 50,
-        "volfrac": 0.3,
-        "penal": 3.0,
-        "e_min": 1e-9,
-        "rmin": 1.5,
-        "move": 0.2,
-        "rtol": 0.0,
-        "k_init": 4,
-        "k_step": 4,
-    },
-    "large": {
-        "n": 40,
-        "epochs": 50,
-        "volfrac": 0.3,
-        "penal": 3.0,
-        "e_min": 1e-9,
-        "rmin": 1.5,
-        "move": 0.2,
-        "rtol": 0.0,
-        "k_init": 4,
-        "k_step": 4,
-    },
+    "quick": {"n": 3, "epochs": 20, **_SETTINGS},
+    "paper": {"n": 10, "epochs": 50, **_SETTINGS},
+    "large": {"n": 40, "epochs": 50, **_SETTINGS},
 }
 
 PREFIX = "to_"
@@ -228,7 +209,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     n = config["n"]
     problem = Cantilever((2 * n, n, n), z_c=load_case(seed))
     H = density_filter(problem.centroids, config["rmin"] / n)
-    H_torch = _torch_sparse(H)
+    H_torch = torch_sparse(H)
     volfrac, penal, e_min = config["volfrac"], config["penal"], config["e_min"]
     count = H.shape[0]
 
@@ -282,14 +263,6 @@ def build(config: dict, seed: int) -> pp.Scene:
     scene.problem, scene.designs = problem, designs  # for scoring (`results`, the tests)
     scene.design_parameters = x
     return scene
-
-
-def _torch_sparse(M: sp.spmatrix) -> torch.Tensor:
-    M = M.tocoo()
-    index = torch.from_numpy(np.vstack([M.row, M.col]).astype(np.int64))
-    return torch.sparse_coo_tensor(
-        index, torch.from_numpy(M.data), M.shape, check_invariants=True
-    ).coalesce()
 
 
 # -- results: schedules against converged solves, per load case ---------------------------------

@@ -146,6 +146,19 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
         "bench_mpi_owned_cube101": "bench-mpi",
         "bench_mpi_replicated_cube101": "bench-mpi",
         "elasticity_gamg": "bench-elasticity",
+        "unseen": "unseen",
+        **{
+            f"defaults_{scene}": "defaults"
+            for scene in (
+                "heat1d",
+                "heat2d",
+                "heat3d",
+                "heat_nonlinear",
+                "poisson_inverse",
+                "poisson_sip",
+            )
+        },  # fmt: skip
+        "topopt3d_paper": "topopt",
     }
     for ds in sets:
         p = ds.provenance
