@@ -152,6 +152,7 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
             for name in sorted(ds.name for ds in sets)
             if name.startswith("defaults_")
         },
+        "topopt3d_paper": "topopt",
     }
     assert {"defaults_heat1d", "defaults_heat2d", "defaults_heat3d"} <= {ds.name for ds in sets}
     for ds in sets:

@@ -13,11 +13,11 @@ from petsc4py import PETSc
 from prdp_petsc import load_mesh, solve
 from prdp_petsc.training.compare import compare
 from prdp_petsc.training.emulators import (
-    _torch_sparse,
     bubble,
     emulator_net,
     gaussian_bumps,
     heat_step_system,
+    torch_sparse,
     training_windows,
 )
 from prdp_petsc.training.harness import build_scene, run
@@ -232,7 +232,7 @@ def test_heat2d_unroll_1_is_the_one_step_loss_to_the_bit():
     scale = float(train_out.norm(dim=-1).mean())
     idx = torch.tensor([5, 0, 30, 12])
     u1_hat = net(train_in[idx])
-    rhs = (_torch_sparse(B) @ u1_hat.T).T
+    rhs = (torch_sparse(B) @ u1_hat.T).T
     u2_hat = solve(A, rhs, solver, x0=u1_hat)  # quick starts from the guess
     old = ((u2_hat - train_out[idx]) ** 2).sum(-1).mean() / scale**2
     assert old.item() > 1e-4
@@ -247,7 +247,7 @@ def test_heat2d_unroll_2_sums_two_chained_steps():
     targets = training_windows(traj, c["spans"], 2)
     scale = float(targets[1].norm(dim=-1).mean())
     idx = torch.tensor([5, 0, 30, 12])
-    B_t = _torch_sparse(B)
+    B_t = torch_sparse(B)
 
     def step(state, keys):
         u1_hat = net(state)

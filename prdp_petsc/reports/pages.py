@@ -69,7 +69,7 @@ class DataSet:
     kind : str
         ``"compare"``, ``"seeds"`` (``compare --seeds``), ``"bench"``, ``"stability"``,
         ``"work-precision"``, ``"rollouts"``, ``"horizon"``, ``"bench-mpi"``,
-        ``"bench-elasticity"``, ``"ablation"``, ``"unseen"`` or ``"defaults"``.
+        ``"bench-elasticity"``, ``"ablation"``, ``"unseen"``, ``"defaults"`` or ``"topopt"``.
     provenance : dict
         ``provenance.json`` as `record` wrote it.
     files : dict
@@ -99,6 +99,7 @@ class DataSet:
             "ablation": "ablation.json",
             "unseen": "unseen.json",
             "defaults": "defaults.json",
+            "topopt": "topopt.json",
         }.get(self.kind)
         if key is None:  # work-precision: the one work_precision_<problem>.json
             key = next(k for k in self.files if k.startswith("work_precision_"))
@@ -115,6 +116,8 @@ def _kind(files: dict) -> str:
         return "unseen"
     if "defaults.json" in files:
         return "defaults"
+    if "topopt.json" in files:
+        return "topopt"
     if "ablation.json" in files:
         return "ablation"
     if "seeds.json" in files:

@@ -37,6 +37,7 @@ __all__ = [
     "heat_emulator_scene",
     "heat_step_system",
     "training_pairs",
+    "torch_sparse",
     "training_windows",
 ]
 
@@ -295,7 +296,7 @@ def heat_emulator_scene(
     val_traj = traj[:, n_train:]
     scale = float(targets[1].norm(dim=-1).mean())
 
-    B_t = _torch_sparse(B)
+    B_t = torch_sparse(B)
     solver = KSPSolver(DAMPED_JACOBI if options is None else options, prefix=prefix, max_it=1)
     model = emulator_net(net, A, B, dt=dt, modes=modes, width=width, depth=depth)
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
@@ -347,7 +348,7 @@ def heat_emulator_scene(
     )
 
 
-def _torch_sparse(M: sp.spmatrix) -> torch.Tensor:
+def torch_sparse(M: sp.spmatrix) -> torch.Tensor:
     """`M` as a coalesced torch sparse COO tensor."""
     M = M.tocoo()
     index = torch.from_numpy(np.vstack([M.row, M.col]).astype(np.int64))
