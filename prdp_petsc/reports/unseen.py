@@ -58,6 +58,7 @@ import torch
 
 from .. import PRDP, Dirichlet, KSPSolver, diffusion_operator, find_k_full, load_mesh, solve
 from .. import mass_matrix as fem_mass
+from ..training.emulators import torch_sparse
 
 __all__ = ["PROBLEMS", "Problem", "build", "train"]
 
@@ -388,7 +389,7 @@ class AnnulusInverse(DesignProblem):
         u = spla.spsolve(sp.csc_matrix(self.dir.A_II.matrix(np.exp(truth))), b)
         self.data = torch.from_numpy(u * (1.0 + 0.01 * rng.standard_normal(u.shape)))
         self.b = torch.from_numpy(b)
-        self.lap = _torch_sparse(diffusion_operator(basis, "P1").matrix(np.ones(basis.N)))
+        self.lap = torch_sparse(diffusion_operator(basis, "P1").matrix(np.ones(basis.N)))
         self.theta = torch.zeros(basis.N, dtype=torch.float64, requires_grad=True)
         self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, prefix="u3_",
                                 max_it=1)  # fmt: skip
@@ -469,13 +470,6 @@ class HeatSink(DesignProblem):
         with torch.no_grad():
             A = sp.csc_matrix(self.dir.A_II.matrix(self._kappa().numpy()))
             return float(self.b.numpy() @ spla.spsolve(A, self.b.numpy()))
-
-
-def _torch_sparse(A: sp.spmatrix) -> torch.Tensor:
-    A = sp.coo_matrix(A)
-    index = torch.from_numpy(np.vstack([A.row, A.col]).astype(np.int64))
-    values = torch.from_numpy(A.data)
-    return torch.sparse_coo_tensor(index, values, size=A.shape, check_invariants=True).coalesce()
 
 
 #: problem name -> class
