@@ -212,3 +212,19 @@ def test_results_command_scores_every_route_on_quick():
     assert target_met(data) == [
         routes["PRDP (auto)"]["ratio"] <= 1.01 and routes["PRDP (auto)"]["saved"] >= 0.5
     ]
+
+
+def test_the_results_page_says_when_a_route_beats_the_converged_design():
+    from prdp_petsc.reports.topopt import spread, target_met
+
+    def case(seed, prdp_ratio):
+        routes = {
+            "converged": {"ratio": 1.0, "saved": 0.0},
+            "PRDP (auto)": {"ratio": prdp_ratio, "saved": 0.7},
+        }
+        return {"seed": seed, "load_height": 0.5, "routes": routes}
+
+    data = {"cases": [case(0, 1.005), case(1, 0.95)]}
+    assert target_met(data) == [True, True]
+    assert "PRDP (auto) on case 1 (0.950)" in spread(data)
+    assert spread({"cases": [case(0, 1.005)]}) is None

@@ -367,9 +367,10 @@ def _bench_elasticity_body(ds: DataSet) -> list[str]:
 
 
 def _topopt_body(ds: DataSet) -> list[str]:
-    from .topopt import TARGET_RATIO, TARGET_SAVED, format_results, target_met
+    from .topopt import TARGET_RATIO, TARGET_SAVED, format_results, spread, target_met
 
     met = target_met(ds.main)
+    note = spread(ds.main)
     return [
         "What `demos/topopt3d.py results` printed: per load case (the seed; z_c is the "
         "height of the loaded band), the converged route (every solve to rtol 1e-8), "
@@ -388,6 +389,7 @@ def _topopt_body(ds: DataSet) -> list[str]:
         f"PRDP within {_pct(TARGET_RATIO - 1)} of the converged design's compliance at "
         f"≥ {_pct(TARGET_SAVED)} fewer inner iterations: {sum(met)} of {len(met)} load cases.",
         "",
+        *([note, ""] if note else []),
         *(["## Designs", "", *_images(ds)] if ds.images else []),
     ]
 
