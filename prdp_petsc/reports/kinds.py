@@ -419,6 +419,8 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
 
     d = ds.main
     if ds.kind == "defaults":
+        from .defaults import fewer
+
         parts = []
         for name in ("default", "tuned"):
             s = d.get(name)
@@ -429,7 +431,7 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
             parts.append(
                 f"{name} {s['ratio']['geometric_mean']:.3f} (equal accuracy on "
                 f"{s['equal_accuracy']} of {s['compared']}"
-                + (f", {_pct(saved)} fewer inner iterations there" if saved is not None else "")
+                + (f", {fewer(saved)} there" if saved is not None else "")
                 + ")"
             )
         what = (
