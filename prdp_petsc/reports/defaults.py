@@ -142,9 +142,9 @@ def notes(result: dict) -> list[str]:
     if behind and all(r["default"]["k_final"] >= r["k_full"] for r in behind):
         notes.append(
             f"On {len(behind)} of {len(rows)} seeds it ended behind full fidelity although its "
-            "final K was K_full: the accuracy was lost in its early epochs at small K, which "
-            "the network did not recover from in the epochs left; a certificate speaks of "
-            "the final K, not of the path."
+            "final K was K_full: the accuracy was lost in its early epochs at small K, and "
+            "training did not win it back in the epochs left; a certificate speaks of the "
+            "final K, not of the path (see Known limitations in the guide)."
         )
     if any(r["default"]["saved"] < 0 for r in rows):
         notes.append(
