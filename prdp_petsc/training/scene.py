@@ -79,7 +79,11 @@ class Scene:
     batches : callable ``(epoch, generator) -> iterable``
         Training batches of one epoch; `generator` is a seeded ``torch.Generator``.
     loss : callable ``batch -> torch.Tensor``
-        Scalar training loss of one batch (through the solvers).
+        Scalar training loss of one batch (through the solvers); the harness
+        back-propagates it and steps the optimizer.  A scene may take optimizer steps
+        of its own inside it and return the last step's loss (``poisson_field``,
+        ``poisson3d``: several steps per batch); the ``auto`` schedule's check calls it
+        too and restores the parameters and the optimizer's state afterwards.
     validate : callable ``() -> float``
         Validation metric, lower is better; this is what PRDP watches.
     probe : callable ``() -> (A, b, x0)``
