@@ -1,7 +1,7 @@
 """PRDP controller: raise the solver's iteration cap K only as far as validation needs.
 
 Progressively Refined Differentiable Physics (reference: tum-pbs/PRDP,
-``experiments/src/prdp.py``; docs/maths.md §7). Plain Python, no torch or PETSc.
+``experiments/src/prdp.py``; docs/maths.md §7). Python and numpy, no torch or PETSc.
 
 Two constructions:
 
@@ -20,6 +20,8 @@ import math
 import operator
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+
+import numpy as np
 
 __all__ = [
     "ACCURACY_BAND",
@@ -113,8 +115,10 @@ class Certificate:
 def fidelity_gap(at_k, at_full) -> float:
     """``‖at_k − at_full‖ / ‖at_full‖`` of two numbers or two arrays (any shape, flattened);
     0 for two zeros, inf for a zero `at_full` only, NaN when either is not finite."""
-    diff = _norm([a - b for a, b in zip(_flat(at_k), _flat(at_full), strict=True)])
-    ref = _norm(_flat(at_full))
+    k, full = _flat(at_k), _flat(at_full)
+    if k.shape != full.shape:
+        raise ValueError(f"a check returned {k.size} values at K and {full.size} at K_full")
+    diff, ref = float(np.linalg.norm(k - full)), _norm(at_full)
     if not (math.isfinite(diff) and math.isfinite(ref)):
         return math.nan
     if ref == 0:
@@ -122,19 +126,20 @@ def fidelity_gap(at_k, at_full) -> float:
     return diff / ref
 
 
-def _flat(value) -> list[float]:
-    """A number, or anything array-like (numpy, torch, nested lists), as a flat list."""
+def _flat(value) -> np.ndarray:
+    """A number, an array (numpy, torch) or a list of them (per-parameter gradients) as
+    one flat float64 array, without a Python loop over its entries."""
     if hasattr(value, "detach"):  # a torch tensor, without importing torch
         value = value.detach().cpu().numpy()
-    if hasattr(value, "ravel"):
-        return [float(v) for v in value.ravel()]
     if isinstance(value, list | tuple):
-        return [v for item in value for v in _flat(item)]
-    return [float(value)]
+        parts = [_flat(item) for item in value]
+        return np.concatenate(parts) if parts else np.zeros(0)
+    return np.asarray(value, dtype=np.float64).ravel()
 
 
-def _norm(values: list[float]) -> float:
-    return math.sqrt(math.fsum(v * v for v in values))
+def _norm(value) -> float:
+    """The Euclidean norm of `value` flattened (`_flat`)."""
+    return float(np.linalg.norm(_flat(value)))
 
 
 def _ratio(num: float, den: float) -> float:
@@ -578,7 +583,7 @@ class PRDP:
 
     def _check(self, check) -> Certificate:
         at_k, at_full = check(self._k), check(self.k_full)
-        size = (lambda v: _norm(_flat(v))) if not isinstance(at_full, float | int) else float
+        size = _norm if not isinstance(at_full, float | int) else float
         cert = Certificate(
             k=self._k, k_full=self.k_full, at_k=size(at_k), at_full=size(at_full),
             gap=fidelity_gap(at_k, at_full), tol=self.tol, epoch=len(self._history),

@@ -136,3 +136,11 @@ def test_state_round_trip_keeps_checks_and_schedule():
     for _ in range(20):
         assert clone.update(1.0, check=check) == ctrl.update(1.0, check=check)
     assert clone.checks == ctrl.checks
+
+
+def test_fidelity_gap_of_per_parameter_lists_and_mismatched_checks():
+    grads_k = [np.array([[1.0, 0.0]]), np.array([2.0])]  # e.g. a list of parameter gradients
+    grads_full = [np.array([[1.0, 0.0]]), np.array([1.0])]
+    assert fidelity_gap(grads_k, grads_full) == pytest.approx(1 / 2**0.5)
+    with pytest.raises(ValueError, match="values at K"):
+        fidelity_gap(np.ones(3), np.ones(4))
