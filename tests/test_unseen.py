@@ -1,4 +1,5 @@
-"""The problems PRDP was never tuned on (`prdp_petsc.reports.unseen`), quick variants.
+"""The problems PRDP was never tuned on (`prdp_petsc.reports.unseen_problems`), quick
+variants, run by `prdp_petsc.reports.unseen`.
 
 Each runs full fidelity and the default construction (`PRDP.for_problem` with a
 gradient check) in a plain loop.  The full-size runs over three seeds are on the
@@ -11,16 +12,16 @@ import numpy as np
 import pytest
 
 import prdp_petsc as pp
-from prdp_petsc.reports import unseen
+from prdp_petsc.reports import unseen, unseen_problems
 
 
 @pytest.mark.parametrize("name", ["heat_sink", "annulus_inverse", "box3d_regions"])
 @pytest.mark.parametrize("seed", [1, 2])
 def test_default_prdp_matches_full_fidelity_for_fewer_iterations(name, seed):
-    problem = unseen.build(name, seed, quick=True)
-    k_full = pp.find_k_full(problem.solver, *problem.probe, rtol=unseen.RTOL_FULL)
+    problem = unseen_problems.build(name, seed, quick=True)
+    k_full = pp.find_k_full(problem.solver, *problem.probe, rtol=unseen_problems.RTOL_FULL)
     full = unseen.train(problem, "full", k_full)
-    prdp = unseen.train(unseen.build(name, seed, quick=True), "prdp", k_full)
+    prdp = unseen.train(unseen_problems.build(name, seed, quick=True), "prdp", k_full)
     assert prdp["final_error"] <= 1.10 * full["final_error"]
     assert prdp["iterations"] <= 0.8 * full["iterations"]  # checks included
     assert prdp["savings_k"]["certified"] is True
@@ -28,7 +29,7 @@ def test_default_prdp_matches_full_fidelity_for_fewer_iterations(name, seed):
 
 
 def test_the_check_is_the_validation_gradient_through_the_capped_solve():
-    problem = unseen.build("lshape_mlp", 0, quick=True)
+    problem = unseen_problems.build("lshape_mlp", 0, quick=True)
     k_full = pp.find_k_full(problem.solver, *problem.probe)
     g_full, g_coarse = problem.check(k_full), problem.check(max(1, k_full // 8))
     n_weights = sum(p.numel() for p in problem.net.parameters())

@@ -310,7 +310,7 @@ def _unseen_body(ds: DataSet) -> list[str]:
         "Six problems written for this page, none of them a shipped scene, each in a "
         "plain torch loop with `PRDP.for_problem(find_k_full(...))` and a check (the "
         "validation gradient through the solve at K against K_full); see "
-        "`prdp_petsc.reports.unseen` for the problems. Error ratio: PRDP's final error "
+        "`prdp_petsc.reports.unseen_problems` for the problems. Error ratio: PRDP's final error "
         "over full fidelity's (constant K_full), same seed, same data and initial weights. "
         "Iterations saved: forward and adjoint inner iterations of every solve, the "
         "checks included. Certified: the last check, at the final K, within the 5 % band. "
