@@ -12,9 +12,9 @@ import torch
 
 from prdp_petsc.cli import main
 from prdp_petsc.reports.defaults import format_defaults
-from prdp_petsc.training.harness import build_scene, find_k_full, gradient_check, run
+from prdp_petsc.training.harness import build_scene, find_k_full, run
 from prdp_petsc.training.scene import load_scene
-from prdp_petsc.training.schedules import parse_schedule
+from prdp_petsc.training.schedules import gradient_check, parse_schedule
 
 HEAT1D = Path(__file__).parents[1] / "demos" / "heat1d.py"
 

@@ -10,7 +10,6 @@ continues it exactly and `load_trained` loads the trained model.
 
 from __future__ import annotations
 
-import copy
 import json
 import logging
 import math
@@ -39,17 +38,16 @@ from .schedules import (
     RTOL_INIT,
     RTOL_MAX_IT_FACTOR,
     Schedule,
+    gradient_check,
     parse_schedule,
     rtol_levels,
 )
 
 __all__ = [
-    "CHECK_SEED",
     "RESULTS",
     "build_scene",
     "check_epochs",
     "find_k_full",
-    "gradient_check",
     "load_trained",
     "release",
     "run",
@@ -62,8 +60,6 @@ logger = logging.getLogger(__name__)
 
 #: File name of a run's results in its output folder.
 RESULTS = "results.json"
-#: Seed of the generator that draws the ``auto`` schedule's fixed check batch
-CHECK_SEED = 20_261_125
 
 
 def positive_int(value, name: str) -> int:
@@ -664,45 +660,6 @@ def _certify(controller: PRDP, check, result: dict) -> None:
     cert = controller.certify(check)
     result["certificate"] = {**asdict(cert), "certified": cert.certified}
     logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
-
-
-def gradient_check(scene):
-    """The ``auto`` schedule's check: ``k -> ∂L/∂w`` of the training loss on one fixed
-    batch, every scene solver capped at k, no optimiser step (see `prdp_petsc.PRDP`).
-
-    The batch is the first of ``scene.batches(0, ...)`` under a generator seeded
-    `CHECK_SEED`, the same for every check of the run; parameters the loss does not
-    reach contribute zeros.  A scene's ``loss`` may change state (some take optimiser
-    steps of their own before returning the last loss): the parameters' values and
-    the optimiser's state are restored after every check, so a check never trains.
-    """
-    batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
-    params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]
-
-    def check(k: int) -> np.ndarray:
-        saved = [s.max_it for s in scene.solvers]
-        values = [p.detach().clone() for p in params]
-        state = copy.deepcopy(scene.optimizer.state_dict())
-        for s in scene.solvers:
-            s.max_it = k
-        try:
-            grads = torch.autograd.grad(scene.loss(batch), params, allow_unused=True)
-        finally:
-            for s, k_saved in zip(scene.solvers, saved, strict=True):
-                s.max_it = k_saved
-            with torch.no_grad():
-                for p, value in zip(params, values, strict=True):
-                    p.copy_(value)
-            scene.optimizer.load_state_dict(state)
-            scene.optimizer.zero_grad()
-        return np.concatenate(
-            [
-                (torch.zeros_like(p) if g is None else g).detach().reshape(-1).double().numpy()
-                for p, g in zip(params, grads, strict=True)
-            ]
-        )
-
-    return check
 
 
 def _check_finite(value: float, what: str) -> None:
