@@ -36,10 +36,10 @@ test: $(STAMP)
 	$(MPI_ENV) timeout 600 $(MPIEXEC) -n 3 $(PY) -m pytest -q -p no:cacheprovider tests/mpi/test_owned.py
 
 demo: $(STAMP)
-	$(PY) -m prdp_petsc.cli compare demos/heat2d.py --preset paper --routes cg/icc --out $(OUT)/heat2d
+	$(PY) -m prdp_petsc.lab.cli compare demos/heat2d.py --preset paper --routes cg/icc --out $(OUT)/heat2d
 
 bench: $(STAMP)
-	$(PY) -m prdp_petsc.cli bench bridge --out $(OUT)
+	$(PY) -m prdp_petsc.lab.cli bench bridge --out $(OUT)
 
 # The documentation site, into site/; any warning (a broken link, a docstring mkdocstrings
 # cannot read) fails the build.
@@ -48,7 +48,7 @@ docs: $(STAMP)
 
 # docs/results/ and the README's generated fragments, from the recorded data in docs/data/
 pages: $(STAMP)
-	$(PY) -m prdp_petsc.cli pages --out docs/results
+	$(PY) -m prdp_petsc.lab.cli pages --out docs/results
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check prdp_petsc tests demos meshes docs/examples
@@ -85,7 +85,7 @@ $(STAMP):
 	  fi; \
 	fi; \
 	$(PIP) install -q -c $(CONSTRAINTS) torch; \
-	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[test,dev,mpi,docs]"; \
+	$(PIP) install -q -c $(CONSTRAINTS) --no-build-isolation -e ".[lab,test,dev,mpi,docs]"; \
 	$(PY) -c "import petsc4py, torch, skfem, prdp_petsc; from petsc4py import PETSc; \
 	print('>> PETSc', '.'.join(map(str, PETSc.Sys.getVersion())), '| torch', torch.__version__, '| scikit-fem ok')"; \
 	rm -f $(VENV)/.installed-*; touch $@

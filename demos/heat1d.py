@@ -19,7 +19,7 @@ hide the plateaus that follow.  Initial conditions are truncated Fourier sine se
 
 Multi-step training (``unroll`` = m, default 1): the chain s ← P_K(N(s)) runs m times
 from u⁰ under autograd, its k-th state is compared with the exact u²ᵏ, and the loss
-is the sum of the m terms (`prdp_petsc.training.unroll.windows` cuts the training
+is the sum of the m terms (`prdp_petsc.lab.training.unroll.windows` cuts the training
 windows u⁰, u², …, u²ᵐ from the exact trajectories).  m = 1 is the one-step loss
 above, to the bit.  It does not close PRDP's gap to full fidelity on ``paper``; it
 widens it (docs/results/heat1d_seeds.md and heat1d_m2_seeds.md).  That gap is the
@@ -43,9 +43,10 @@ import scipy.sparse as sp
 import torch
 
 import prdp_petsc as pp
-from prdp_petsc.training.rollout import rollout_errors
-from prdp_petsc.training.scene import shuffled_batches
-from prdp_petsc.training.unroll import windows
+from prdp_petsc import lab
+from prdp_petsc.lab.training.rollout import rollout_errors
+from prdp_petsc.lab.training.scene import shuffled_batches
+from prdp_petsc.lab.training.unroll import windows
 
 PRESETS = {
     "quick": {
@@ -99,7 +100,7 @@ def mlp(n: int, width: int = 64, depth: int = 3) -> torch.nn.Sequential:
     return torch.nn.Sequential(*layers).double()
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     n, m = config["n"], config["unroll"]
     if m < 1:
         raise ValueError(f"unroll must be >= 1, got {m}")
@@ -139,7 +140,7 @@ def build(config: dict, seed: int) -> pp.Scene:
     def rollout():
         return rollout_errors(net, val_traj[0], val_traj[1:])
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=shuffled_batches(config["n_train"], config["batch"]),
@@ -166,6 +167,6 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -23,10 +23,10 @@ Learning problem (the paper's mixed chain): a network N maps uⁿ to ûⁿ⁺¹,
 loss compares the *capped* solver step P_K(ûⁿ⁺¹) with the exact uⁿ⁺², so a
 small K biases what N learns.  Training pairs (uₜ, uₜ₊₂) start at t = 0, …,
 ``spans`` − 1 of each training trajectory, so N sees the smoother states a rollout
-meets, not only initial conditions.  N is a `prdp_petsc.training.modal.ModalNet`:
+meets, not only initial conditions.  N is a `prdp_petsc.lab.components.modal.ModalNet`:
 one learned weight per eigenmode of ``K φ = λ M φ`` (the mesh's Fourier basis;
 the spectral layer of a Fourier neural operator), ``modes`` of them.  It replaced
-`prdp_petsc.training.networks.MeshNet` (message passing over the mesh's edges),
+`prdp_petsc.lab.components.networks.MeshNet` (message passing over the mesh's edges),
 which plateaued at ≈ 12 % rollout error here and diverged in 3D: the solve damps
 the high-frequency part of N's error, so the loss barely constrains a local
 network there, and Adam on correlated edge weights is badly conditioned.  Modal
@@ -44,12 +44,12 @@ Presets: ``quick`` (tests), ``paper`` (5 457 unknowns, Δt κ/h² ≈ 1.2) and
 ``stiff`` (Δt κ/h² ≈ 6e3: damped Jacobi needs thousands of iterations, CG +
 ICC about 70 — there the PC choice decides).  ``paper_mlp`` is ``paper`` with the
 reference's emulator class instead of ModalNet (``net: "mlp"``: a
-`~prdp_petsc.training.networks.ResidualMLP` over the nodal values) and 64 training
+`~prdp_petsc.lab.components.networks.ResidualMLP` over the nodal values) and 64 training
 trajectories: the control experiment of the README, where the network does about
 as well as the identity map (better on seed 0, worse on seed 1), so its own error
 hides the solver's.  Every preset spells out every setting (``net``, ``width``,
 ``depth``, ``warm_start`` included), so ``--set net=mlp`` works on any of them.  The
-scene itself is `prdp_petsc.training.emulators.heat_emulator_scene`, shared with heat3d.
+scene itself is `prdp_petsc.lab.components.emulators.heat_emulator_scene`, shared with heat3d.
 
 Run ``python demos/heat2d.py compare --preset paper --routes cg/icc --out results/heat2d``.
 """
@@ -57,8 +57,9 @@ Run ``python demos/heat2d.py compare --preset paper --routes cg/icc --out result
 from __future__ import annotations
 
 import prdp_petsc as pp
-from prdp_petsc.training.emulators import heat_emulator_scene
-from prdp_petsc.training.routes import parse_routes
+from prdp_petsc import lab
+from prdp_petsc.lab.components.emulators import heat_emulator_scene
+from prdp_petsc.lab.training.routes import parse_routes
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
 # step matrix M + Δt K is SPD, so CG with ICC or GAMG; K_full from the guess on
@@ -140,7 +141,7 @@ _MLP = {"net": "mlp", "lr": 1e-3, "gamma": 0.95, "k_init": 4, "k_step": 4}
 PRESETS["paper_mlp"] = {**PRESETS["paper"], **_MLP, "n_train": 64}
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
     mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
     return heat_emulator_scene(
@@ -170,6 +171,6 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

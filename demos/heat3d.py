@@ -11,7 +11,7 @@ boundary.
 Solver in the loop: damped Jacobi (``richardson`` + ``jacobi``, scale 0.8) in fixed
 mode, K = ``max_it`` iterations from the input ûⁿ⁺¹ as initial guess (see heat2d),
 implicit (adjoint) gradients; the same
-scene as ``heat2d`` (both built by `prdp_petsc.training.emulators.heat_emulator_scene`), so
+scene as ``heat2d`` (both built by `prdp_petsc.lab.components.emulators.heat_emulator_scene`), so
 ``-heat3d_ksp_type cg -heat3d_pc_type icc`` and ``compare --routes cg/icc`` work
 the same way.  The mesh is sized so that the solve dominates training: at K_full
 the solver takes most of each epoch's wall time (`solver %` in compare's table), so
@@ -20,7 +20,7 @@ PRDP's savings in iterations show in wall time.
 Learning problem (the paper's mixed chain): a network N maps uⁿ to ûⁿ⁺¹ and the loss
 compares the capped solver step P_K(ûⁿ⁺¹) with the exact uⁿ⁺².  Training pairs
 (uₜ, uₜ₊₂) start at t = 0, …, ``spans`` − 1 of each training trajectory, so N sees
-the states a rollout meets.  N is a `prdp_petsc.training.modal.ModalNet`, as in
+the states a rollout meets.  N is a `prdp_petsc.lab.components.modal.ModalNet`, as in
 heat2d: one learned weight per eigenmode of ``K φ = λ M φ`` (the mesh's Fourier
 basis), the ``modes`` lowest.  The message-passing `MeshNet` that heat2d used
 before does not emulate this step: trained through the solve, its rollouts
@@ -41,8 +41,9 @@ Run ``python demos/heat3d.py compare --preset paper --routes cg/icc --out result
 from __future__ import annotations
 
 import prdp_petsc as pp
-from prdp_petsc.training.emulators import heat_emulator_scene
-from prdp_petsc.training.routes import parse_routes
+from prdp_petsc import lab
+from prdp_petsc.lab.components.emulators import heat_emulator_scene
+from prdp_petsc.lab.training.routes import parse_routes
 
 # heat2d's settings on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`).
 # ``routes``, the KSP/PC pairs `compare` also runs (``--routes`` overrides them): the
@@ -97,7 +98,7 @@ PRESETS = {
 }
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
     mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
     return heat_emulator_scene(
@@ -127,6 +128,6 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -4,7 +4,7 @@ PDE: u_t = ∇·(κ(u)∇u) with κ(u) = 1 + α u² (α = 2), on the L-shaped do
 shipped gmsh mesh ``lshape``), u = 0 on the boundary.  Discretisation: P1 finite
 elements (scikit-fem, 1 325 unknowns), implicit Euler with Δt = 2e-3 (Δt κ/h² ≈ 3–18
 with the mean edge h = 0.025); each step is the root of
-``R(u) = M(u − uⁿ) + Δt K(κ(u)) u`` on the interior nodes (`prdp_petsc.NonlinearHeat`,
+``R(u) = M(u − uⁿ) + Δt K(κ(u)) u`` on the interior nodes (`prdp_petsc.lab.NonlinearHeat`,
 docs/maths.md §8).  Initial conditions: three random Gaussian bumps times the bubble
 (−Δd = 1), max |u| in [0.75, 1.5], so κ varies by a factor of up to 5.5.
 
@@ -23,7 +23,7 @@ the first Newton system of a held-out step) is 36.
 Learning problem (the paper's mixed chain, as heat1d and heat2d): a network N maps uⁿ
 to ûⁿ⁺¹, and the loss compares the capped Newton step ``Newton_K(ûⁿ⁺¹)`` with the
 exact uⁿ⁺²; with small K the step falls short and N learns a biased map.  N is
-`prdp_petsc.training.networks.MeshNet` (message passing over the mesh's edges, 3
+`prdp_petsc.lab.components.networks.MeshNet` (message passing over the mesh's edges, 3
 layers, 8 channels, node coordinates as extra inputs; heat2d's network before it moved
 to `ModalNet`), here with GELU, since the step is nonlinear.  Validation metric: the
 mean normalised error ``mean_t ‖ûₜ − uₜ‖/‖uₜ‖`` of a 10-step autoregressive rollout of
@@ -59,11 +59,12 @@ import torch
 from petsc4py import PETSc
 
 import prdp_petsc as pp
+from prdp_petsc import lab
 from prdp_petsc.autograd import WarmStarts
-from prdp_petsc.training.networks import MeshNet
-from prdp_petsc.training.rollout import rollout_errors
-from prdp_petsc.training.routes import parse_routes
-from prdp_petsc.training.scene import shuffled_batches
+from prdp_petsc.lab.components.networks import MeshNet
+from prdp_petsc.lab.training.rollout import rollout_errors
+from prdp_petsc.lab.training.routes import parse_routes
+from prdp_petsc.lab.training.scene import shuffled_batches
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
 # Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG:
@@ -167,11 +168,11 @@ def trajectories(heat, u0: np.ndarray, steps: int, alpha: float) -> np.ndarray:
     return np.stack(out)
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
     mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
     basis = skfem.Basis(mesh, skfem.ElementTriP1())
-    heat = pp.NonlinearHeat(basis, config["dt"], dirichlet=basis.get_dofs())
+    heat = lab.NonlinearHeat(basis, config["dt"], dirichlet=basis.get_dofs())
     alpha, interior, N = config["alpha"], heat.interior, basis.N
     zero_f, zero_g = np.zeros(N), np.zeros(len(heat.boundary))
     rng = np.random.default_rng(seed)
@@ -228,7 +229,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         params = (heat.expand(u, zero_g), zero_f, zero_g, alpha)
         return heat.jacobian(u, *params), -heat.residual(u, *params), None
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=shuffled_batches(len(train_in), config["batch"]),
@@ -258,6 +259,6 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

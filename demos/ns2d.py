@@ -1,7 +1,7 @@
 """Navier–Stokes neural-hybrid corrector with the solver in the loop (PRDP on GMRES(8)).
 
 PDE: incompressible Navier–Stokes, u_t + (u·∇)u − ν Δu + ∇p = 0, ∇·u = 0, on the
-periodic unit square, ν = 1e-4.  Discretisation (`prdp_petsc.fem.mac`): MAC
+periodic unit square, ν = 1e-4.  Discretisation (`prdp_petsc.lab.components.mac`): MAC
 staggered grid with N × N cells, finite differences, implicit Euler with Δt = 0.1
 and one Picard linearisation about the previous velocity, first-order upwind
 advection: one monolithic (u, v, p) system of 3N² unknowns per step (6 912 on the
@@ -24,7 +24,7 @@ complement PC on the velocity/pressure blocks; point PCs such as ILU or SOR fail
 zero pressure block) cuts K_full from ≈ 440 to ≈ 70 on 48².
 
 Learning problem (solver-in-the-loop correction, as the reference): a
-`~prdp_petsc.training.networks.ConvResNet` C (3 → 3 channels u, v, p; circular
+`~prdp_petsc.lab.components.networks.ConvResNet` C (3 → 3 channels u, v, p; circular
 padding; 64 hidden channels, 3 blocks on `paper`; float32 inside) corrects the
 coarse step after every step, s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the
 MSE of both states of a 2-step unroll through solver and network against the
@@ -74,7 +74,7 @@ setting.  With ``large_k64``'s steps of 64 (8 on the Schur route) PRDP on that r
 climbed too slowly to reach full-fidelity accuracy within 16 epochs on 4 of 6 seeds;
 with 192 it reaches it on every seed (the ``ns2d_large_k192_speedup`` results page).
 
-Long horizons (`prdp_petsc.training.unroll`): ``unroll: m`` trains on m-step rollouts
+Long horizons (`prdp_petsc.lab.training.unroll`): ``unroll: m`` trains on m-step rollouts
 of the hybrid (windows of m + 1 reference states starting every ``window_stride``
 steps), ``checkpoint: True`` recomputes the network's activations in the backward pass
 instead of keeping them (the solves are not rerun), ``unroll_curriculum: E`` doubles m
@@ -124,13 +124,14 @@ import numpy as np
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc import lab
 from prdp_petsc.autograd import WarmStarts
-from prdp_petsc.fem import mac
-from prdp_petsc.training import unroll
-from prdp_petsc.training.networks import ConvResNet
-from prdp_petsc.training.routes import parse_routes, route_string
-from prdp_petsc.training.scene import preset_config, shuffled_batches
-from prdp_petsc.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
+from prdp_petsc.lab.components import mac
+from prdp_petsc.lab.components.networks import ConvResNet
+from prdp_petsc.lab.training import unroll
+from prdp_petsc.lab.training.routes import parse_routes, route_string
+from prdp_petsc.lab.training.scene import preset_config, shuffled_batches
+from prdp_petsc.lab.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
 
 _BASE = {
     "dt": 0.1,
@@ -290,7 +291,7 @@ def reference_data(n: int, count: int, steps: int, dt: float, nu: float, seed: i
 
     Cached in memory per process, and on disk in ``$PRDP_PETSC_CACHE`` (default
     ``~/.cache/prdp_petsc``) under a name made of all the arguments and a hash of
-    the scheme's source (`prdp_petsc.fem.mac`), so that the runs of a comparison
+    the scheme's source (`prdp_petsc.lab.components.mac`), so that the runs of a comparison
     build them once and a changed scheme never reads old data;
     ``PRDP_PETSC_CACHE=""`` turns the disk cache off.
     """
@@ -364,7 +365,7 @@ class Corrector:
         return self.net(state.reshape(-1, 3, n, n)).reshape(len(state), -1)
 
     def step(self, solver: pp.KSPSolver) -> Hybrid:
-        """The corrected step with `solver` (`prdp_petsc.training.unroll.Hybrid`)."""
+        """The corrected step with `solver` (`prdp_petsc.lab.training.unroll.Hybrid`)."""
 
         def physics(state, forcing, keys):
             return self.solve(state, solver, keys, forcing)
@@ -436,7 +437,7 @@ def setup(config: dict, seed: int) -> dict:
     return {"train": train, "val": val, "solver": solver, "full": full, "hybrid": hybrid}
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     parse_routes(config["routes"], ROUTES)  # `compare` runs them; a malformed one fails here
     n = config["n"]
     parts = setup(config, seed)
@@ -517,7 +518,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         theta = mac.picard_parameters(s, mac.wind_matrix(n))
         return hybrid.A.matrix(theta), s * hybrid.scale.numpy(), None
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=epoch_batches,
@@ -654,7 +655,7 @@ def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Names
 def energy_report(folder: str, steps: int | None = None) -> dict:
     """Error, energy and correlation per step of a trained run's held-out rollout.
 
-    Loads the run in `folder` (`prdp_petsc.training.harness.load_trained`), rebuilds
+    Loads the run in `folder` (`prdp_petsc.lab.training.harness.load_trained`), rebuilds
     its validation flows and rolls them out with the full-fidelity solver, with and
     without the corrector.  Per step t and flow: the normalised velocity error, the
     energy ratio ‖(û, v̂)‖/‖(u, v)‖ against the reference, and the correlation
@@ -662,7 +663,7 @@ def energy_report(folder: str, steps: int | None = None) -> dict:
     mixes amplitude (energy) and phase (correlation): a diffusive solver loses energy
     but stays in phase; a corrector that restores energy can lose phase faster.
     """
-    from prdp_petsc.training.harness import load_trained, release
+    from prdp_petsc.lab.training.harness import load_trained, release
 
     module = sys.modules[__name__]
     scene = load_trained(folder, module=module)
@@ -742,6 +743,6 @@ COMMANDS = {"adjoint": adjoint_command, "energy": energy_command}
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -40,6 +40,7 @@ import skfem
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc import lab
 from prdp_petsc.core.parallel import default_comm
 
 _BASE = {
@@ -88,7 +89,7 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _LEVI_CIVITA[_i, _j, _k], _LEVI_CIVITA[_i, _k, _j] = 1.0, -1.0
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     comm = default_comm()  # COMM_WORLD under --parallel domain, else COMM_SELF
     root = comm.getRank() == 0
     n = config["n"]
@@ -152,7 +153,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         kappa = np.exp(theta.detach().numpy())
         return float(np.sqrt(total(np.sum(volume * (kappa - kappa_true) ** 2))[0]) / kappa_norm)
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=lambda epoch, generator: [None],

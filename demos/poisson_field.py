@@ -63,6 +63,7 @@ import skfem
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc import lab
 
 PRESETS = {
     "quick": {
@@ -125,7 +126,7 @@ def _unit_load(v, w):
     return v
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     mesh = pp.load_mesh("lshape", refine=config["refine"])
     basis = skfem.Basis(mesh, skfem.ElementTriP1())
     A = pp.diffusion_operator(basis, "P0")
@@ -174,7 +175,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         kappa = np.exp(theta.detach().numpy())
         return float(np.sqrt(np.sum(area * (kappa - kappa_true) ** 2)) / kappa_norm)
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=lambda epoch, generator: [None],
@@ -202,10 +203,10 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 def recover(preset: str = "quick", schedule: str = "prdp", seed: int = 0) -> np.ndarray:
-    """Train once with `prdp_petsc.training.harness.run`; return the recovered θ = log κ."""
+    """Train once with `prdp_petsc.lab.training.harness.run`; return the recovered θ = log κ."""
     import types
 
-    from prdp_petsc.training.harness import run
+    from prdp_petsc.lab.training.harness import run
 
     scenes = []
 
@@ -273,6 +274,6 @@ COMMANDS = {"plot": plot_command}
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -23,6 +23,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc import lab
 
 PRESETS = {
     "quick": {"n": 30, "steps": 60, "lr": 275.0},
@@ -33,7 +34,7 @@ THETA_REF = 2.0
 THETA_INIT = 5.0
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     n = config["n"]
     A = (-pp.laplacian(n)).tocsr()  # SPD: −u'' = θ sin(2πx)
     shape = np.sin(2 * np.pi * pp.grid_points(n)[0])
@@ -49,7 +50,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         u = pp.solve(A, theta * source, solver)
         return (u - u_ref).square().mean()
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=lambda epoch, generator: [None],  # one gradient step per "epoch"
@@ -72,6 +73,6 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -10,7 +10,7 @@ variant, where P's singular values spread over many more decades.
 Learning problem (Holl et al., "Scale-invariant learning by physics inversion"): a
 network f(y*; φ) maps an observed solution y* = P(x_true) to the source x, for random
 smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``:
-`prdp_petsc.training.emulators.gaussian_bumps`).  f is a learnable sparse linear map
+`prdp_petsc.lab.components.emulators.gaussian_bumps`).  f is a learnable sparse linear map
 on A's pattern (`SparseLinear`, one value per entry, starting at zero; input divided
 and output multiplied by fixed data scales): the class of the inverse physics
 ``M⁻¹ A`` it has to learn, up to mass lumping.  (A linear MeshNet was tried first and
@@ -81,8 +81,9 @@ import torch
 from skfem.models.poisson import mass
 
 import prdp_petsc as pp
-from prdp_petsc.training.emulators import gaussian_bumps
-from prdp_petsc.training.scene import shuffled_batches
+from prdp_petsc import lab
+from prdp_petsc.lab.components.emulators import gaussian_bumps
+from prdp_petsc.lab.training.scene import shuffled_batches
 
 METHODS = ("dp_adam", "dp_sgd", "sip")
 
@@ -147,7 +148,7 @@ def sip_update(x, y, y_star, inverse: InverseSimulator, eta: float) -> torch.Ten
     return inverse(y + eta * (y_star - y)) - x.detach()
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     if config["method"] not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {config['method']!r}")
     if not 0 < config["eta"] <= 1:
@@ -204,7 +205,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         info["final"] = {"x_error": validate(), "y_error": float(y_err.mean())}
         return [float(e) for e in y_err]
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=shuffled_batches(n_train, config["batch"]),
@@ -269,6 +270,6 @@ def _count(net: torch.nn.Module) -> int:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

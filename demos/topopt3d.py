@@ -66,7 +66,8 @@ import torch
 from scipy.spatial import cKDTree
 
 import prdp_petsc as pp
-from prdp_petsc.training.emulators import torch_sparse
+from prdp_petsc import lab
+from prdp_petsc.lab.components.emulators import torch_sparse
 
 #: the settings every preset shares: SIMP p = 3, E_min = 1e-9 E_0, 30 % volume, a filter
 #: of 1.5 element widths, OC's move limit 0.2, fixed-K solves (rtol 0)
@@ -210,7 +211,7 @@ def load_case(seed: int) -> float:
     return LOAD_HEIGHTS[seed % len(LOAD_HEIGHTS)]
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     n = config["n"]
     problem = Cantilever((2 * n, n, n), z_c=load_case(seed))
     H = density_filter(problem.centroids, config["rmin"] / n)
@@ -248,7 +249,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         return change
 
     probe_theta = simp(torch.full((count,), volfrac, dtype=torch.float64), penal, e_min)
-    scene = pp.Scene(
+    scene = lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=lambda epoch, generator: [None],
@@ -271,11 +272,11 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 # -- results: schedules against converged solves, per load case ---------------------------------
-def optimise(preset: str, schedule: str, seed: int) -> tuple[dict, pp.Scene]:
-    """One optimisation with `prdp_petsc.training.harness.run`; its record and scene."""
+def optimise(preset: str, schedule: str, seed: int) -> tuple[dict, lab.Scene]:
+    """One optimisation with `prdp_petsc.lab.training.harness.run`; its record and scene."""
     import types
 
-    from prdp_petsc.training.harness import run
+    from prdp_petsc.lab.training.harness import run
 
     scenes = []
 
@@ -289,7 +290,7 @@ def optimise(preset: str, schedule: str, seed: int) -> tuple[dict, pp.Scene]:
     ]
 
 
-def scored(scene: pp.Scene, config: dict) -> list[float]:
+def scored(scene: lab.Scene, config: dict) -> list[float]:
     """The compliance of every recorded design, solved to rtol 1e-10 (CG + GAMG)."""
     problem = scene.problem
     with problem.solver(10_000, rtol=1e-10, prefix="to_score_") as solver:
@@ -320,7 +321,7 @@ def results(preset: str, seeds, ks) -> dict:
     """Per load case: every route of `routes`, its final compliance (scored with a
     converged solve), inner iterations, wall time, and the time at which its design
     first came within 1 % of the converged route's final compliance."""
-    from prdp_petsc.training.harness import torch_threads
+    from prdp_petsc.lab.training.harness import torch_threads
 
     cases = []
     for seed in seeds:
@@ -399,7 +400,7 @@ def results_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Names
     parser.add_argument("--out", required=True, help="folder for topopt.json and the picture")
 
     def run_results(args: argparse.Namespace) -> int:
-        from prdp_petsc.reports.topopt import format_results
+        from prdp_petsc.lab.reports.topopt import format_results
 
         seeds = [int(s) for s in args.seeds.split(",")]
         ks = [int(k) for k in args.ks.split(",")]
@@ -418,6 +419,6 @@ COMMANDS = {"results": results_command}
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -2,7 +2,7 @@
 
 Every layer raises these; this module imports neither PETSc nor torch, so the
 command line can apply ``-W error::prdp_petsc.errors.UnusedOptionWarning`` before
-PETSc starts (`prdp_petsc.cli.apply_warning_options`: Python itself reads ``-W``
+PETSc starts (`prdp_petsc.lab.cli.apply_warning_options`: Python itself reads ``-W``
 before site-packages are importable and drops filters of installed packages).
 The taxonomy tells a caller, and the training harness, what to do:
 
@@ -28,7 +28,7 @@ The taxonomy tells a caller, and the training harness, what to do:
     `MeshError`
         A mesh file that cannot be read (an exception, never an exit).
 
-The harness (`prdp_petsc.training.harness.run`) records a `SolverError` or an
+The harness (`prdp_petsc.lab.training.harness.run`) records a `SolverError` or an
 `InputError` raised during training as a stopped run with a named reason and
 lets every other exception propagate: a bug in a scene (a numpy broadcast error,
 a plain ``ValueError``) is not a solver outcome.
@@ -46,7 +46,6 @@ __all__ = [
     "StructureError",
     "UnusedOptionWarning",
     "plain",
-    "stop_reason",
 ]
 
 
@@ -121,21 +120,9 @@ class UnusedOptionWarning(UserWarning):
     leaves a scene's ``ksp_richardson_scale`` unread.  Turn it into an error with
     ``warnings.simplefilter("error", UnusedOptionWarning)`` in a script, or for a
     command-line run with ``python -W error::prdp_petsc.errors.UnusedOptionWarning -m
-    prdp_petsc.cli ...`` (``PYTHONWARNINGS=...`` for ``prdp-petsc``), which the
+    prdp_petsc.lab.cli ...`` (``PYTHONWARNINGS=...`` for ``prdp-petsc``), which the
     command line applies when it starts.
     """
-
-
-def stop_reason(error: BaseException) -> str | None:
-    """The ``stopped.reason`` a training run records for `error`, or None to re-raise it.
-
-    A `SolverError` gives PETSc's reason, an `InputError` its kind
-    (``INVALID_INPUT``, ``NON_FINITE``, ``STRUCTURE``, ``MESH``); anything else is
-    not a recorded outcome.
-    """
-    if isinstance(error, SolverError | InputError):
-        return error.reason
-    return None
 
 
 def plain(value):

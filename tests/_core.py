@@ -8,6 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 import skfem
 import torch
+from petsc4py import PETSc
 from skfem import BilinearForm
 
 import prdp_petsc as pp
@@ -72,3 +73,38 @@ def taylor_rate(J, m, h, eps0=1e-2, halvings=6):
     with torch.no_grad():
         rem = [abs(float(J(m + e * h)) - float(j0) - e * slope) for e in eps]
     return observed_rate(eps, rem)
+
+
+def raw_ksp(mat, options):
+    """A plain petsc4py KSP on `mat` with `options` (through a private prefix)."""
+    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    ksp.setOperators(mat)
+    db = PETSc.Options("rawx0_")
+    for key, value in options.items():
+        db[key] = value
+    ksp.setOptionsPrefix("rawx0_")
+    ksp.setFromOptions()
+    for key in options:
+        db.delValue(key)
+    return ksp
+
+
+def reaction_problem(n: int = 6):
+    """``R(u; f, c) = A u + c u³ − f`` on the n × n five-point Laplacian: a nonlinear
+    problem built from numpy callables only, with its exact Jacobian and vjp."""
+    import prdp_petsc as pp
+
+    A = fd_poisson(n).tocsr()
+
+    def residual(u, f, c):
+        return A @ u + c * u**3 - f
+
+    def jacobian(u, f, c):
+        return (A + sp.diags(3 * c * u**2)).tocsr()
+
+    def vjp(u, lam, f, c, needs):
+        return (-lam if needs[0] else None, np.asarray(lam @ u**3) if needs[1] else None)
+
+    return pp.NonlinearProblem(
+        n=A.shape[0], residual=residual, jacobian=jacobian, vjp=vjp, jacobian_symmetric=True
+    )

@@ -11,27 +11,21 @@
 import numpy as np
 import pytest
 import torch
-from _core import CONVERGED, fd_poisson, interior_operator, randn, random_theta, unit_square
+from _core import (
+    CONVERGED,
+    fd_poisson,
+    interior_operator,
+    randn,
+    random_theta,
+    raw_ksp,
+    unit_square,
+)
 from petsc4py import PETSc
 
 import prdp_petsc as pp
 
 JACOBI = {"ksp_type": "richardson", "pc_type": "jacobi", "ksp_richardson_scale": 0.7}
 CG = {"ksp_type": "cg", "pc_type": "jacobi"}
-
-
-def raw_ksp(mat, options):
-    """A plain petsc4py KSP on `mat` with `options` (through a private prefix)."""
-    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-    ksp.setOperators(mat)
-    db = PETSc.Options("rawx0_")
-    for key, value in options.items():
-        db[key] = value
-    ksp.setOptionsPrefix("rawx0_")
-    ksp.setFromOptions()
-    for key in options:
-        db.delValue(key)
-    return ksp
 
 
 def petsc_from_x0(A, b, x0, options, k):
@@ -112,54 +106,3 @@ def test_guess_of_another_shape_is_refused():
     A = fd_poisson(3)
     with pytest.raises(ValueError, match="x0 must have the shape of b"):
         pp.solve(A, randn(9, seed=1), pp.KSPSolver(CG, max_it=3), x0=randn(2, 9, seed=2))
-
-
-@pytest.mark.parametrize("options", [JACOBI, CG], ids=["richardson-jacobi", "cg-jacobi"])
-def test_k_full_from_a_guess_is_petscs_count_to_rtol_times_norm_b(options):
-    """K_full with a guess in the probe = PETSc's own iterations from x0 to ‖r‖ ≤ rtol ‖b‖."""
-    from types import SimpleNamespace
-
-    from prdp_petsc.training.harness import find_k_full
-
-    A = fd_poisson(10).tocsr()
-    b = randn(100, seed=14).numpy()
-    x0 = np.linalg.solve(A.toarray(), b) + 1e-5 * randn(100, seed=15).numpy()  # a good guess
-    rtol = 1e-6
-
-    def scene(*probe):
-        return SimpleNamespace(
-            solvers=[pp.KSPSolver(options, max_it=1)], probe=lambda: probe, rtol_full=rtol
-        )
-
-    cold, warm = find_k_full(scene(A, b, None)), find_k_full(scene(A, b, x0))
-    mat = PETSc.Mat().createAIJ(A.shape, csr=(A.indptr, A.indices, A.data), comm=PETSc.COMM_SELF)
-    counts = []
-    for guess in (np.zeros(100), x0):
-        ksp = raw_ksp(mat, options)
-        ksp.setTolerances(rtol=rtol, atol=0.0, max_it=10_000)
-        ksp.setInitialGuessNonzero(True)
-        x, rhs = mat.createVecs()
-        rhs.setArray(b)
-        x.setArray(guess)
-        ksp.solve(rhs, x)
-        assert ksp.getConvergedReason() > 0
-        counts.append(ksp.getIterationNumber())
-        for obj in (ksp, x, rhs):
-            obj.destroy()
-    mat.destroy()
-    assert (cold, warm) == tuple(counts)
-    assert warm < cold
-
-
-def test_k_full_refuses_a_probe_without_its_guess():
-    """``probe() -> (A, b)`` is refused: the shape is ``(A, b, x0)``, x0 None from zero."""
-    from types import SimpleNamespace
-
-    from prdp_petsc.training.harness import find_k_full
-
-    A = fd_poisson(3).tocsr()
-    scene = SimpleNamespace(
-        solvers=[pp.KSPSolver(CG, max_it=1)], probe=lambda: (A, np.ones(9)), rtol_full=1e-6
-    )
-    with pytest.raises(TypeError, match=r"\(A, b, x0\), with x0=None .* got a 2-tuple"):
-        find_k_full(scene)

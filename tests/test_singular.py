@@ -97,25 +97,6 @@ def test_clamped_body_solves(free_body):
     assert np.linalg.norm(x - expected) <= 1e-8 * np.linalg.norm(expected)
 
 
-def test_high_contrast_is_not_taken_for_singular():
-    """Contrast 1e10: the solution is a null vector of A to 5e-13 (legitimately), but its
-    residual is at rounding level; converged and capped solves both come back."""
-    from prdp_petsc.fem.meshes import load_mesh
-    from prdp_petsc.reports import stability
-
-    mesh = load_mesh("lshape")
-    A, b, _ = stability.poisson_problem(mesh)
-    cx, cy = stability.centroids(mesh)
-    M = A.matrix(np.where((cx < 0.3) & (cy < 0.3), 1e10, 1.0))
-    expected = spla.spsolve(M.tocsc(), b)
-    for max_it, rtol in ((5000, 1e-12), (30, 0.0)):
-        with pp.KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, max_it=max_it, rtol=rtol) as s:
-            s.set_operator(M)
-            x = s.solve(b)
-        if rtol:
-            assert np.linalg.norm(x - expected) <= 1e-6 * np.linalg.norm(expected)
-
-
 def test_what_is_checked_when(monkeypatch):
     """A converged solve computes its true residual (one MatMult per right-hand side); a
     capped solve of a well-posed system does not (two vector norms decide)."""

@@ -11,6 +11,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
+from _core import reaction_problem
 
 import prdp_petsc as pp
 from prdp_petsc.errors import InputError, NonFiniteError, StructureError
@@ -165,20 +166,14 @@ def test_nan_inputs_raise_in_dirichlet_and_newton():
             d.solve(f, g + torch.inf, solver, theta=theta)
         with pytest.raises(NonFiniteError):
             d.solve(f, g, solver, theta=theta * torch.nan)
-    heat = pp.NonlinearHeat(basis, 0.05, dirichlet=basis.get_dofs())
-    u_prev = torch.ones(basis.N, dtype=torch.float64)
-    params = (
-        u_prev,
-        torch.zeros(basis.N, dtype=torch.float64),
-        torch.zeros(len(heat.boundary)).double(),
-        torch.tensor(2.0).double(),
-    )
-    u0 = u_prev[heat.interior].clone()
+    problem = reaction_problem(4)
+    f = torch.ones(problem.n, dtype=torch.float64)
+    u0 = torch.zeros(problem.n, dtype=torch.float64)
     with pp.KSPSolver("-ksp_type gmres", max_it=50, rtol=1e-10) as solver:
         with pytest.raises(NonFiniteError):
-            pp.newton_solve(heat, u0 * torch.nan, *params, solver=solver)
+            pp.newton_solve(problem, u0 * torch.nan, f, 1.0, solver=solver)
         with pytest.raises(NonFiniteError):
-            pp.newton_solve(heat, u0, u_prev * torch.inf, *params[1:], solver=solver)
+            pp.newton_solve(problem, u0, f * torch.inf, 1.0, solver=solver)
 
 
 # -- 5. per-call results, and no residual PETSc did not compute --------------------

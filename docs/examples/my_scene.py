@@ -20,6 +20,7 @@ import torch
 from skfem import Basis, ElementTriP1
 
 import prdp_petsc as pp
+from prdp_petsc import lab
 
 PRESETS = {
     "quick": {"refine": 0, "epochs": 30, "steps": 10, "lr": 0.05, "gamma": 0.95},
@@ -29,7 +30,7 @@ KAPPA_TRUE = (3.0, 1.0)  # (inside the disc, outside)
 CENTRE, RADIUS = (0.25, 0.25), 0.2  # a disc in the L-shape's lower left square
 
 
-def build(config: dict, seed: int) -> pp.Scene:
+def build(config: dict, seed: int) -> lab.Scene:
     mesh = pp.load_mesh("lshape", refine=config["refine"])
     basis = Basis(mesh, ElementTriP1())
     A = pp.diffusion_operator(basis, coefficient="P0")  # A(κ) = a0 + G κ, κ per element
@@ -60,7 +61,7 @@ def build(config: dict, seed: int) -> pp.Scene:
         kappa = log_kappa.detach().exp().numpy()
         return float(np.linalg.norm(kappa - KAPPA_TRUE) / np.linalg.norm(KAPPA_TRUE))
 
-    return pp.Scene(
+    return lab.Scene(
         solvers=[solver],
         optimizer=optimizer,
         batches=lambda epoch, generator: [None] * config["steps"],  # Adam steps per epoch
@@ -77,6 +78,6 @@ def build(config: dict, seed: int) -> pp.Scene:
 
 
 if __name__ == "__main__":
-    from prdp_petsc.cli import scene_main
+    from prdp_petsc.lab.cli import scene_main
 
     raise SystemExit(scene_main(__file__))

@@ -126,6 +126,7 @@ def eight():
     scene = """
 import numpy as np, scipy.sparse as sp, torch
 import prdp_petsc as pp
+from prdp_petsc import lab
 PRESETS = {"quick": {}, "paper": {}}
 def build(config, seed):
     A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
@@ -133,13 +134,13 @@ def build(config, seed):
     th = torch.ones(10, dtype=torch.float64, requires_grad=True)
     def loss(_):
         np.ones(3) + np.ones(4)  # a bug in the scene
-    return pp.Scene(solvers=[s], optimizer=torch.optim.SGD([th], lr=0.1), batches=lambda e, g: [0],
+    return lab.Scene(solvers=[s], optimizer=torch.optim.SGD([th], lr=0.1), batches=lambda e, g: [0],
                     loss=loss, validate=lambda: 1.0, probe=lambda: (A, np.ones(10)), epochs=2)
 """
     d = tempfile.mkdtemp()
     p = pathlib.Path(d) / "buggy.py"
     p.write_text(scene)
-    from prdp_petsc.training.harness import run
+    from prdp_petsc.lab.training.harness import run
 
     r = run(p, "fixed:1", epochs=2, progress=False)
     return f"stopped = {r['stopped']}"
@@ -152,7 +153,7 @@ def nine():
             "-W",
             "error::prdp_petsc.errors.UnusedOptionWarning",
             "-m",
-            "prdp_petsc.cli",
+            "prdp_petsc.lab.cli",
             "run",
             "demos/poisson_inverse.py",
             "--preset",

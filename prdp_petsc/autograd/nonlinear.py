@@ -44,7 +44,7 @@ class NonlinearProblem:
     """A residual ``R(u; p)`` with its Jacobian, built from plain numpy callables.
 
     Any object with these attributes works as well (e.g.
-    `prdp_petsc.fem.nonlinear_heat.NonlinearHeat`).
+    `prdp_petsc.lab.components.nonlinear_heat.NonlinearHeat`).
 
     Parameters
     ----------

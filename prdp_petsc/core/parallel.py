@@ -29,7 +29,6 @@ are the same.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
@@ -40,7 +39,7 @@ from petsc4py import PETSc
 if TYPE_CHECKING:  # mpi4py is optional (the `mpi` extra)
     from mpi4py import MPI
 
-__all__ = ["RowLayout", "child_env", "default_comm", "ownership_range", "use_comm"]
+__all__ = ["RowLayout", "default_comm", "ownership_range", "use_comm"]
 
 _default: list = []  # stack of communicators set by `use_comm`
 
@@ -63,29 +62,6 @@ def use_comm(comm: PETSc.Comm | MPI.Comm) -> Iterator[PETSc.Comm]:
         yield comm
     finally:
         _default.pop()
-
-
-# what Open MPI's runtime puts into the environment of a process that initialised MPI
-# alone (a singleton): a child started with it takes itself for a rank of that job
-_RUNTIME_PREFIXES = ("PMIX_", "ORTE_", "OMPI_MCA_orte_", "OMPI_APP_CTX_")
-_RUNTIME_NAMES = {"OMPI_MCA_ess", "OMPI_MCA_pmix", "IPATH_NO_BACKTRACE", "HFI_NO_BACKTRACE"}
-
-
-def child_env(extra: dict | None = None) -> dict:
-    """This process's environment without the MPI runtime's variables, plus `extra`.
-
-    For a child process that starts its own MPI job (``mpiexec``) or initialises MPI
-    itself: after ``MPI_Init`` in this process (PETSc started), Open MPI's variables
-    (``PMIX_*``, ``OMPI_MCA_ess``, …) are in ``os.environ``, and a child that inherits
-    them fails to start.  The user's own settings (``OMPI_ALLOW_RUN_AS_ROOT``,
-    ``OMPI_MCA_rmaps_base_oversubscribe``, …) are kept.
-    """
-    env = {
-        key: value
-        for key, value in os.environ.items()
-        if not key.startswith(_RUNTIME_PREFIXES) and key not in _RUNTIME_NAMES
-    }
-    return {**env, **(extra or {})}
 
 
 def as_petsc_comm(comm: PETSc.Comm | MPI.Comm | None) -> PETSc.Comm:

@@ -178,7 +178,7 @@ def test_bench_mpi_solve_worker_records_the_split(layout):
     """``bench mpi``'s 3D solve on the unrefined box: rows split, K iterations, memory."""
     from types import SimpleNamespace
 
-    from prdp_petsc.reports.bench_mpi import _solve_worker
+    from prdp_petsc.lab.reports.bench_mpi import _solve_worker
 
     args = SimpleNamespace(refine=0, cube=0, k=15, repeats=1, layout=layout)
     record = _solve_worker(args)

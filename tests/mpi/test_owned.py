@@ -205,7 +205,7 @@ def test_owned_scene_trains_on_the_ranks_as_in_one_process(tmp_path):
     the one-process run (CG + Jacobi, whose iterates do not depend on the partition)."""
     from pathlib import Path
 
-    from prdp_petsc.training.harness import run
+    from prdp_petsc.lab.training.harness import run
 
     scene = Path(__file__).resolve().parents[2] / "demos" / "poisson3d.py"
     kwargs = {"preset": "quick pc=jacobi k_init=20 k_step=10", "epochs": 4, "progress": False}
@@ -243,7 +243,7 @@ class _OwnedAndShared:
 
 
 def test_the_harness_keeps_owned_parameters_and_sums_the_shared_gradients():
-    from prdp_petsc.training.parallel import Parallel
+    from prdp_petsc.lab.training.parallel import Parallel
 
     scene = _OwnedAndShared()
     ranks = Parallel("domain")
@@ -264,7 +264,7 @@ def test_an_owned_layout_run_is_not_resumed_on_several_ranks(tmp_path):
     from pathlib import Path
 
     from prdp_petsc.errors import InputError
-    from prdp_petsc.training.harness import run
+    from prdp_petsc.lab.training.harness import run
 
     scene = Path(__file__).resolve().parents[2] / "demos" / "poisson3d.py"
     out = Path(COMM.bcast(str(tmp_path), root=0))

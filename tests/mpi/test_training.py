@@ -14,9 +14,9 @@ import torch
 from _mpi import COMM, all_ranks, same_on_all_ranks
 
 from prdp_petsc.errors import InputError, SolverError
-from prdp_petsc.training.harness import build_scene, run
-from prdp_petsc.training.parallel import Parallel
-from prdp_petsc.training.scene import load_scene, shuffled_batches
+from prdp_petsc.lab.training.harness import build_scene, run
+from prdp_petsc.lab.training.parallel import Parallel
+from prdp_petsc.lab.training.scene import load_scene, shuffled_batches
 
 DEMOS = Path(__file__).resolve().parents[2] / "demos"
 
@@ -254,7 +254,7 @@ def test_ns2d_schur_validation_runs_distributed():
 def test_compare_seeds_with_twin_runs_distributed(tmp_path):
     """``compare_seeds`` under ``--parallel batch``: every rank runs every seed and
     twin, rank 0 alone writes ``seeds.json``, all ranks agree on the statistics."""
-    from prdp_petsc.training.seeds import compare_seeds
+    from prdp_petsc.lab.training.seeds import compare_seeds
 
     out = Path(COMM.bcast(str(tmp_path), root=0))
     result = compare_seeds(DEMOS / "heat1d.py", [0, 1], preset="quick", epochs=2, out=out,

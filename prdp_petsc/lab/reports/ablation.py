@@ -1,0 +1,222 @@
+"""Which lever buys what: ``compare --seeds`` once per lever, against the scene as it is.
+
+``prdp-petsc ablation SCENE_FILE --preset P --seeds 0-2 --lever NAME KEY=VALUE ...
+--out DIR`` runs `prdp_petsc.lab.training.seeds.compare_seeds` for the preset as given
+(``baseline``) and once more per ``--lever``, the preset with that lever's settings
+(``--lever warm warm_start_epochs=true``; several levers may be named, each runs on
+its own), into ``DIR/<name>/``.  Every run of a configuration uses the same seeds,
+schedules and routes.  ``DIR/ablation.json`` keeps each configuration's seeds result
+and, per lever, its effect against the baseline seed by seed:
+
+``reduced_vs_baseline``
+    The baseline's best reduced time to full-fidelity accuracy over the lever's
+    (`prdp_petsc.lab.training.summary.speedup_vs_best_full`'s ``reduced_seconds``):
+    above 1, the lever made the fastest reduced run reach the target sooner.
+``full_vs_baseline``
+    The same for the fastest full-fidelity run (a lever such as preconditioner
+    reuse helps full fidelity too).
+
+each as a geometric mean with its 95 % interval over the seeds where both reached
+the target (`prdp_petsc.lab.training.seeds.ratio_statistics`).  The target differs a
+little between configurations (each one's own full-fidelity run sets it), which
+the twin's spread in every seeds result puts in proportion.
+
+Timings: one torch thread per process; configurations run one after another in one
+process, so compare them on an otherwise idle machine (the record keeps the load).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["ablation", "format_ablation", "main"]
+
+BASELINE = "baseline"
+
+
+def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **kwargs) -> dict:
+    """`compare_seeds` of `preset` and of ``preset + " " + settings`` per lever.
+
+    Parameters
+    ----------
+    scene_file : str or Path
+    levers : dict
+        ``{name: "key=value key=value"}``: preset-string changes, one configuration each.
+    preset : str
+        The baseline preset string (``"large_k64"``, ``"paper routes=schur"``).
+    seeds : list of int
+    out : str or Path
+        Each configuration writes ``out/<name>/`` (``seeds.json``, ``seed_S/``), the
+        ablation ``out/ablation.json``.
+    **kwargs
+        Passed to every `compare_seeds` (``schedules``, ``routes``, ``twin``, ...).
+
+    Returns
+    -------
+    dict
+        ``scene``, ``preset``, ``seeds``, ``levers``, ``configs`` (``{name: {"preset":
+        ..., "result": compare_seeds result}}``, the baseline first) and ``effects``
+        (``{lever: {"reduced_vs_baseline": stats, "full_vs_baseline": stats}}``).
+    """
+    from ..training.harness import write_json
+    from ..training.parallel import Parallel
+    from ..training.seeds import compare_seeds
+
+    root = Parallel(kwargs.get("parallel")).root  # rank 0 alone writes files
+
+    if BASELINE in levers:
+        raise ValueError(f"{BASELINE!r} names the preset as given; choose another lever name")
+    out = Path(out)
+    configs = {
+        BASELINE: preset,
+        **{name: f"{preset} {settings}" for name, settings in levers.items()},
+    }
+    report = {
+        "scene": Path(scene_file).stem,
+        "preset": preset,
+        "seeds": list(seeds),
+        "levers": dict(levers),
+        "configs": {},
+        "effects": {},
+    }
+    for name, config in configs.items():
+        result = compare_seeds(scene_file, list(seeds), preset=config, out=out / name, **kwargs)
+        result.pop("plot", None)  # a path inside the configuration's folder
+        report["configs"][name] = {"preset": config, "result": result}
+        if name != BASELINE:
+            report["effects"][name] = lever_effect(report["configs"][BASELINE]["result"], result)
+        if root:  # after each configuration: an interrupted study keeps what it measured
+            write_json(out / "ablation.json", report)
+    return report
+
+
+def lever_effect(baseline: dict, lever: dict) -> dict:
+    """Per-seed ratios baseline time / lever time of the fastest reduced and the fastest
+    full-fidelity run to full-fidelity accuracy, as `optional_ratio_statistics` (``n``
+    = 0 and no mean where no seed has both)."""
+    from ..training.seeds import optional_ratio_statistics
+
+    base = {r["seed"]: r for r in baseline["per_seed"]}
+    effect = {}
+    for kind in ("reduced", "full"):
+        ratios = [
+            base[r["seed"]][f"{kind}_seconds"] / r[f"{kind}_seconds"]
+            for r in lever["per_seed"]
+            if r.get(f"{kind}_seconds") and (base.get(r["seed"]) or {}).get(f"{kind}_seconds")
+        ]
+        effect[f"{kind}_vs_baseline"] = optional_ratio_statistics(ratios)
+    return effect
+
+
+def _geo(stats: dict | None, spec: str = ".2f") -> str:
+    """``1.63× [1.03–2.57]`` of `ratio_statistics`, ``—`` without a mean."""
+    if not stats or stats.get("geometric_mean") is None:
+        return "—"
+    text = f"{stats['geometric_mean']:{spec}}×"
+    if stats.get("interval"):
+        lo, hi = stats["interval"]
+        text += f" [{lo:{spec}}–{hi:{spec}}]"
+    return text
+
+
+def _mean_seconds(per_seed: list[dict], key: str) -> str:
+    values = [r[key] for r in per_seed if r.get(key) is not None]
+    return f"{sum(values) / len(values):.3g}" if values else "—"
+
+
+def format_ablation(report: dict) -> str:
+    """Plain-text table: one row per configuration, then what each lever changed."""
+    lines = [
+        f"ablation of {report['scene']} --preset {report['preset']} over seeds "
+        f"{', '.join(map(str, report['seeds']))}",
+        "speedup: the fastest full-fidelity run's time to full-fidelity accuracy over the "
+        "fastest reduced run's (geometric mean [95 % interval]); full s / reduced s: those "
+        "times, mean over the seeds; its saved: PRDP's inner iterations saved against K_full "
+        "(mean); bound: the fastest full run's wall time over its time outside the solver",
+        "",
+        f"{'config':<10} {'settings':<28} {'speedup':>22} {'≥ 2':>6} {'full s':>7} "
+        f"{'reduced s':>9} {'PRDP/full':>9} {'its saved':>9} {'bound':>6}",
+    ]
+    for name, config in report["configs"].items():
+        r = config["result"]
+        speed = r.get("speedup") or {}
+        settings = report["levers"].get(name, "—")
+        ratio = r.get("prdp_ratio", {}).get("geometric_mean")
+        saved = (r.get("savings") or {}).get("iterations_saved", {}).get("mean")
+        bound = (speed.get("solver_bound") or {}).get("geometric_mean")
+        lines.append(
+            f"{name:<10} {settings:<28} {_geo(speed):>22} "
+            f"{speed.get('goal_met', 0)}/{speed.get('seeds', 0):<4} "
+            f"{_mean_seconds(r['per_seed'], 'full_seconds'):>7} "
+            f"{_mean_seconds(r['per_seed'], 'reduced_seconds'):>9} "
+            f"{'—' if ratio is None else f'{ratio:.3f}':>9} "
+            f"{'—' if saved is None else f'{100 * saved:.1f}%':>9} "
+            f"{'—' if bound is None else f'{bound:.2f}':>6}"
+        )
+    if report["effects"]:
+        lines += ["", "each lever against the baseline, seed by seed (baseline time / lever time):"]
+        for name, effect in report["effects"].items():
+            lines.append(
+                f"  {name:<10} fastest reduced run {_geo(effect['reduced_vs_baseline'])} "
+                f"(n = {effect['reduced_vs_baseline']['n']}), fastest full run "
+                f"{_geo(effect['full_vs_baseline'])} (n = {effect['full_vs_baseline']['n']})"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="prdp-petsc ablation",
+        description="compare --seeds for the preset and once per lever (preset settings); "
+        "writes DIR/ablation.json and prints the table.",
+    )
+    parser.add_argument("scene", help="scene file (demos/ns2d.py)")
+    parser.add_argument("--preset", default="quick", help="baseline preset string")
+    parser.add_argument("--seeds", default="0-2", help="seeds, e.g. 0-2 or 0,3,5")
+    parser.add_argument(
+        "--lever",
+        nargs="+",
+        action="append",
+        default=[],
+        metavar=("NAME", "KEY=VALUE"),
+        help="a lever: its name and the preset settings it changes (repeatable)",
+    )
+    parser.add_argument("--schedules", default="prdp,rtol", help="reduced schedules")
+    parser.add_argument("--routes", default=None, help="routes (default: the scene's)")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs (default: preset's)")
+    parser.add_argument("--no-twin", action="store_true", help="skip the twin runs")
+    parser.add_argument("--out", required=True, help="output folder")
+    return parser
+
+
+def main(argv: list[str]) -> int:
+    from ..training.seeds import parse_seeds
+
+    parser = _parser()
+    args = parser.parse_args(argv)
+    levers = {}
+    for lever in args.lever:
+        name, *settings = lever
+        if not settings or any("=" not in s for s in settings) or name in levers:
+            parser.error(f"--lever NAME KEY=VALUE ...: got {' '.join(lever)!r}")
+        levers[name] = " ".join(settings)
+    try:
+        seeds = parse_seeds(args.seeds)
+        report = ablation(
+            args.scene, levers, preset=args.preset, seeds=seeds, out=args.out,
+            schedules=tuple(s for s in args.schedules.split(",") if s),
+            routes=args.routes, epochs=args.epochs, twin=not args.no_twin,
+            progress=False, plots=False, resume=True,
+        )  # fmt: skip
+    except ValueError as err:
+        parser.error(str(err))
+    print(format_ablation(report), end="")
+    print(f"wrote {Path(args.out) / 'ablation.json'}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    raise SystemExit(main(sys.argv[1:]))

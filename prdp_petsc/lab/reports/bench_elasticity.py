@@ -1,0 +1,213 @@
+"""GAMG on 3D elasticity: iterations against the mesh, with and without the rigid-body modes.
+
+``prdp-petsc bench elasticity --out DIR`` writes ``DIR/bench_elasticity.json``.  The
+problem: linear elasticity (E = 1, ν = 0.3) on the unit cube of n³ Q1 hexahedra
+(``skfem.MeshHex.init_tensor``, ``ElementVector(ElementHex1())``), clamped on the
+face x = 0 (every component of its nodes eliminated), loaded by its weight
+(−e_z).  Each size runs CG + GAMG to ``--rtol`` (1e-8) in three declarations of
+the same operator:
+
+``scalar``
+    nothing declared: GAMG aggregates the 3(n+1)³ unknowns as unrelated scalars,
+    with the constant as its near-null space;
+``block``
+    ``block_size=3`` only (GAMG aggregates nodes, the near-null space is the
+    three translations);
+``modes``
+    ``block_size=3`` and the six rigid-body modes of the kept dofs as
+    ``near_nullspace`` (`prdp_petsc.fem.vector.rigid_body_modes`).
+
+Per row: unknowns, iterations and reason, the time of the first solve (PC set-up +
+solve) and of a second one (solve only), the true relative residual, and the
+relative error of a capped solve at ``--k`` (10) iterations against the converged
+``modes`` solution, which is what a PRDP schedule would meet at small K.
+``growth`` is each declaration's iteration count on the largest mesh over that on the
+smallest; the target for ``modes`` is at most 1.5.  Timings describe one machine and
+are never asserted; one torch thread, PETSc's serial AIJ kernels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["VARIANTS", "format_report", "main", "run"]
+
+logger = logging.getLogger(__name__)
+
+#: the declarations compared, in the order of the report
+VARIANTS = ("scalar", "block", "modes")
+#: iterations on the largest mesh over those on the smallest that count as flat
+TARGET_GROWTH = 1.5
+
+
+def _problem(n: int):
+    """(basis, Dirichlet, load on the unknowns) of the clamped unit cube of n³ hexahedra."""
+    import skfem
+    from skfem import LinearForm
+
+    from prdp_petsc import Dirichlet, elasticity_operator
+
+    t = np.linspace(0.0, 1.0, n + 1)
+    basis = skfem.Basis(
+        skfem.MeshHex.init_tensor(t, t, t), skfem.ElementVector(skfem.ElementHex1())
+    )
+    A = elasticity_operator(basis)
+    bc = Dirichlet(A, basis.get_dofs(lambda x: np.isclose(x[0], 0.0)).all())
+
+    @LinearForm
+    def weight(v, w):
+        return -v[2]
+
+    return basis, bc, weight.assemble(basis)[bc.interior]  # the clamp holds u = 0
+
+
+def _declaration(variant: str, basis, bc) -> dict:
+    from prdp_petsc import block_size, rigid_body_modes
+
+    if variant == "scalar":
+        return {}
+    declared = {"block_size": block_size(basis, bc.interior)}
+    if variant == "modes":
+        declared["near_nullspace"] = rigid_body_modes(basis, bc.interior)
+    return declared
+
+
+def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
+    """Solve every size in every declaration; return the JSON-ready record."""
+    from prdp_petsc import KSPSolver
+
+    options = {"ksp_type": "cg", "pc_type": "gamg"}
+    rows = []
+    for n in sizes:
+        basis, bc, b = _problem(n)
+        M = bc.A_II.matrix(np.ones(bc.A_II.n_params))
+        reference = None
+        results = {}
+        for variant in reversed(VARIANTS):  # modes first: its solution is the reference
+            declared = _declaration(variant, basis, bc)
+            with KSPSolver(options, prefix="elas_", max_it=max_it, rtol=rtol, **declared) as s:
+                s.set_operator(M)
+                t0 = time.perf_counter()
+                x = s.solve(b)
+                first = time.perf_counter() - t0
+                info = s.last
+                t0 = time.perf_counter()
+                s.solve(b)
+                second = time.perf_counter() - t0
+                reference = x if reference is None else reference
+                s.rtol, s.max_it = 0.0, k
+                capped = s.solve(b)
+            results[variant] = {
+                "cells": n,
+                "unknowns": int(M.shape[0]),
+                "variant": variant,
+                "block_size": declared.get("block_size", 1),
+                "near_nullspace": len(declared.get("near_nullspace", ())),
+                "iterations": info.iterations,
+                "reason": info.reason,
+                "first_solve_s": first,
+                "solve_s": second,
+                "setup_s": max(first - second, 0.0),
+                "relative_residual": float(np.linalg.norm(b - M @ x) / np.linalg.norm(b)),
+                "error_at_k": float(np.linalg.norm(capped - reference) / np.linalg.norm(reference)),
+            }
+            logger.info("n=%d %s: %d iterations", n, variant, info.iterations)
+        rows += [results[v] for v in VARIANTS]
+    counts = {v: [r["iterations"] for r in rows if r["variant"] == v] for v in VARIANTS}
+    return {
+        "benchmark": "elasticity",
+        "problem": "3D linear elasticity, E = 1, nu = 0.3, unit cube of n^3 Q1 hexahedra, "
+        "clamped at x = 0, weight along -z",
+        "settings": {"ksp_type": "cg", "pc_type": "gamg", "rtol": rtol, "max_it": max_it, "k": k},
+        "sizes": list(sizes),
+        "rows": rows,
+        "growth": {v: c[-1] / c[0] for v, c in counts.items()},
+        "target": {"growth.modes": f"<= {TARGET_GROWTH}"},
+    }
+
+
+def format_report(d: dict) -> str:
+    """The table `main` prints (and the results page shows)."""
+    s = d["settings"]
+    lines = [
+        f"{d['problem']}; {s['ksp_type'].upper()} + {s['pc_type'].upper()} to rtol {s['rtol']:g}",
+        "",
+        f"| cells | unknowns | declared | iterations | set-up s | solve s | true residual "
+        f"| error at K = {s['k']} |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in d["rows"]:
+        declared = {
+            "scalar": "nothing",
+            "block": f"block size {r['block_size']}",
+            "modes": f"block size {r['block_size']}, {r['near_nullspace']} modes",
+        }[r["variant"]]
+        lines.append(
+            f"| {r['cells']}³ | {r['unknowns']} | {declared} | {r['iterations']} | "
+            f"{r['setup_s']:.2f} | {r['solve_s']:.2f} | {r['relative_residual']:.1e} | "
+            f"{r['error_at_k']:.1e} |"
+        )
+    sizes = d["sizes"]
+    growth = ", ".join(f"{v} {g:.2f}×" for v, g in d["growth"].items())
+    lines += [
+        "",
+        f"Iterations on {sizes[-1]}³ over {sizes[0]}³ cells: {growth} "
+        f"(target for the modes: ≤ {TARGET_GROWTH}×).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="prdp-petsc bench elasticity", description=__doc__.split("\n")[0]
+    )
+    p.add_argument("--out", type=Path, required=True, help="folder for bench_elasticity.json")
+    p.add_argument("--sizes", default="8,16,32", help="cells per axis, comma-separated (8,16,32)")
+    p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (1e-8)")
+    p.add_argument("--k", type=int, default=10, help="K of the capped solve (10)")
+    p.add_argument("--quick", action="store_true", help="tiny sizes (2,4): a smoke test")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """Run ``bench elasticity``; write ``<out>/bench_elasticity.json``; return 0."""
+    args = _parser().parse_args(argv)
+    import torch
+
+    from .bench import machine_info
+
+    sizes = [2, 4] if args.quick else [int(v) for v in args.sizes.split(",")]
+    if len(sizes) < 2 or sorted(sizes) != sizes or min(sizes) < 1:
+        raise SystemExit("--sizes needs two or more increasing cell counts, e.g. 8,16,32")
+    default_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        machine = machine_info()
+        t0 = time.perf_counter()
+        result = run(sizes, rtol=args.rtol, k=args.k)
+        result["wall_s"] = time.perf_counter() - t0
+    finally:
+        torch.set_num_threads(default_threads)
+    machine["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    result["machine"] = machine
+    result["settings"]["quick"] = args.quick
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "bench_elasticity.json"
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    print(format_report(result), end="")
+    logger.info("wrote %s", path)
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,154 @@
+"""Memory and time of m-step training against m (`prdp_petsc.lab.training.unroll`).
+
+``prdp-petsc horizon SCENE_FILE --preset P --m 2 4 8 16 --k K --out DIR`` trains the
+scene with ``unroll = m`` (the scene's preset key) for ``--epochs`` epochs at a fixed
+``max_it = K`` for every m, with and without activation checkpointing (the preset key
+``checkpoint``), each in a fresh process, and writes ``DIR/horizon.json``:
+per (m, checkpoint) the wall time of each epoch, the time per unrolled step
+(epoch time over windows × m), and three memory figures:
+
+``rss_at_start_mb``
+    The resident size when training starts (data, operators, network: the same
+    for every m).
+``peak_rss_mb``
+    The peak resident size while training (Linux ``VmHWM``, reset when training
+    starts, so that building the data does not count).
+``saved_tensors_mb``
+    The largest number of bytes autograd kept for one batch's backward pass
+    (`prdp_petsc.lab.training.unroll.SavedTensorMeter`).
+
+One torch thread per process.  Timings compare rows of one report on an otherwise
+idle machine (the record keeps the load average).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["format_horizon_report", "horizon_row", "main"]
+
+
+def _peak_rss_mb(reset: bool = False) -> float:
+    """This process's peak resident size in MB; `reset` restarts it from the current
+    size (``/proc/self/clear_refs``)."""
+    status = Path("/proc/self/status").read_text()
+    peak = int(re.search(r"VmHWM:\s+(\d+)", status).group(1)) / 1024
+    if reset:
+        Path("/proc/self/clear_refs").write_text("5")
+    return peak
+
+
+def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: int, epochs: int):
+    """One row of the report, measured in this process (module notes)."""
+    import torch
+
+    from ..training.harness import build_scene
+    from ..training.scene import load_scene
+    from ..training.unroll import SavedTensorMeter
+
+    torch.set_num_threads(1)
+    module = load_scene(scene_file)
+    name = f"{preset} unroll={m} checkpoint={'true' if checkpoint else 'false'}"
+    scene = build_scene(module, name, 0)
+    for solver in scene.solvers:
+        solver.max_it = k
+    generator = torch.Generator().manual_seed(0)
+    start = _peak_rss_mb(reset=True)
+    times, saved, windows = [], 0, 0
+    for epoch in range(epochs):
+        tic = time.perf_counter()
+        for batch in scene.batches(epoch, generator):
+            scene.optimizer.zero_grad()
+            meter = SavedTensorMeter()
+            with meter():
+                scene.loss(batch).backward()
+            scene.optimizer.step()
+            saved = max(saved, meter.peak)
+            windows += len(batch) if epoch == 0 else 0
+        times.append(time.perf_counter() - tic)
+    return {
+        "m": m,
+        "checkpoint": checkpoint,
+        "k": k,
+        "windows": windows,
+        "epoch_seconds": times,
+        "seconds_per_step": float(np.median(times)) / (windows * m),
+        "rss_at_start_mb": start,
+        "peak_rss_mb": max(start, _peak_rss_mb()),
+        "saved_tensors_mb": saved / 2**20,
+    }
+
+
+def format_horizon_report(report: dict) -> str:
+    """The report as the table the command prints."""
+    lines = [
+        f"{report['scene']} {report['preset']}, K = {report['k']}, one thread",
+        f"{'m':>3} {'ckpt':>5} {'windows':>7} {'s/epoch':>8} {'ms/step':>8} "
+        f"{'RSS start':>9} {'peak RSS':>9} {'growth':>7} {'saved MB':>9}",
+    ]
+    for r in report["rows"]:
+        growth = r["peak_rss_mb"] - r["rss_at_start_mb"]
+        lines.append(
+            f"{r['m']:>3} {'yes' if r['checkpoint'] else 'no':>5} {r['windows']:>7} "
+            f"{float(np.median(r['epoch_seconds'])):>8.2f} {1e3 * r['seconds_per_step']:>8.2f} "
+            f"{r['rss_at_start_mb']:>9.0f} {r['peak_rss_mb']:>9.0f} {growth:>7.0f} "
+            f"{r['saved_tensors_mb']:>9.2f}"
+        )
+    return "\n".join(lines)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="prdp-petsc horizon", description=__doc__.split("\n\n")[0]
+    )
+    parser.add_argument("scene", help="scene file with the preset keys unroll and checkpoint")
+    parser.add_argument("--preset", default="quick", help="preset (default quick)")
+    parser.add_argument("--m", type=int, nargs="+", default=[2, 4, 8, 16], help="unroll lengths")
+    parser.add_argument("--k", type=int, default=20, help="fixed K of every solve (default 20)")
+    parser.add_argument("--epochs", type=int, default=2, help="epochs per row (default 2)")
+    parser.add_argument("--out", help="output folder for horizon.json")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--no-checkpoint", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    return parser
+
+
+def main(argv: list[str]) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if min(args.m) < 1 or args.k < 1 or args.epochs < 1:
+        parser.error("--m, --k and --epochs must be >= 1")
+    if args.worker:  # one row in this process: peak memory is per process
+        row = horizon_row(
+            args.scene, args.preset, args.m[0], checkpoint=not args.no_checkpoint, k=args.k,
+            epochs=args.epochs,
+        )  # fmt: skip
+        print(json.dumps(row))
+        return 0
+    rows = []
+    for m in args.m:
+        for checkpoint in (True, False):
+            command = [sys.executable, "-m", "prdp_petsc.lab.cli", "horizon", args.scene,
+                       "--worker", "--preset", args.preset, "--m", str(m), "--k", str(args.k),
+                       "--epochs", str(args.epochs), "--debug"]  # fmt: skip
+            if not checkpoint:
+                command.append("--no-checkpoint")
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode:
+                raise RuntimeError(f"m = {m}: {done.stderr.strip().splitlines()[-1]}")
+            rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    report = {"scene": Path(args.scene).name, "preset": args.preset, "k": args.k, "rows": rows}
+    print(format_horizon_report(report))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "horizon.json").write_text(json.dumps(report, indent=1))
+    return 0

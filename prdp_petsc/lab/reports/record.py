@@ -1,0 +1,166 @@
+"""Recording a run's data for the results pages: ``prdp-petsc pages record``.
+
+``prdp-petsc pages record NAME -- COMMAND ...`` runs ``prdp-petsc COMMAND ...``
+(which names its output folder with ``--out DIR``), then copies the JSON files it
+wrote at the top of DIR into ``docs/data/NAME/`` and its PNG files into
+``docs/images/NAME/``, with ``provenance.json``: the command line, start time, wall
+time, exit status, git commit (and the files that differed from it), machine
+(platform, CPU, cores, load average before and after) and the installed versions of
+the packages.  `prdp_petsc.lab.reports.pages` makes the pages from what is recorded.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import logging
+import os
+import platform
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from importlib import metadata
+from pathlib import Path
+
+__all__ = ["PACKAGES", "record"]
+
+logger = logging.getLogger(__name__)
+
+#: distributions whose installed versions a record names
+PACKAGES = ("prdp-petsc", "petsc", "petsc4py", "torch", "numpy", "scipy", "scikit-fem")
+_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]*$")
+
+
+def _git(*args: str) -> str | None:
+    try:
+        done = subprocess.run(["git", *args], capture_output=True, text=True, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return done.stdout.rstrip("\n")  # keep the leading blank of `status --porcelain`
+
+
+def _load_average() -> list[float] | None:
+    return [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
+
+
+def _cpu() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _versions() -> dict:
+    versions = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def _out_folder(command: list[str]) -> Path:
+    for i, arg in enumerate(command):
+        if arg == "--out" and i + 1 < len(command):
+            return Path(command[i + 1])
+        if arg.startswith("--out="):
+            return Path(arg.split("=", 1)[1])
+    raise ValueError("the recorded command must name its output folder: --out DIR")
+
+
+def _stamps(folder: Path) -> dict:
+    """(modification time, size) of each file at the top of `folder`."""
+    if not folder.is_dir():
+        return {}
+    return {p: (p.stat().st_mtime_ns, p.stat().st_size) for p in folder.iterdir() if p.is_file()}
+
+
+def record(
+    name: str,
+    command: list[str],
+    *,
+    data: str | Path = "docs/data",
+    images: str | Path = "docs/images",
+) -> int:
+    """Run ``prdp-petsc COMMAND``; keep its JSON and plots under `data` and `images`.
+
+    Parameters
+    ----------
+    name : str
+        Name of the data set: folder ``data/name`` (lower case, digits, ``_``, ``-``).
+    command : list of str
+        Arguments of ``prdp-petsc``, e.g. ``["bench", "bridge", "--out", "DIR"]``;
+        must contain ``--out DIR``.
+    data, images : str or Path
+        Where the JSON files (with ``provenance.json``) and the PNG files go.  The
+        data set's old files there are removed first.
+
+    Returns
+    -------
+    int
+        The command's exit status; nothing is copied unless it is 0.
+
+    Notes
+    -----
+    Only files that the command wrote (new, or changed while it ran) at the top of
+    its ``--out`` folder are copied: a run's own sub-folders (``compare``'s one
+    ``results.json`` per schedule) and files left by earlier runs are not.
+    """
+    if not _NAME.match(name):
+        raise ValueError(f"data set name {name!r}: use lower case letters, digits, _ and -")
+    out = _out_folder(command)
+    dirty = _git("status", "--porcelain", "--untracked-files=no")
+    provenance = {
+        "command": shlex.join(["prdp-petsc", *command]),
+        "argv": list(command),
+        "started": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "git": {
+            "commit": _git("rev-parse", "HEAD"),
+            "modified": sorted(line[3:] for line in dirty.splitlines()) if dirty else [],
+        },
+        "machine": {
+            "platform": platform.platform(),
+            "cpu": _cpu(),
+            "cpu_count": os.cpu_count(),
+            "load_average_start": _load_average(),
+        },
+        "versions": _versions(),
+    }
+    before = _stamps(out)
+    start = time.time()
+    from prdp_petsc.lab.subprocesses import child_env
+
+    # the command may start MPI jobs: not with this process's MPI runtime variables
+    status = subprocess.call(
+        [sys.executable, "-m", "prdp_petsc.lab.cli", *command], env=child_env()
+    )
+    provenance["wall_s"] = round(time.time() - start, 1)
+    provenance["exit_status"] = status
+    provenance["machine"]["load_average_end"] = _load_average()
+    if status != 0:
+        logger.error("%s exited with status %d: nothing recorded", provenance["command"], status)
+        return status
+    written = [p for p, stamp in sorted(_stamps(out).items()) if before.get(p) != stamp]
+    data_dir, image_dir = Path(data) / name, Path(images) / name
+    for folder, suffix in ((data_dir, ".json"), (image_dir, ".png")):
+        if folder.exists():
+            shutil.rmtree(folder)
+        files = [p for p in written if p.suffix == suffix]
+        if files:
+            folder.mkdir(parents=True)
+        for path in files:
+            shutil.copy2(path, folder / path.name)
+        provenance["json" if suffix == ".json" else "images"] = [p.name for p in files]
+    if not provenance["json"]:
+        raise FileNotFoundError(f"{provenance['command']} wrote no JSON file in {out}")
+    (data_dir / "provenance.json").write_text(json.dumps(provenance, indent=1) + "\n")
+    logger.info("recorded %s in %s", provenance["command"], data_dir)
+    return 0

@@ -1,0 +1,491 @@
+"""Six problems PRDP was never tuned on, each a plain torch loop a new user would write.
+
+Each uses the library's public API only and offers what ``PRDP.for_problem`` needs:
+a solver and a representative system (``probe``, for `prdp_petsc.find_k_full`), one
+epoch of training, the metric, and a ``check`` (the gradient of the validation loss
+through the solve capped at k); `prdp_petsc.lab.reports.unseen` runs them.  They differ
+in everything the controller could have been tuned to: PDE, mesh, network or none,
+optimiser and learning-rate schedule, loss, and whether the metric the controller
+watches depends on K.
+
+``lshape_mlp``
+    −∇·(κ∇u) = 1 on the L-shaped mesh, u = 0 on the boundary, κ = exp(Σ c_j φ_j)
+    per element from six smooth modes.  An MLP maps noisy observations of u to c;
+    one operator per sample (θ of shape (B, p)); CG + Jacobi; Adam with a cosine
+    schedule; loss: mean squared misfit of u through the solve; metric: the
+    relative error of c (independent of K).
+``heat_sink``
+    Topology optimisation of a conductor (SIMP, κ = 10⁻³ + ρ³(1 − 10⁻³)) on a
+    unit square of quadrilaterals: uniform heat source, a cold sink on the middle
+    of the left edge, minimise the thermal compliance fᵀu at 40 % volume with a
+    density filter and optimality-criteria updates; no network; CG + ICC.  The
+    metric is the compliance through the capped solve, which reads low at small K.
+    Scored with a direct solve.
+``annulus_inverse``
+    A nodal log-conductivity field on the annulus fitted to noisy observations of
+    u (−∇·(κ∇u) = 1, u = 0 on both circles) with a smoothness penalty; no network;
+    Adam with an exponential decay; CG + Jacobi; the metric is the objective
+    through the capped solve.  Scored with a direct solve.
+``advection_source``
+    −∇·(ε∇u) + β·∇u = s on the annulus (a spiral wind: non-symmetric), s = Σ c_j ψ_j
+    from eight modes.  An MLP maps u at 48 sensors to c; one shared operator;
+    GMRES + Jacobi; SGD with momentum and a step decay; smooth-L1 loss on the
+    sensors; metric: the relative error of c.
+``plate_backward_heat``
+    One implicit heat step (M + Δt K) u¹ = M u⁰ on the plate with three holes; an
+    MLP maps u¹ to the modal coefficients of u⁰ (backward in time); CG + ICC;
+    RMSprop with a one-cycle schedule; relative-L2 loss through the solve; metric:
+    the relative error of u⁰.
+``box3d_regions``
+    −∇·(κ∇u) = 1 on the tetrahedral box, κ = exp(Σ c_j φ_j) from four smooth 3D
+    modes; an MLP maps noisy observations of u to c; CG + GAMG; SGD with
+    reduce-on-plateau; mean squared misfit; metric: the relative error of c.
+
+A run's final error is the metric of its last epoch (`Problem.score`; for the
+optimisation problems the objective scored with a direct solve).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from prdp_petsc import Dirichlet, KSPSolver, diffusion_operator, load_mesh, solve
+from prdp_petsc import mass_matrix as fem_mass
+
+from ..components.emulators import torch_sparse
+
+__all__ = ["PROBLEMS", "RTOL_FULL", "Problem", "build"]
+
+#: what "converged" means for every problem here
+RTOL_FULL = 1e-8
+
+
+class Problem:
+    """One training or optimisation loop, driven epoch by epoch.
+
+    Subclasses set `solver`, `epochs` and `probe` (A, b) and implement `train_epoch`,
+    `metric`, `validation_loss` and, where the final error is scored apart, `score`.
+    """
+
+    name = ""
+    solver: KSPSolver
+    epochs: int
+    probe: tuple
+
+    def train_epoch(self, epoch: int) -> None:
+        raise NotImplementedError
+
+    def metric(self) -> float:
+        """What the controller watches (lower is better)."""
+        raise NotImplementedError
+
+    def validation_loss(self) -> torch.Tensor:
+        """The validation loss through the solver at its current cap (differentiable)."""
+        raise NotImplementedError
+
+    def trained(self) -> list[torch.Tensor]:
+        """What the loop trains (network weights, or the design)."""
+        raise NotImplementedError
+
+    def score(self) -> float:
+        """The final error reported for the run (default: the metric)."""
+        return self.metric()
+
+    def check(self, k: int) -> np.ndarray:
+        """The gradient of `validation_loss` with the solver capped at `k` (the
+        controller's check): no training step, the optimiser's state untouched."""
+        saved = self.solver.max_it
+        self.solver.max_it = k
+        try:
+            params = self.trained()
+            grads = torch.autograd.grad(self.validation_loss(), params)
+            return torch.cat([g.reshape(-1) for g in grads]).numpy()
+        finally:
+            self.solver.max_it = saved
+
+
+def _modes(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` smooth random Fourier modes at `points` (d, N): shape (N, count)."""
+    lo, hi = points.min(axis=1, keepdims=True), points.max(axis=1, keepdims=True)
+    x = (points - lo) / (hi - lo)
+    freq = rng.integers(1, 3, size=(count, x.shape[0]))
+    phase = rng.uniform(0, 2 * np.pi, size=(count, x.shape[0]))
+    out = np.ones((x.shape[1], count))
+    for j in range(count):
+        for d in range(x.shape[0]):
+            out[:, j] *= np.cos(np.pi * freq[j, d] * x[d] + phase[j, d])
+    return out
+
+
+def _mlp(n_in: int, n_out: int, width: int, depth: int = 2) -> torch.nn.Module:
+    layers, size = [], n_in
+    for _ in range(depth):
+        layers += [torch.nn.Linear(size, width), torch.nn.Tanh()]
+        size = width
+    layers.append(torch.nn.Linear(size, n_out))
+    return torch.nn.Sequential(*layers).double()
+
+
+class NetworkInverse(Problem):
+    """A network maps observations to the coefficients c of the physics; the loss
+    compares the physics of its c, through the capped solve, with the observations."""
+
+    batch = 8
+    step_per_batch = False  # the scheduler steps after every batch, not every epoch
+    loss_fn: Callable
+
+    def setup(self, obs, coef, net, optimizer, scheduler, n_val: int, seed: int):
+        self.obs_train, self.obs_val = obs[n_val:], obs[:n_val]
+        self.coef_train, self.coef_val = coef[n_val:], coef[:n_val]
+        self.scale = self.obs_train.std(dim=0, keepdim=True) + 1e-12
+        self.mean = self.obs_train.mean(dim=0, keepdim=True)
+        self.net, self.optimizer, self.scheduler = net, optimizer, scheduler
+        self.order = torch.Generator().manual_seed(seed)
+
+    def predict(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net((obs - self.mean) / self.scale)
+
+    def physics(self, coef: torch.Tensor) -> torch.Tensor:
+        """Observations of the physics for coefficients (B, m), through the solver."""
+        raise NotImplementedError
+
+    def train_epoch(self, epoch: int) -> None:
+        perm = torch.randperm(len(self.obs_train), generator=self.order)
+        for start in range(0, len(perm), self.batch):
+            idx = perm[start : start + self.batch]
+            self.optimizer.zero_grad()
+            loss = self.loss_fn(self.physics(self.predict(self.obs_train[idx])),
+                                self.obs_train[idx])  # fmt: skip
+            loss.backward()
+            self.optimizer.step()
+            if self.step_per_batch:  # a one-cycle schedule steps with the optimiser
+                self.scheduler.step()
+        if isinstance(self.scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
+            with torch.no_grad():
+                self.scheduler.step(float(self.validation_loss()))
+        elif self.scheduler is not None and not self.step_per_batch:
+            self.scheduler.step()
+
+    def metric(self) -> float:
+        with torch.no_grad():
+            pred = self.predict(self.obs_val)
+        return float(torch.linalg.norm(pred - self.coef_val) / torch.linalg.norm(self.coef_val))
+
+    def validation_loss(self) -> torch.Tensor:
+        return self.loss_fn(self.physics(self.predict(self.obs_val)), self.obs_val)
+
+    def trained(self) -> list[torch.Tensor]:
+        return list(self.net.parameters())
+
+
+def _mse(pred, obs):
+    return torch.mean((pred - obs) ** 2) / torch.mean(obs**2)
+
+
+def _exact_solutions(A: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
+    lu = spla.splu(sp.csc_matrix(A))
+    return np.stack([lu.solve(r) for r in rhs])
+
+
+class LogCoefficient(NetworkInverse):
+    """−∇·(κ∇u) = 1, u = 0 on the boundary, κ = exp(Σ c_j φ_j) per element from smooth
+    modes; the network maps noisy observations of u to c (one operator per sample)."""
+
+    def coefficient_data(self, mesh, element, modes: int, n: int, noise: float, rng):
+        """Operator, modes and noisy observations; returns (observations, c)."""
+        from skfem import Basis
+
+        basis = Basis(mesh, element)
+        self.dir = Dirichlet(diffusion_operator(basis, "P0"), basis.get_dofs().all())
+        self.phi = torch.from_numpy(_modes(mesh.p[:, mesh.t].mean(axis=1), modes, rng))
+        coef = rng.normal(0.0, 0.5, size=(n, modes))
+        theta = np.exp(coef @ self.phi.numpy().T)
+        b = fem_rhs(basis)[self.dir.interior]
+        u = _exact_solutions_batch(self.dir.A_II, theta, b)
+        u *= 1.0 + noise * rng.standard_normal(u.shape)
+        self.b = torch.from_numpy(b)
+        self.probe = (self.dir.A_II.matrix(theta[0]), b)
+        return u, coef
+
+    def physics(self, coef):
+        theta = torch.exp(coef @ self.phi.T)
+        return solve(self.dir.A_II, self.b.expand(len(coef), -1), self.solver, theta=theta)
+
+
+class LShapeMLP(LogCoefficient):
+    name = "lshape_mlp"
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import ElementTriP1
+
+        rng = np.random.default_rng(1000 + seed)
+        torch.manual_seed(seed)
+        n = 64 if quick else 160
+        u, coef = self.coefficient_data(load_mesh("lshape"), ElementTriP1(), 6, n, 0.005, rng)
+        self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, prefix="u1_",
+                                max_it=1)  # fmt: skip
+        net = _mlp(u.shape[1], 6, 64)
+        opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+        self.epochs = 20 if quick else 60
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=self.epochs)
+        self.loss_fn = _mse
+        self.setup(torch.from_numpy(u), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
+
+
+def fem_rhs(basis) -> np.ndarray:
+    """The load vector of a unit source on `basis`."""
+    from skfem import LinearForm
+
+    @LinearForm
+    def unit(v, w):
+        return 1.0 * v
+
+    return unit.assemble(basis)
+
+
+def _exact_solutions_batch(A_II, theta: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.stack([spla.spsolve(sp.csc_matrix(A_II.matrix(t)), b) for t in theta])
+
+
+class AdvectionSource(NetworkInverse):
+    name = "advection_source"
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import Basis, BilinearForm, ElementTriP1
+        from skfem.helpers import dot, grad
+
+        rng = np.random.default_rng(2000 + seed)
+        torch.manual_seed(seed)
+        mesh = load_mesh("annulus")
+        basis = Basis(mesh, ElementTriP1())
+
+        @BilinearForm
+        def operator(u, v, w):
+            x, y = w.x
+            r2 = x**2 + y**2
+            wind = (-y + 0.3 * x / r2, x + 0.3 * y / r2)
+            return 0.02 * dot(grad(u), grad(v)) + (wind[0] * grad(u)[0] + wind[1] * grad(u)[1]) * v
+
+        interior = basis.complement_dofs(basis.get_dofs())
+        A = operator.assemble(basis).tocsr()[interior][:, interior]
+        psi = _modes(mesh.p, 8, rng)[interior]
+        n = 64 if quick else 160
+        coef = rng.normal(0.0, 1.0, size=(n, 8))
+        self.A, self.psi = A, torch.from_numpy(psi)
+        u = _exact_solutions(A, coef @ psi.T)
+        self.sensors = torch.from_numpy(np.sort(rng.choice(len(interior), 48, replace=False)))
+        obs = u[:, self.sensors.numpy()] * (1.0 + 0.002 * rng.standard_normal((n, 48)))
+        self.solver = KSPSolver({"ksp_type": "gmres", "pc_type": "jacobi"}, prefix="u4_",
+                                max_it=1)  # fmt: skip
+        self.probe = (A, (coef @ psi.T)[0])
+        net = _mlp(48, 8, 64)
+        opt = torch.optim.SGD(net.parameters(), lr=0.05, momentum=0.9)
+        self.epochs = 20 if quick else 60
+        sched = torch.optim.lr_scheduler.StepLR(opt, step_size=self.epochs // 3, gamma=0.3)
+        scale = float(np.abs(obs).mean())
+        self.loss_fn = lambda pred, o: torch.nn.functional.smooth_l1_loss(
+            pred / scale, o / scale, beta=0.1
+        )
+        self.setup(torch.from_numpy(obs), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
+
+    def physics(self, coef):
+        u = solve(self.A, coef @ self.psi.T, self.solver)
+        return u[:, self.sensors]
+
+
+class PlateBackwardHeat(NetworkInverse):
+    name = "plate_backward_heat"
+    step_per_batch = True
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import Basis, ElementTriP1
+
+        rng = np.random.default_rng(3000 + seed)
+        torch.manual_seed(seed)
+        mesh = load_mesh("plate_holes")
+        basis = Basis(mesh, ElementTriP1())
+        M = sp.csr_matrix(fem_mass(basis))
+        K = diffusion_operator(basis, "P0").matrix(np.ones(mesh.t.shape[1]))
+        A = (M + 2e-3 * K).tocsr()
+        phi = _modes(mesh.p, 10, rng)
+        n = 64 if quick else 160
+        coef = rng.normal(0.0, 1.0, size=(n, 10))
+        u1 = _exact_solutions(A, (M @ (phi @ coef.T)).T)
+        u1 *= 1.0 + 0.002 * rng.standard_normal(u1.shape)
+        self.A = A
+        self.Mphi = torch.from_numpy(M @ phi)
+        self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, prefix="u5_", max_it=1)
+        self.probe = (A, M @ phi @ coef[0])
+        net = _mlp(u1.shape[1], 10, 64)
+        opt = torch.optim.RMSprop(net.parameters(), lr=1e-3)
+        self.epochs = 20 if quick else 60
+        steps = self.epochs * -(-(n - n // 4) // self.batch)
+        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=steps)
+        self.loss_fn = lambda pred, o: torch.mean(
+            torch.linalg.norm(pred - o, dim=-1) / torch.linalg.norm(o, dim=-1)
+        )
+        self.setup(torch.from_numpy(u1), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
+
+    def physics(self, coef):
+        return solve(self.A, coef @ self.Mphi.T, self.solver)
+
+
+class Box3DRegions(LogCoefficient):
+    name = "box3d_regions"
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import ElementTetP1
+
+        rng = np.random.default_rng(4000 + seed)
+        torch.manual_seed(seed)
+        n = 48 if quick else 128
+        u, coef = self.coefficient_data(load_mesh("box3d"), ElementTetP1(), 4, n, 0.002, rng)
+        self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "gamg"}, prefix="u6_", max_it=1)
+        net = _mlp(u.shape[1], 4, 32)
+        opt = torch.optim.SGD(net.parameters(), lr=0.02, momentum=0.9)
+        self.epochs = 15 if quick else 40
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.3, patience=3)
+        self.loss_fn = _mse
+        self.setup(torch.from_numpy(u), torch.from_numpy(coef), net, opt, sched, n // 4, seed)
+
+
+class DesignProblem(Problem):
+    """An optimisation loop without a network: `theta` is the design, the metric is
+    the objective through the capped solve, the score the objective at a direct solve."""
+
+    def trained(self) -> list[torch.Tensor]:
+        return [self.theta]
+
+    def metric(self) -> float:
+        with torch.no_grad():
+            return float(self.objective())
+
+    def validation_loss(self) -> torch.Tensor:
+        return self.objective()
+
+    def objective(self) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class AnnulusInverse(DesignProblem):
+    name = "annulus_inverse"
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import Basis, ElementTriP1
+
+        rng = np.random.default_rng(5000 + seed)
+        torch.manual_seed(seed)
+        mesh = load_mesh("annulus")
+        basis = Basis(mesh, ElementTriP1())
+        self.dir = Dirichlet(diffusion_operator(basis, "P1"), basis.get_dofs().all())
+        truth = _modes(mesh.p, 5, rng) @ rng.normal(0.0, 0.4, 5)
+        b = fem_rhs(basis)[self.dir.interior]
+        u = spla.spsolve(sp.csc_matrix(self.dir.A_II.matrix(np.exp(truth))), b)
+        self.data = torch.from_numpy(u * (1.0 + 0.01 * rng.standard_normal(u.shape)))
+        self.b = torch.from_numpy(b)
+        self.lap = torch_sparse(diffusion_operator(basis, "P1").matrix(np.ones(basis.N)))
+        self.theta = torch.zeros(basis.N, dtype=torch.float64, requires_grad=True)
+        self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, prefix="u3_",
+                                max_it=1)  # fmt: skip
+        self.probe = (self.dir.A_II.matrix(np.ones(basis.N)), b)
+        self.optimizer = torch.optim.Adam([self.theta], lr=0.05)
+        self.epochs = 40 if quick else 120
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma=0.98)
+
+    def objective(self, solution=None) -> torch.Tensor:
+        u = solve(self.dir.A_II, self.b, self.solver, theta=torch.exp(self.theta))
+        return self._misfit(u)
+
+    def _misfit(self, u):
+        fit = torch.sum((u - self.data) ** 2) / torch.sum(self.data**2)
+        return fit + 1e-5 * self.theta @ (self.lap @ self.theta)
+
+    def train_epoch(self, epoch: int) -> None:
+        self.optimizer.zero_grad()
+        self.objective().backward()
+        self.optimizer.step()
+        self.scheduler.step()
+
+    def score(self) -> float:
+        with torch.no_grad():
+            A = sp.csc_matrix(self.dir.A_II.matrix(np.exp(self.theta.numpy())))
+            u = torch.from_numpy(spla.spsolve(A, self.b.numpy()))
+            return float(self._misfit(u))
+
+
+class HeatSink(DesignProblem):
+    name = "heat_sink"
+
+    def __init__(self, seed: int, quick: bool = False):
+        from skfem import Basis, ElementQuad1, MeshQuad
+
+        rng = np.random.default_rng(6000 + seed)
+        n = 24 if quick else 40
+        mesh = MeshQuad.init_tensor(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1))
+        basis = Basis(mesh, ElementQuad1())
+        sink = basis.get_dofs(lambda x: (x[0] < 1e-9) & (abs(x[1] - 0.5) < 0.1 + 0.05 * seed))
+        self.dir = Dirichlet(diffusion_operator(basis, "P0"), sink.all())
+        self.f = torch.from_numpy(fem_rhs(basis))
+        self.b = self.f[self.dir.interior]
+        centres = mesh.p[:, mesh.t].mean(axis=1)
+        dist = np.linalg.norm(centres[:, :, None] - centres[:, None, :], axis=0)
+        weights = np.maximum(0.0, 1.5 / n - dist)
+        self.filter = torch.from_numpy(weights / weights.sum(axis=1, keepdims=True))
+        self.volume = 0.4
+        start = self.volume + 0.02 * rng.standard_normal(mesh.t.shape[1])
+        self.theta = torch.tensor(np.clip(start, 0.01, 1.0), requires_grad=True)
+        self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, prefix="u2_", max_it=1)
+        self.probe = (self.dir.A_II.matrix(self._kappa().detach().numpy()), self.b.numpy())
+        self.epochs = 30 if quick else 60
+
+    def _kappa(self) -> torch.Tensor:
+        rho = self.filter @ self.theta
+        return 1e-3 + rho**3 * (1.0 - 1e-3)
+
+    def objective(self) -> torch.Tensor:
+        u = solve(self.dir.A_II, self.b, self.solver, theta=self._kappa())
+        return self.b @ u
+
+    def train_epoch(self, epoch: int) -> None:
+        """One optimality-criteria update (move 0.2, bisection on the volume)."""
+        self.theta.grad = None
+        self.objective().backward()
+        dc = (-self.theta.grad).clamp(min=1e-30).detach()
+        rho = self.theta.detach()
+        lo, hi = 1e-9, 1e9
+        while hi / lo > 1 + 1e-6:
+            mid = math.sqrt(lo * hi)
+            new = torch.clamp(rho * torch.sqrt(dc / mid), rho - 0.2, rho + 0.2).clamp(1e-3, 1.0)
+            lo, hi = (mid, hi) if new.mean() > self.volume else (lo, mid)
+        with torch.no_grad():
+            self.theta.copy_(new)
+
+    def score(self) -> float:
+        with torch.no_grad():
+            A = sp.csc_matrix(self.dir.A_II.matrix(self._kappa().numpy()))
+            return float(self.b.numpy() @ spla.spsolve(A, self.b.numpy()))
+
+
+#: problem name -> class
+PROBLEMS = {
+    cls.name: cls
+    for cls in (
+        LShapeMLP,
+        HeatSink,
+        AnnulusInverse,
+        AdvectionSource,
+        PlateBackwardHeat,
+        Box3DRegions,
+    )  # fmt: skip
+}
+
+
+def build(name: str, seed: int, quick: bool = False) -> Problem:
+    """Problem `name` of `PROBLEMS` with its data and initial weights from `seed`."""
+    return PROBLEMS[name](seed, quick=quick)

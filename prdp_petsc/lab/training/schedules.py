@@ -1,0 +1,128 @@
+"""K schedules of a training run: ``"prdp"``, ``"auto"``, ``"fixed:K"`` and ``"rtol"``.
+
+``prdp`` lets `prdp_petsc.PRDP` raise the iteration cap K (``max_it``, with
+``rtol = atol = 0``) with the scene's own settings; ``auto`` does the same with the
+default construction, ``PRDP.for_problem(K_full)`` and a gradient check (the scene's
+settings ignored); ``fixed:K`` keeps K; ``rtol`` is the same controller moving
+PETSc's own relative tolerance instead, one refinement level at a time
+(`prdp_petsc.rtol_from_level`), under a generous cap.  The harness
+(`prdp_petsc.lab.training.harness.run`) applies them; `gradient_check` is the ``auto``
+schedule's check.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from prdp_petsc import rtol_from_level
+
+__all__ = [
+    "CHECK_SEED",
+    "RTOL_FACTOR",
+    "RTOL_INIT",
+    "RTOL_MAX_IT_FACTOR",
+    "Schedule",
+    "gradient_check",
+    "parse_schedule",
+    "rtol_levels",
+]
+
+#: The ``rtol`` schedule's first relative tolerance (refinement level 0) ...
+RTOL_INIT = 1e-1
+#: ... and the factor per refinement: a decade per level (`prdp_petsc.rtol_from_level`)
+RTOL_FACTOR = 1e-1
+#: The ``rtol`` schedule caps every solve at this many times K_full (PETSc's rtol test
+#: stops it first; the cap only bounds a solve that would not converge)
+RTOL_MAX_IT_FACTOR = 10
+#: Seed of the generator that draws the ``auto`` schedule's fixed check batch
+CHECK_SEED = 20_261_125
+
+
+class Schedule(NamedTuple):
+    """A parsed schedule: ``kind`` ``"prdp"``, ``"auto"``, ``"fixed"`` or ``"rtol"``; ``k``
+    for fixed."""
+
+    kind: str
+    k: int | None = None
+
+
+def parse_schedule(schedule: str) -> Schedule:
+    """``"prdp"``, ``"auto"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`.
+
+    ``"prdp"`` raises the iteration cap K (``max_it``, with ``rtol = atol = 0``) as
+    `prdp_petsc.PRDP` decides with the scene's settings; ``"auto"`` as
+    ``PRDP.for_problem(K_full)`` decides, certifying with the gradient of the training
+    loss on a fixed batch at K against K_full; ``"fixed:K"`` keeps it at K; ``"rtol"``
+    is PRDP moving PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖``
+    under a generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol =
+    ``rtol_from_level(level, RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and
+    the same controller's plateau test raises the level by one (see `run`).
+    """
+    if schedule in ("prdp", "auto", "rtol"):
+        return Schedule(schedule)
+    if isinstance(schedule, str) and schedule.startswith("fixed:"):
+        try:
+            k = int(schedule.split(":", 1)[1])
+        except ValueError:
+            k = 0
+        if k >= 1:
+            return Schedule("fixed", k)
+    raise ValueError(
+        f"schedule must be 'prdp', 'auto', 'rtol' or 'fixed:K' with K >= 1, got {schedule!r}"
+    )
+
+
+def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR):
+    """Refinements from `rtol_init` until `rtol_from_level` reaches `rtol_full` (>= 0).
+
+    The ``rtol`` schedule stops refining there: a tighter rtol than the scene's own
+    definition of a converged solve buys nothing, as K past K_full does not.
+    """
+    rtol_init = max(rtol_init, rtol_full)
+    level = 0
+    while rtol_from_level(level, rtol_init, factor, rtol_full) > rtol_full * (1 + 1e-9):
+        level += 1
+    return level
+
+
+def gradient_check(scene):
+    """The ``auto`` schedule's check: ``k -> ∂L/∂w`` of the training loss on one fixed
+    batch, every scene solver capped at k, no optimiser step (see `prdp_petsc.PRDP`).
+
+    The batch is the first of ``scene.batches(0, ...)`` under a generator seeded
+    `CHECK_SEED`, the same for every check of the run; parameters the loss does not
+    reach contribute zeros.  A scene's ``loss`` may change state (some take optimiser
+    steps of their own before returning the last loss): the parameters' values and
+    the optimiser's state are restored after every check, so a check never trains.
+    """
+    batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
+    params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]
+
+    def check(k: int) -> np.ndarray:
+        saved = [s.max_it for s in scene.solvers]
+        values = [p.detach().clone() for p in params]
+        state = copy.deepcopy(scene.optimizer.state_dict())
+        for s in scene.solvers:
+            s.max_it = k
+        try:
+            grads = torch.autograd.grad(scene.loss(batch), params, allow_unused=True)
+        finally:
+            for s, k_saved in zip(scene.solvers, saved, strict=True):
+                s.max_it = k_saved
+            with torch.no_grad():
+                for p, value in zip(params, values, strict=True):
+                    p.copy_(value)
+            scene.optimizer.load_state_dict(state)
+            scene.optimizer.zero_grad()
+        return np.concatenate(
+            [
+                (torch.zeros_like(p) if g is None else g).detach().reshape(-1).double().numpy()
+                for p, g in zip(params, grads, strict=True)
+            ]
+        )
+
+    return check

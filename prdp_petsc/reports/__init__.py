@@ -1,4 +1,0 @@
-"""Reports: bridge benchmark, work-precision and stability suites (and their test problems).
-
-matplotlib is imported only here and in `prdp_petsc.training.plots`.
-"""

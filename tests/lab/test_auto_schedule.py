@@ -1,0 +1,81 @@
+"""The ``auto`` schedule: `PRDP.for_problem` inside the harness, with a gradient check,
+and ``prdp-petsc defaults`` (the default construction beside a scene's tuned settings)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prdp_petsc.lab.cli import main
+from prdp_petsc.lab.reports.defaults import format_defaults
+from prdp_petsc.lab.training.harness import build_scene, find_k_full, run
+from prdp_petsc.lab.training.scene import load_scene
+from prdp_petsc.lab.training.schedules import gradient_check, parse_schedule
+
+HEAT1D = Path(__file__).parents[2] / "demos" / "heat1d.py"
+
+
+def test_auto_is_a_schedule():
+    assert parse_schedule("auto").kind == "auto"
+    with pytest.raises(ValueError, match="'auto'"):
+        parse_schedule("automatic")
+
+
+def test_auto_run_starts_at_an_eighth_of_k_full_and_ends_certified(tmp_path):
+    result = run(HEAT1D, "auto", preset="quick", seed=1, progress=False, out=tmp_path)
+    k_full = result["prdp"]["k_full"]
+    ks = [e["k"] for e in result["epochs"]]
+    assert ks[0] == -(-k_full // 8) and ks == sorted(ks) and ks[-1] <= k_full
+    assert set(ks) <= {ks[0] * 2**i for i in range(8)} | {k_full}  # doubling, capped
+    cert = result["certificate"]
+    assert cert["k"] == ks[-1] and cert["k_full"] == k_full
+    assert cert["certified"] == (cert["gap"] <= cert["tol"])
+    assert json.loads((tmp_path / "results.json").read_text())["certificate"] == cert
+
+
+def test_gradient_check_is_the_training_gradient_and_leaves_no_trace():
+    module = load_scene(HEAT1D)
+    scene = build_scene(module, "quick", 0)
+    k_full = find_k_full(scene)
+    check = gradient_check(scene)
+    before = [s.max_it for s in scene.solvers]
+    g_full, g_one = check(k_full), check(1)
+    assert [s.max_it for s in scene.solvers] == before
+    params = [p for g in scene.optimizer.param_groups for p in g["params"]]
+    assert g_full.shape == (sum(p.numel() for p in params),)
+    assert all(p.grad is None for p in params)
+    assert np.allclose(check(k_full), g_full)  # the same fixed batch every time
+    assert np.linalg.norm(g_one - g_full) > 0.05 * np.linalg.norm(g_full)
+
+
+def test_defaults_report(tmp_path, capsys):
+    rc = main(["defaults", str(HEAT1D), "--preset", "quick", "--seeds", "0", "--out",
+               str(tmp_path)])  # fmt: skip
+    assert rc == 0
+    result = json.loads((tmp_path / "defaults.json").read_text())
+    row = result["per_seed"][0]
+    for name in ("tuned", "default"):
+        r = row[name]
+        assert r["ratio"] == pytest.approx(r["final_val_error"] / row["full"]["final_val_error"])
+        assert r["saved"] == pytest.approx(1 - r["iterations"] / row["full"]["iterations"])
+        assert result[name]["compared"] == 1
+    assert row["default"]["certified"] in (True, False)
+    assert row["tuned"]["certified"] is None  # the tuned controller runs no checks
+    assert "default: error ratio" in capsys.readouterr().out
+    assert "tuned: error ratio" in format_defaults(result)
+
+
+def test_a_check_never_trains_a_scene_whose_loss_steps_its_optimiser():
+    # poisson_field's loss takes `steps - 1` Adam steps before returning the last loss
+    scene = build_scene(load_scene(HEAT1D.parent / "poisson_field.py"), "quick", 0)
+    theta = scene.optimizer.param_groups[0]["params"][0]
+    before = theta.detach().clone()
+    check = gradient_check(scene)
+    first = check(20)
+    assert torch.equal(theta.detach(), before)
+    assert not scene.optimizer.state  # Adam has taken no step
+    assert np.array_equal(check(20), first)  # the same weights, the same batch

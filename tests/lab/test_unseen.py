@@ -1,0 +1,62 @@
+"""The problems PRDP was never tuned on (`prdp_petsc.lab.reports.unseen_problems`), quick
+variants, run by `prdp_petsc.lab.reports.unseen`.
+
+Each runs full fidelity and the default construction (`PRDP.for_problem` with a
+gradient check) in a plain loop.  The full-size runs over three seeds are on the
+results page (docs/results/unseen.md); here the fast problems run on two seeds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import prdp_petsc as pp
+from prdp_petsc.lab.reports import unseen, unseen_problems
+
+
+@pytest.mark.parametrize("name", ["heat_sink", "annulus_inverse", "box3d_regions"])
+@pytest.mark.parametrize("seed", [1, 2])
+def test_default_prdp_matches_full_fidelity_for_fewer_iterations(name, seed):
+    problem = unseen_problems.build(name, seed, quick=True)
+    k_full = pp.find_k_full(problem.solver, *problem.probe, rtol=unseen_problems.RTOL_FULL)
+    full = unseen.train(problem, "full", k_full)
+    prdp = unseen.train(unseen_problems.build(name, seed, quick=True), "prdp", k_full)
+    assert prdp["final_error"] <= 1.10 * full["final_error"]
+    assert prdp["iterations"] <= 0.8 * full["iterations"]  # checks included
+    assert prdp["savings_k"]["certified"] is True
+    assert prdp["ks"][0] == max(1, -(-k_full // 8))
+
+
+def test_the_check_is_the_validation_gradient_through_the_capped_solve():
+    problem = unseen_problems.build("lshape_mlp", 0, quick=True)
+    k_full = pp.find_k_full(problem.solver, *problem.probe)
+    g_full, g_coarse = problem.check(k_full), problem.check(max(1, k_full // 8))
+    n_weights = sum(p.numel() for p in problem.net.parameters())
+    assert g_full.shape == (n_weights,) and np.all(np.isfinite(g_full))
+    assert pp.prdp.fidelity_gap(problem.check(k_full), g_full) == pytest.approx(0.0, abs=1e-12)
+    assert pp.prdp.fidelity_gap(g_coarse, g_full) > 0.05  # K_full / 8 is far off here
+    assert all(p.grad is None for p in problem.net.parameters())  # no training step
+
+
+def test_table_of_a_comparison():
+    result = unseen.compare(["heat_sink"], [0], quick=True)
+    p = result["problems"]["heat_sink"]
+    assert len(p["runs"]) == 1 and p["geomean_ratio"] == pytest.approx(p["worst_ratio"])
+    assert "`heat_sink`" in unseen.table(result)
+
+
+def test_cli_writes_the_json_the_results_page_reads(tmp_path, capsys):
+    from prdp_petsc.lab.cli import main
+
+    rc = main(["unseen", "--problems", "heat_sink", "--seeds", "0", "--quick", "--out",
+               str(tmp_path)])  # fmt: skip
+    assert rc == 0
+    import json
+
+    result = json.loads((tmp_path / "unseen.json").read_text())
+    run = result["problems"]["heat_sink"]["runs"][0]
+    assert run["error_ratio"] == pytest.approx(
+        run["prdp"]["final_error"] / run["full"]["final_error"]
+    )
+    assert "`heat_sink`" in capsys.readouterr().out
