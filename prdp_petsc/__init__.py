@@ -45,6 +45,8 @@ _EXPORTS = {
     "block_size": ".fem.vector",
     "rigid_body_modes": ".fem.vector",
     "ACCURACY_BAND": ".prdp",
+    "RTOL_FACTOR": ".prdp",
+    "RTOL_INIT": ".prdp",
     "Certificate": ".prdp",
     "PRDP": ".prdp",
     "PRDPStep": ".prdp",

@@ -25,6 +25,8 @@ import numpy as np
 
 __all__ = [
     "ACCURACY_BAND",
+    "RTOL_FACTOR",
+    "RTOL_INIT",
     "Certificate",
     "PRDP",
     "PRDPStep",
@@ -244,10 +246,20 @@ def equal_accuracy_k(errors: dict, k_full: int, tol: float = ACCURACY_BAND) -> d
     return out
 
 
+#: Relative tolerance of refinement level 0 when PRDP moves a Krylov rtol instead of K ...
+RTOL_INIT = 1e-1
+#: ... and its factor per refinement: a decade per level.
+RTOL_FACTOR = 1e-1
+
+
 def rtol_from_level(
-    level: int, rtol_init: float = 1e-1, factor: float = 0.5, rtol_min: float = 1e-10
+    level: int, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR, rtol_min: float = 1e-10
 ) -> float:
-    """Krylov rtol for refinement level ``level``: max(rtol_init * factor**level, rtol_min)."""
+    """Krylov rtol for refinement level ``level``: max(rtol_init * factor**level, rtol_min).
+
+    The defaults (`RTOL_INIT`, `RTOL_FACTOR`: 0.1, then a decade per refinement) are
+    the ones the lab's ``rtol`` schedule uses.
+    """
     if operator.index(level) < 0:
         raise ValueError(f"level must be >= 0, got {level}")
     if not 0 < rtol_min <= rtol_init:
@@ -605,7 +617,9 @@ class PRDP:
         logger.info("PRDP end: %s", cert.describe())
         return cert
 
-    def to_rtol(self, rtol_init: float = 1e-1, factor: float = 0.5, rtol_min: float = 1e-10):
+    def to_rtol(
+        self, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR, rtol_min: float = 1e-10
+    ):
         """``rtol_from_level(self.level, ...)``: the Krylov rtol for the current K."""
         return rtol_from_level(self.level, rtol_init, factor, rtol_min)
 

@@ -256,7 +256,8 @@ def test_state_dict_round_trip_through_json(split):
 
 def test_rtol_from_level():
     assert rtol_from_level(0) == pytest.approx(0.1)
-    assert rtol_from_level(3) == pytest.approx(0.0125)
+    assert rtol_from_level(3) == pytest.approx(1e-4)
+    assert rtol_from_level(2, factor=0.5) == pytest.approx(0.025)
     assert rtol_from_level(100) == 1e-10
     ctrl = PRDP(k_init=3, k_min=3)
     assert ctrl.to_rtol(rtol_init=1e-2, factor=0.1) == pytest.approx(1e-2)

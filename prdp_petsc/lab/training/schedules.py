@@ -18,7 +18,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from prdp_petsc import rtol_from_level
+# the rtol schedule's first tolerance and factor per refinement: the library's defaults
+from prdp_petsc import RTOL_FACTOR, RTOL_INIT, rtol_from_level
 
 __all__ = [
     "CHECK_SEED",
@@ -31,10 +32,6 @@ __all__ = [
     "rtol_levels",
 ]
 
-#: The ``rtol`` schedule's first relative tolerance (refinement level 0) ...
-RTOL_INIT = 1e-1
-#: ... and the factor per refinement: a decade per level (`prdp_petsc.rtol_from_level`)
-RTOL_FACTOR = 1e-1
 #: The ``rtol`` schedule caps every solve at this many times K_full (PETSc's rtol test
 #: stops it first; the cap only bounds a solve that would not converge)
 RTOL_MAX_IT_FACTOR = 10
