@@ -23,6 +23,8 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 _EXPORTS = {
     "matvec": ".autograd.bridge",
     "solve": ".autograd.bridge",
+    "LinearSolution": ".autograd.solution",
+    "WarmStarts": ".autograd.warm_starts",
     "Dirichlet": ".autograd.dirichlet",
     "once_differentiable": ".autograd.once",
     "sum_over_ranks": ".autograd.owned",

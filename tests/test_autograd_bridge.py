@@ -79,3 +79,45 @@ def test_dirichlet_parametric_matrix_without_theta_is_refused():
     with pytest.raises(ValueError, match="pass its parameters as theta="):
         D.solve(randn(D.n), randn(len(D.boundary)), solver)
     assert solver.last is None
+
+
+# -- the per-call result: return_solution=True -------------------------------------------
+def test_return_solution_keeps_this_calls_outcome_beside_x():
+    A = fd_poisson(6)
+    b = randn(36, seed=3, requires_grad=True)
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=4) as solver:
+        sol = pp.solve(A, b, solver, return_solution=True)
+        assert isinstance(sol, pp.LinearSolution)
+        assert (sol.iterations, sol.reason, sol.converged) == (4, "DIVERGED_MAX_IT", False)
+        assert sol.residual_norm == solver.last.residual_norm > 0
+        assert sol.adjoint is None  # no backward yet
+        x_again = pp.solve(A, b.detach() * 2, pp.KSPSolver(solver.options, max_it=50, rtol=1e-12))
+        sol.value.square().sum().backward()
+        assert sol.adjoint is solver.last_adjoint and sol.adjoint.iterations.tolist() == [4]
+        torch.testing.assert_close(sol.value, pp.solve(A, b.detach(), solver))
+    assert x_again.shape == b.shape
+
+
+def test_return_solution_of_a_batch_reports_every_sample():
+    A = fd_poisson(6)
+    b = randn(3, 36, seed=4)
+    b[1] = 0.0  # a zero right-hand side converges at once
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=5, rtol=1e-8) as solver:
+        sol = pp.solve(A, b, solver, return_solution=True)
+    assert sol.iterations.tolist()[1] == 0 and sol.iterations.tolist()[0] == 5
+    assert len(sol.reason) == 3 and sol.residual_norm.shape == (3,)
+    assert not sol.converged
+
+
+@pytest.mark.parametrize("mode", ["implicit", "unrolled"])
+def test_return_solution_with_a_guess_and_parameters(mode):
+    basis = unit_square(2)
+    A = interior_operator(basis).A_II
+    theta = random_theta(A.n_params, requires_grad=True)
+    b = randn(A.shape[0], seed=5)
+    x0 = randn(A.shape[0], seed=6)
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=3) as solver:
+        sol = pp.solve(A, b, solver, theta=theta, x0=x0, mode=mode, return_solution=True)
+        sol.value.sum().backward()
+    assert sol.iterations == 3 and theta.grad is not None
+    assert (sol.adjoint is None) == (mode == "unrolled")

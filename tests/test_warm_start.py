@@ -11,7 +11,6 @@ import torch
 from _core import CONVERGED, interior_operator, randn, random_theta, unit_square
 
 import prdp_petsc as pp
-from prdp_petsc.autograd import WarmStarts
 
 CG = {"ksp_type": "cg", "pc_type": "jacobi"}
 
@@ -27,7 +26,7 @@ def problem():
 
 
 def test_guesses_are_detached_copies_of_what_was_stored():
-    starts = WarmStarts()
+    starts = pp.WarmStarts()
     assert starts.guess(torch.tensor([3, 1])) is None and starts.misses == 2
     x = torch.arange(6.0, dtype=torch.float64).reshape(2, 3).requires_grad_(True)
     y = x * 2
@@ -42,7 +41,7 @@ def test_guesses_are_detached_copies_of_what_was_stored():
 
 
 def test_missing_keys_start_from_zero_or_from_the_fill():
-    starts = WarmStarts()
+    starts = pp.WarmStarts()
     starts.store(5, torch.ones(3, dtype=torch.float64))  # one key: a vector
     assert torch.equal(starts.guess(5), torch.ones(3, dtype=torch.float64))
     assert torch.equal(starts.guess([7, 5]), torch.tensor([[0.0] * 3, [1.0] * 3]).double())
@@ -55,7 +54,7 @@ def test_missing_keys_start_from_zero_or_from_the_fill():
 
 
 def test_bad_input_is_refused():
-    starts = WarmStarts()
+    starts = pp.WarmStarts()
     with pytest.raises(ValueError, match="one row per key"):
         starts.store([1, 2, 3], torch.zeros(2, 4))
     with pytest.raises(pp.NonFiniteError, match=r"keys \[2\]"):
@@ -69,9 +68,9 @@ def test_bad_input_is_refused():
 
 
 def test_state_dict_round_trip():
-    starts = WarmStarts()
+    starts = pp.WarmStarts()
     starts.store([(0, 1), (1, 1), 4], torch.randn(3, 5, dtype=torch.float64))
-    other = WarmStarts()
+    other = pp.WarmStarts()
     other.load_state_dict(starts.state_dict())
     for key in [(0, 1), (1, 1), 4]:
         assert torch.equal(other.guess(key), starts.guess(key))
@@ -82,7 +81,7 @@ def test_converged_solve_from_the_guess_has_the_same_value_and_gradients(problem
     epoch's backward leaves the last epoch's tensors alone."""
     A, theta, b = problem
     solver = pp.KSPSolver(CG, **CONVERGED)
-    starts = WarmStarts()
+    starts = pp.WarmStarts()
     idx = torch.tensor([2, 0, 3])
     w = randn(3, A.shape[0], seed=7).detach()
     th0 = theta(0).requires_grad_(True)
@@ -126,7 +125,7 @@ def test_capped_solves_from_the_guess_approach_the_converged_solution(problem, o
     K = 3
     capped = pp.KSPSolver(options, max_it=K)
     exact = pp.KSPSolver(CG, **CONVERGED)
-    starts = WarmStarts()
+    starts = pp.WarmStarts()
     rng = np.random.default_rng(3)
     errors = {"zero": [], "cached": []}
     for epoch in range(8):

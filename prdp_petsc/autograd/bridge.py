@@ -28,9 +28,10 @@ from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
+from .solution import LinearSolution
 from .tensors import as_numpy, check_vector
 
-__all__ = ["matvec", "solve"]
+__all__ = ["LinearSolution", "matvec", "solve"]
 
 
 def _operator(A, theta: torch.Tensor | None):
@@ -96,11 +97,11 @@ def _solve_each(
 
 class _ImplicitSolve(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, b, theta, P, csr, solver):
+    def forward(ctx, b, theta, P, csr, solver, outcome):
         ctx.symmetric = P.is_symmetric if P is not None else None  # None: solver checks values
         x = _solve_each(solver, csr, b.detach().cpu().numpy(), ctx.symmetric, transpose=False)
         x = torch.from_numpy(x).to(b.device)
-        ctx.P, ctx.csr, ctx.solver = P, csr, solver
+        ctx.P, ctx.csr, ctx.solver, ctx.outcome = P, csr, solver, outcome
         ctx.version = solver.operator_version if csr[2].ndim == 1 else None
         if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
             ctx.save_for_backward(x)
@@ -111,13 +112,15 @@ class _ImplicitSolve(torch.autograd.Function):
     def backward(ctx, grad_x):
         need_b, need_theta = ctx.needs_input_grad[:2]
         if not (need_b or need_theta):
-            return None, None, None, None, None
+            return None, None, None, None, None, None
         # the operator is set again only if another solve replaced it since the forward;
         # a NaN or Inf cotangent raises NonFiniteError in the solver (never a zero λ)
         g = grad_x.detach().cpu().numpy()
         lam = _solve_each(
             ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True, version=ctx.version
         )
+        if ctx.outcome is not None:
+            ctx.outcome.adjoint = ctx.solver.last_adjoint
         grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
         grad_theta = None
         if need_theta:
@@ -126,7 +129,7 @@ class _ImplicitSolve(torch.autograd.Function):
             per_sample = ctx.csr[2].ndim == 2
             grad_theta = ctx.P.theta_gradient(lam, x, per_sample=per_sample)
             grad_theta = torch.from_numpy(grad_theta).to(grad_x.device)
-        return grad_b, grad_theta, None, None, None
+        return grad_b, grad_theta, None, None, None, None
 
 
 def solve(
@@ -137,7 +140,8 @@ def solve(
     theta: torch.Tensor | None = None,
     mode: str = "implicit",
     x0: torch.Tensor | None = None,
-) -> torch.Tensor:
+    return_solution: bool = False,
+) -> torch.Tensor | LinearSolution:
     """Differentiable capped solve ``x = A(θ)⁻¹ b`` with a PETSc KSP.
 
     Parameters
@@ -169,13 +173,20 @@ def solve(
         Differentiable in x0 too: ``∂L/∂x0 = g − Aᵀλ``, zero for an exact adjoint
         λ, and for a capped stationary iteration the exact derivative of its K steps.
 
+    return_solution : bool
+        Return a `LinearSolution` instead of the tensor: x as ``.value`` with this
+        call's outcome (``.iterations``, ``.reason``, ``.residual_norm``,
+        ``.forward``, and ``.adjoint`` once a backward ran through ``.value``), to
+        keep beside x; the solver's ``last_forward`` is overwritten by its next call.
+
     Returns
     -------
-    torch.Tensor
-        x, float64, on the device of `b`.  ``solver.last_forward`` (after the
-        backward also ``solver.last_adjoint``) holds every sample's iterations,
-        reason and residual norm (`prdp_petsc.core.results.CallInfo`);
-        ``solver.last`` the last sample's.
+    torch.Tensor or LinearSolution
+        x, float64, on the device of `b` (in a `LinearSolution` with
+        ``return_solution=True``).  ``solver.last_forward`` (after the backward also
+        ``solver.last_adjoint``) holds every sample's iterations, reason and residual
+        norm of the latest call (`prdp_petsc.core.results.CallInfo`); ``solver.last``
+        the last sample's.
 
     Raises
     ------
@@ -210,12 +221,22 @@ def solve(
         raise InputError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
     if not isinstance(solver, KSPSolver):
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
+    if not return_solution:
+        return _solve(A, b, solver, theta, mode, x0, None)
+    outcome = LinearSolution(value=None, forward=None)
+    outcome.value = _solve(A, b, solver, theta, mode, x0, outcome)
+    outcome.forward = solver.last_forward
+    return outcome
+
+
+def _solve(A, b, solver, theta, mode, x0, outcome):
+    """`solve` after its argument checks; `outcome` gets the adjoint's `CallInfo`."""
     if isinstance(A, DistributedParametricMatrix):
         if x0 is None:
-            return owned_solve(A, b, solver, theta, mode)
+            return owned_solve(A, b, solver, theta, mode, outcome)
         if x0.shape != b.shape:
             raise InputError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
-        return x0 + solve(A, b - matvec(A, x0, theta=theta), solver, theta=theta, mode=mode)
+        return x0 + _solve(A, b - matvec(A, x0, theta=theta), solver, theta, mode, None, outcome)
     P, csr = _operator(A, theta)
     check_vector(as_numpy(b, "b"), csr[3][0], "b")
     if P is not None:
@@ -228,12 +249,12 @@ def solve(
             residual = b - matvec(A, x0, theta=theta)
         else:
             residual = b - ConstMatVec.apply(x0, _frozen_matrix(csr))
-        return x0 + solve(A, residual, solver, theta=theta, mode=mode)
+        return x0 + _solve(A, residual, solver, theta, mode, None, outcome)
     if mode == "unrolled":
         from .unrolled import unrolled_solve
 
         return unrolled_solve(A, b, solver, theta=theta)
-    return _ImplicitSolve.apply(b, theta, P, csr, solver)
+    return _ImplicitSolve.apply(b, theta, P, csr, solver, outcome)
 
 
 def _frozen_matrix(csr: tuple) -> sp.csr_matrix:

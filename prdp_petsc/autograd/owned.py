@@ -53,10 +53,10 @@ def _any_rank(comm, flag: bool) -> bool:
 
 class _OwnedSolve(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, b, theta, P, csr, solver):
+    def forward(ctx, b, theta, P, csr, solver, outcome):
         solver.set_operator(csr)
         x = torch.from_numpy(solver.solve(b.detach().cpu().numpy())).to(b.device)
-        ctx.P, ctx.csr, ctx.solver = P, csr, solver
+        ctx.P, ctx.csr, ctx.solver, ctx.outcome = P, csr, solver, outcome
         ctx.version = solver.operator_version
         if ctx.needs_input_grad[1]:
             ctx.save_for_backward(x)
@@ -67,18 +67,20 @@ class _OwnedSolve(torch.autograd.Function):
     def backward(ctx, grad_x):
         need_b, need_theta = ctx.needs_input_grad[:2]
         if not (need_b or need_theta):
-            return None, None, None, None, None
+            return None, None, None, None, None, None
         solver = ctx.solver
         if solver.operator_version != ctx.version:  # another solve replaced the operator
             solver.set_operator(ctx.csr)
         lam = solver.solve_transpose(grad_x.detach().cpu().numpy())
+        if ctx.outcome is not None:
+            ctx.outcome.adjoint = solver.last_adjoint
         grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
         grad_theta = None
         if need_theta:
             (x,) = ctx.saved_tensors
             gt = ctx.P.theta_gradient(lam, x.detach().cpu().numpy())
             grad_theta = torch.from_numpy(gt).to(grad_x.device)
-        return grad_b, grad_theta, None, None, None
+        return grad_b, grad_theta, None, None, None, None
 
 
 def owned_solve(
@@ -87,12 +89,14 @@ def owned_solve(
     solver: KSPSolver,
     theta: torch.Tensor | None,
     mode: str,
+    outcome=None,
 ) -> torch.Tensor:
     """`prdp_petsc.solve` for a `DistributedParametricMatrix` (collective).
 
     `b` holds this rank's rows, ``(m,)`` or ``(B, m)`` (a batch sharing θ), `theta`
     this rank's parameters ``(p,)``; x holds this rank's rows of the solution.
-    Implicit mode only.
+    Implicit mode only.  `outcome`: the `LinearSolution` of a ``return_solution=True``
+    call, whose ``adjoint`` the backward fills (None: no such call).
     """
     if mode != "implicit":
         raise InputError("the owned layout runs implicit (adjoint) gradients only")
@@ -101,7 +105,7 @@ def owned_solve(
     _agree_shape(A, b, A.local_shape[0], "b")
     as_numpy(b, "b", finite=False)  # float64; NaN or Inf is refused by the solver on all ranks
     csr = A.owned_csr(as_numpy(theta, "theta", finite=False))  # validated on all ranks
-    return _OwnedSolve.apply(b, theta, A, csr, solver)
+    return _OwnedSolve.apply(b, theta, A, csr, solver, outcome)
 
 
 class _OwnedMatVec(torch.autograd.Function):
