@@ -13,7 +13,7 @@ The taxonomy tells a caller, and the training harness, what to do:
     `SingularOperatorError`
         The operator is singular and no null space that covers its kernel was
         declared (elasticity without Dirichlet conditions, a pure Neumann problem):
-        the iterate blew up along a null vector.  Declare ``nullspace=``.
+        the iterate blew up along a null vector.  Declare ``Structure(nullspace=...)``.
 `InputError`
     The library was given something it cannot use.  A ``ValueError``, so code that
     catches ``ValueError`` keeps working.  Subclasses name the kind:
@@ -80,7 +80,7 @@ class SingularOperatorError(SolverError):
     while the true residual ``‖b − A x‖`` was not reduced: Krylov iterates grew along
     the kernel (rigid-body modes of elasticity without Dirichlet conditions, the
     constants of a pure Neumann problem) instead of converging.  Declare the kernel,
-    e.g. ``KSPSolver(nullspace=rigid_body_modes(basis))`` or ``nullspace="constant"``,
+    e.g. ``Structure(nullspace=rigid_body_modes(basis))`` or ``nullspace="constant"``,
     or add boundary conditions.  `reason` is ``"SINGULAR"``; the message names PETSc's
     own reason.
     """

@@ -196,7 +196,8 @@ def test_bad_tolerances(kw):
         pp.KSPSolver(max_it=5, **kw)
     solver = fresh_solver()
     with pytest.raises(ValueError, match="must be finite and >= 0"):
-        solver.set_tolerances(**kw)
+        ((name, value),) = kw.items()
+        setattr(solver, name, value)
     with pytest.raises(ValueError, match="adjoint"):
         pp.KSPSolver(max_it=5, adjoint=pp.AdjointSettings(**kw))
 
@@ -283,7 +284,9 @@ def test_tolerances_in_adjoint_options_are_refused():
 
 
 def test_unrolled_mode_refuses_a_null_space():
-    solver = pp.KSPSolver({"ksp_type": "cg"}, max_it=3, nullspace="constant")
+    solver = pp.KSPSolver(
+        {"ksp_type": "cg"}, max_it=3, structure=pp.Structure(nullspace="constant")
+    )
     with pytest.raises(ValueError, match="null space"):
         pp.solve(fd_poisson(3), randn(9, seed=1), solver, mode="unrolled")
 
@@ -331,7 +334,7 @@ def test_messages_print_plain_numbers():
     [
         lambda: pp.KSPSolver(max_it=np.int32(0)),
         lambda: pp.KSPSolver(max_it=5, rtol=np.float64(-1.0)),
-        lambda: pp.KSPSolver(max_it=5, block_size=np.int64(0)),
+        lambda: pp.KSPSolver(max_it=5, structure=pp.Structure(block_size=np.int64(0))),
         lambda: pp.KSPSolver(max_it=5, pc_lag=np.int64(0)),
         lambda: pp.laplacian((np.int32(0), 4)),
     ],

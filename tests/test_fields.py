@@ -62,7 +62,9 @@ def test_schur_fieldsplit_solves_stokes_and_its_gradient(problem, adjoint):
     theta = torch.from_numpy(1.0 + np.random.default_rng(1).random(A.n_params))
     theta.requires_grad_(True)
     g = torch.from_numpy(g_np).requires_grad_(True)
-    with pp.KSPSolver(SCHUR, fields=fields, adjoint=settings, **CONVERGED) as solver:
+    with pp.KSPSolver(
+        SCHUR, structure=pp.Structure(fields=fields), adjoint=settings, **CONVERGED
+    ) as solver:
         loss = _loss(bc, solver, theta, g)
         loss.backward()
         assert _splits(solver.ksp) == ["fieldsplit_u_", "fieldsplit_p_"]
@@ -88,7 +90,7 @@ def test_fields_are_set_once_per_pc(problem):
     each time (a second PCFieldSplitSetIS would make four)."""
     _, A, bc, fields, _ = problem
     rng = np.random.default_rng(3)
-    with pp.KSPSolver(SCHUR, fields=fields, **CONVERGED) as solver:
+    with pp.KSPSolver(SCHUR, structure=pp.Structure(fields=fields), **CONVERGED) as solver:
         for theta in (np.ones(A.n_params), 2.0 + rng.random(A.n_params)):
             M = bc.A_II.matrix(theta)
             solver.set_operator(M)
@@ -119,7 +121,7 @@ def test_fields_are_set_once_per_pc(problem):
 )
 def test_bad_fields_are_refused_at_construction(fields, message):
     with pytest.raises(InputError, match=message):
-        pp.KSPSolver(max_it=5, fields=fields)
+        pp.KSPSolver(max_it=5, structure=pp.Structure(fields=fields))
 
 
 def test_fields_must_cover_the_operator(problem):
@@ -128,7 +130,7 @@ def test_fields_must_cover_the_operator(problem):
     short = {"u": fields["u"], "p": fields["p"][:-1]}
     outside = {"u": fields["u"], "p": np.append(fields["p"], M.shape[0])}
     for bad, message in ((short, "exactly once"), (outside, "outside")):
-        with pp.KSPSolver(SCHUR, fields=bad, max_it=5) as solver:
+        with pp.KSPSolver(SCHUR, structure=pp.Structure(fields=bad), max_it=5) as solver:
             with pytest.raises(InputError, match=message):
                 solver.set_operator(M)
 
@@ -138,7 +140,7 @@ def test_misspelt_split_options_are_named(problem):
     _, A, bc, fields, _ = problem
     M = bc.A_II.matrix(np.ones(A.n_params))
     options = {**SCHUR, "fieldsplit_pressure_pc_type": "none"}
-    with pp.KSPSolver(options, fields=fields, **CONVERGED) as solver:
+    with pp.KSPSolver(options, structure=pp.Structure(fields=fields), **CONVERGED) as solver:
         solver.set_operator(M)
         with pytest.warns(UnusedOptionWarning, match="-fieldsplit_pressure_pc_type"):
             solver.solve(np.ones(M.shape[0]))
@@ -152,7 +154,7 @@ def test_a_misspelt_option_is_named_in_the_error_it_causes(problem):
     M = bc.A_II.matrix(np.ones(A.n_params))
     options = {"ksp_type": "gmres", "pc_type": "fieldsplit", "pc_fieldsplit_typ": "schur"}
     b = np.random.default_rng(0).standard_normal(M.shape[0])
-    with pp.KSPSolver(options, fields=fields, **CONVERGED) as solver:
+    with pp.KSPSolver(options, structure=pp.Structure(fields=fields), **CONVERGED) as solver:
         solver.set_operator(M)
         with warnings.catch_warnings():
             warnings.simplefilter("error", UnusedOptionWarning)  # named in the error instead
@@ -197,7 +199,11 @@ def test_a_pressure_null_space_gives_the_minimum_norm_solution():
     b = np.random.default_rng(0).standard_normal(M.shape[0])  # not compatible
     options = {**SCHUR, "fieldsplit_p_ksp_type": "preonly"}
     del options["fieldsplit_p_ksp_rtol"]
-    with pp.KSPSolver(options, fields=fields, nullspace=pressure.astype(float), **CONVERGED) as s:
+    with pp.KSPSolver(
+        options,
+        structure=pp.Structure(fields=fields, nullspace=pressure.astype(float)),
+        **CONVERGED,
+    ) as s:
         s.set_operator(M)
         x = s.solve(b)
     expected = np.linalg.pinv(M.toarray()) @ b

@@ -318,7 +318,7 @@ def run_cell(ksp: str, pc: str, operator: str, layout: str, mode: str):
         prefix=f"grid_{ksp}_{pc}_{operator}_{layout}_{mode}_",
         max_it=MAX_IT,
         rtol=RTOL,
-        nullspace="constant" if op.singular else None,
+        structure=pp.Structure(nullspace="constant" if op.singular else None),
     ) as solver:
         theta_t = None
         try:

@@ -58,7 +58,7 @@ class VectorOperator:
 
     name: str
     A: pp.ParametricMatrix
-    structure: dict
+    structure: pp.Structure | None
     singular: bool
 
     @property
@@ -74,15 +74,15 @@ def operators() -> dict[str, VectorOperator]:
     basis, A = elasticity(n=3)
     bc = clamped(basis, A)
     modes = pp.rigid_body_modes(basis)
-    near = {"near_nullspace": pp.rigid_body_modes(basis, bc.interior), "block_size": 2}
-    declared = {"nullspace": modes, "near_nullspace": modes, "block_size": 2}
+    near = pp.Structure(near_nullspace=pp.rigid_body_modes(basis, bc.interior), block_size=2)
+    declared = pp.Structure(nullspace=modes, near_nullspace=modes, block_size=2)
     _, S, sbc, fields, _ = stokes(n=2)
     return {
-        "clamped": VectorOperator("clamped", bc.A_II, {}, False),
+        "clamped": VectorOperator("clamped", bc.A_II, None, False),
         "clamped_modes": VectorOperator("clamped_modes", bc.A_II, near, False),
         "free_modes": VectorOperator("free_modes", A, declared, True),
-        "free": VectorOperator("free", A, {}, True),
-        "stokes": VectorOperator("stokes", sbc.A_II, {"fields": fields}, False),
+        "free": VectorOperator("free", A, None, True),
+        "stokes": VectorOperator("stokes", sbc.A_II, pp.Structure(fields=fields), False),
     }
 
 
@@ -151,7 +151,7 @@ def run_cell(ksp: str, pc: str, operator: str, layout: str):
     theta_t = torch.tensor(theta, requires_grad=True)
     prefix = f"vgrid_{ksp}_{pc}_{operator}_{layout}_"
     with pp.KSPSolver(
-        options(ksp, pc), prefix=prefix, max_it=MAX_IT, rtol=RTOL, **op.structure
+        options(ksp, pc), prefix=prefix, max_it=MAX_IT, rtol=RTOL, structure=op.structure
     ) as solver:
         try:
             x = pp.solve(op.A, b_t, solver, theta=theta_t)

@@ -65,7 +65,10 @@ def test_declared_rigid_body_modes_give_the_least_squares_solution(free_body, op
     basis, _, M, b = free_body
     modes = pp.rigid_body_modes(basis)
     with pp.KSPSolver(
-        options, max_it=2000, rtol=1e-12, nullspace=modes, near_nullspace=modes, block_size=2
+        options,
+        max_it=2000,
+        rtol=1e-12,
+        structure=pp.Structure(nullspace=modes, near_nullspace=modes, block_size=2),
     ) as solver:
         solver.set_operator(M)
         x = solver.solve(b)
@@ -79,7 +82,9 @@ def test_a_partial_null_space_is_named(free_body):
     basis, _, M, b = free_body
     translations = pp.rigid_body_modes(basis)[:2]
     options = {"ksp_type": "gmres", "pc_type": "gamg"}
-    with pp.KSPSolver(options, max_it=1000, rtol=1e-8, nullspace=translations) as solver:
+    with pp.KSPSolver(
+        options, max_it=1000, rtol=1e-8, structure=pp.Structure(nullspace=translations)
+    ) as solver:
         solver.set_operator(M)
         with pytest.raises(SingularOperatorError, match="does not cover"):
             solver.solve(b)

@@ -189,7 +189,7 @@ def test_stats_last_and_reset():
     solver.reset_stats()
     assert solver.stats == pp.SolverStats()
     solver.max_it = 500
-    solver.set_tolerances(rtol=1e-10)
+    solver.rtol = 1e-10
     pp.solve(A, b[0], solver, theta=theta.detach())
     assert solver.last.converged and solver.last.reason == "CONVERGED_RTOL"
     assert solver.stats.forward_iterations == solver.last.iterations < 500
@@ -439,7 +439,7 @@ def test_prdp_can_drive_rtol_instead_of_max_it():
     solver.set_operator(A)
     its = []
     for metric in (1.0, 1.0, 2.0, 4.0):  # plateau, then worse: refine each time
-        solver.set_tolerances(rtol=controller.to_rtol(rtol_init=0.1, factor=0.1))
+        solver.rtol = controller.to_rtol()
         solver.solve(b)
         assert solver.last.converged
         its.append(solver.last.iterations)
@@ -456,7 +456,7 @@ def test_command_line_forward_options_reach_the_inheriting_adjoint():
         solver = pp.KSPSolver(
             {"ksp_type": "richardson", "pc_type": "jacobi"}, prefix="inh_", max_it=3
         )
-        solver.setup()
+        solver.rebuild_on()
         assert solver.ksp.getType() == solver.adjoint_ksp.getType() == "cg"
         assert solver.ksp.getPC().getType() == "jacobi"
         assert solver.adjoint_ksp.getPC().getType() == "none"  # its own option wins
@@ -491,7 +491,7 @@ def test_clone_copies_every_setting():
         max_it=7,
         rtol=1e-3,
         divtol=1e3,
-        nullspace="constant",
+        structure=pp.Structure(nullspace="constant"),
         adjoint=pp.AdjointSettings(max_it=2),
     )
     copy = solver.clone(max_it=50)
@@ -505,3 +505,25 @@ def test_clone_copies_every_setting():
     assert copy.options == solver.options and copy.adjoint_max_it == 2
     copy.adjoint_max_it = 9
     assert solver.adjoint_max_it == 2  # settings objects are not shared
+
+
+def test_structure_is_declared_once_and_the_old_keywords_still_work():
+    """`structure=pp.Structure(...)` is the one spelling; ``nullspace=`` and the other
+    five keywords still work for one release, with a FutureWarning naming the new one."""
+    with pp.KSPSolver(max_it=5, structure=pp.Structure(nullspace="constant")) as s:
+        assert s.nullspace == s.transpose_nullspace == "constant" and s.block_size == 1
+        copy = s.clone(max_it=3)
+        assert copy.structure is s.structure
+        copy.destroy()
+    with pytest.warns(FutureWarning, match=r"structure=pp.Structure\(nullspace=\.\.\."):
+        old = pp.KSPSolver(max_it=5, nullspace="constant", symmetric=True)
+    assert old.structure.nullspace == "constant" and old.declared_symmetric is True
+    with pytest.warns(FutureWarning):
+        assert old.clone(block_size=2).structure.block_size == 2
+    old.destroy()
+    with pytest.raises(pp.InputError, match="declare the structure once"):
+        pp.KSPSolver(max_it=5, structure=pp.Structure(), nullspace="constant")
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        pp.KSPSolver(max_it=5, nulspace="constant")
+    with pytest.raises(TypeError, match="pp.Structure"):
+        pp.KSPSolver(max_it=5, structure={"nullspace": "constant"})

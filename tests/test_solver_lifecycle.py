@@ -65,7 +65,7 @@ def test_parametric_symmetry_is_tested_entry_against_mirror():
 
 def test_declared_structure_wins_over_the_test():
     A = penalized_advection_diffusion(1e-20)
-    solver = pp.KSPSolver(CG_JACOBI, max_it=3, symmetric=False)
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3, structure=pp.Structure(symmetric=False))
     solver.set_operator(fd_poisson(4))
     assert not solver.symmetric  # declared: no test, KSPSolveTranspose for the adjoint
     solver = pp.KSPSolver(CG_JACOBI, max_it=3)
@@ -265,5 +265,5 @@ def test_setup_on_another_communicator_keeps_the_operator():
     version = solver.operator_version
     solver._destroy_ksps()  # what a rebuild on a larger communicator does first
     solver._build(PETSc.COMM_SELF)
-    solver.setup(PETSc.COMM_SELF)  # same size: nothing to do
+    solver.rebuild_on(PETSc.COMM_SELF)  # same size: nothing to do
     assert solver.operator_version == version

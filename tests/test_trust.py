@@ -71,7 +71,7 @@ def test_symmetric_operators_and_declarations_are_not_refused():
         solver.set_operator(spd())
         np.testing.assert_allclose(solver.solve(RHS), spla.spsolve(spd().tocsc(), RHS), rtol=1e-8)
     # the caller's word wins over the test (e.g. an operator symmetric in exact arithmetic)
-    with pp.KSPSolver("-ksp_type cg", max_it=5, symmetric=True) as solver:
+    with pp.KSPSolver("-ksp_type cg", max_it=5, structure=pp.Structure(symmetric=True)) as solver:
         solver.set_operator(advection_diffusion())
         solver.solve(RHS)
         assert solver.last.iterations == 5

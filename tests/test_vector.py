@@ -26,8 +26,10 @@ def cantilever():
     return basis, A, bc, M, body_load(basis)[bc.interior]
 
 
-def _structure(basis, bc):
-    return {"near_nullspace": pp.rigid_body_modes(basis, bc.interior), "block_size": 2}
+def _structure(basis, bc, **more):
+    return pp.Structure(
+        near_nullspace=pp.rigid_body_modes(basis, bc.interior), block_size=2, **more
+    )
 
 
 def test_gamg_needs_the_modes_on_a_cantilever(cantilever):
@@ -36,8 +38,8 @@ def test_gamg_needs_the_modes_on_a_cantilever(cantilever):
     basis, _, bc, M, f = cantilever
     exact = np.linalg.solve(M.toarray(), f)
     counts, errors = {}, {}
-    for name, structure in (("scalar", {}), ("modes", _structure(basis, bc))):
-        with pp.KSPSolver(GAMG, max_it=1000, rtol=1e-8, **structure) as s:
+    for name, structure in (("scalar", None), ("modes", _structure(basis, bc))):
+        with pp.KSPSolver(GAMG, max_it=1000, rtol=1e-8, structure=structure) as s:
             s.set_operator(M)
             s.solve(f)
             counts[name] = s.last.iterations
@@ -50,7 +52,7 @@ def test_gamg_needs_the_modes_on_a_cantilever(cantilever):
 def test_structure_reaches_every_mat(cantilever):
     """New θ (same Mat), a batch of operators, another size, a clone and the adjoint."""
     basis, A, bc, M, f = cantilever
-    with pp.KSPSolver(GAMG, max_it=1000, rtol=1e-8, **_structure(basis, bc)) as s:
+    with pp.KSPSolver(GAMG, max_it=1000, rtol=1e-8, structure=_structure(basis, bc)) as s:
         theta = torch.ones((2, A.n_params), dtype=torch.float64, requires_grad=True)
         theta.data[1] *= 3.0
         b = torch.from_numpy(np.stack([f, f]))
@@ -67,7 +69,7 @@ def test_structure_reaches_every_mat(cantilever):
         copy.destroy()
     with pytest.raises(InputError, match="entries"):  # another size, other modes needed
         small = elasticity(n=4, length=4.0)[1]
-        with pp.KSPSolver(GAMG, max_it=50, **_structure(basis, bc)) as s:
+        with pp.KSPSolver(GAMG, max_it=50, structure=_structure(basis, bc)) as s:
             s.set_operator(small.matrix(np.ones(small.n_params)))
 
 
@@ -81,9 +83,9 @@ def test_a_new_size_gets_the_new_modes():
         bc = clamped(basis, A)
         structure = _structure(basis, bc)
         solver = (
-            pp.KSPSolver(GAMG, max_it=500, rtol=1e-8, **structure)
+            pp.KSPSolver(GAMG, max_it=500, rtol=1e-8, structure=structure)
             if solver is None
-            else solver.clone(**structure)
+            else solver.clone(structure=structure)
         )
         solver.set_operator(bc.A_II.matrix(np.ones(A.n_params)))
         solver.solve(body_load(basis)[bc.interior])
@@ -94,17 +96,20 @@ def test_a_new_size_gets_the_new_modes():
 
 def test_block_size_is_validated():
     with pytest.raises(InputError, match="block_size"):
-        pp.KSPSolver(max_it=5, block_size=0)
+        pp.KSPSolver(max_it=5, structure=pp.Structure(block_size=0))
     with pytest.raises(InputError, match="block_size"):
-        pp.KSPSolver(max_it=5, block_size=2.0)
-    with pp.KSPSolver(max_it=5, block_size=2) as s, pytest.raises(InputError, match="multiple"):
+        pp.KSPSolver(max_it=5, structure=pp.Structure(block_size=2.0))
+    with (
+        pp.KSPSolver(max_it=5, structure=pp.Structure(block_size=2)) as s,
+        pytest.raises(InputError, match="multiple"),
+    ):
         s.set_operator(pp.laplacian((3,)))
 
 
 def test_describe_records_the_structure(cantilever):
     basis, _, bc, M, _ = cantilever
     fields = {"a": np.arange(0, M.shape[0], 2), "b": np.arange(1, M.shape[0], 2)}
-    with pp.KSPSolver(GAMG, max_it=5, fields=fields, **_structure(basis, bc)) as s:
+    with pp.KSPSolver(GAMG, max_it=5, structure=_structure(basis, bc, fields=fields)) as s:
         record = s.describe()
     assert (record["block_size"], record["near_nullspace"]) == (2, 3)
     assert record["fields"] == {"a": M.shape[0] // 2, "b": M.shape[0] // 2}
@@ -123,7 +128,12 @@ def test_a_petsc_nullspace_is_read_once():
     b = body_load(basis)
     out = []
     for spec in (rigid, pp.rigid_body_modes(basis)):
-        with pp.KSPSolver(GAMG, max_it=500, rtol=1e-12, nullspace=spec, near_nullspace=spec) as s:
+        with pp.KSPSolver(
+            GAMG,
+            max_it=500,
+            rtol=1e-12,
+            structure=pp.Structure(nullspace=spec, near_nullspace=spec),
+        ) as s:
             s.set_operator(K)
             out.append(s.solve(b))
             with s.clone() as copy:

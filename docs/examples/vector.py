@@ -49,13 +49,13 @@ def elasticity(dim: int = 3, n: int = 8) -> dict:
     g = torch.zeros(len(bc.boundary), dtype=torch.float64)
     theta = torch.ones(A.n_params, dtype=torch.float64)
 
-    structure = {  # declared once: every Mat the solver builds gets it
-        "near_nullspace": pp.rigid_body_modes(basis, bc.interior),  # the kept dofs
-        "block_size": dim,
-    }
+    structure = pp.Structure(  # declared once: every Mat the solver builds gets it
+        near_nullspace=pp.rigid_body_modes(basis, bc.interior),  # the kept dofs
+        block_size=dim,
+    )
     iterations = {}
-    for name, declared in (("scalar", {}), ("modes", structure)):
-        with pp.KSPSolver(GAMG, max_it=500, rtol=1e-8, **declared) as solver:
+    for name, declared in (("scalar", None), ("modes", structure)):
+        with pp.KSPSolver(GAMG, max_it=500, rtol=1e-8, structure=declared) as solver:
             bc.solve(f, g, solver, theta=theta)
             iterations[name] = solver.last.iterations
     return iterations
@@ -78,7 +78,9 @@ def free_body() -> dict:
     except pp.SingularOperatorError as err:
         undeclared = err.reason  # "SINGULAR": its message says to declare nullspace=
     modes = pp.rigid_body_modes(basis)
-    with pp.KSPSolver(GAMG, max_it=500, rtol=1e-10, nullspace=modes, block_size=2) as solver:
+    with pp.KSPSolver(
+        GAMG, max_it=500, rtol=1e-10, structure=pp.Structure(nullspace=modes, block_size=2)
+    ) as solver:
         solver.set_operator(K)
         x = solver.solve(b)  # the minimum-norm least-squares solution A⁺b
     return {"undeclared": undeclared, "x": x, "K": K, "b": b}
@@ -127,7 +129,9 @@ def stokes(n: int = 8) -> dict:
     f = torch.zeros(basis.N, dtype=torch.float64)
     theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
 
-    with pp.KSPSolver(SCHUR, max_it=200, rtol=1e-10, fields=fields) as solver:
+    with pp.KSPSolver(
+        SCHUR, max_it=200, rtol=1e-10, structure=pp.Structure(fields=fields)
+    ) as solver:
         state = bc.solve(f, g, solver, theta=theta)
         outflow = np.isclose(basis.doflocs[0], 2.0) & np.isin(np.arange(basis.N), u_x)
         flux = state[torch.from_numpy(np.flatnonzero(outflow))].sum()
@@ -165,10 +169,10 @@ def simp_contrast(n: int = 30, e_min: float = 1e-9) -> dict:
     theta = e_min + (1.0 - e_min) * density**3  # SIMP
     M = bc.A_II.matrix(theta)
     f = np.ones(M.shape[0])
-    structure = {"near_nullspace": pp.rigid_body_modes(basis, bc.interior), "block_size": 2}
+    structure = pp.Structure(near_nullspace=pp.rigid_body_modes(basis, bc.interior), block_size=2)
     outcome = {}
     for name, options in (("default", GAMG), ("richardson_sor", ROBUST_GAMG)):
-        with pp.KSPSolver(options, max_it=500, rtol=1e-8, **structure) as solver:
+        with pp.KSPSolver(options, max_it=500, rtol=1e-8, structure=structure) as solver:
             solver.set_operator(M)
             try:
                 solver.solve(f)

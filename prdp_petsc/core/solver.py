@@ -13,21 +13,21 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from petsc4py import PETSc
 
-from ..errors import InputError, NonFiniteError, plain
+from ..errors import InputError, NonFiniteError
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
-from .fields import attach_fields, normalize_fields
+from .fields import attach_fields
 from .lag import PCLag
 from .nullspace import (
     attach_near_nullspace,
     attach_nullspaces,
     check_nullspaces,
-    normalize_nullspace,
 )
 from .operator import OperatorMat, OwnedCSR
 from .options import PushedOptions
@@ -35,7 +35,13 @@ from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings
 from .step import SolveStep
-from .structure import check_structure
+from .structure import (
+    STRUCTURE_FIELDS,
+    Structure,
+    check_structure,
+    merged_structure,
+    warn_structure_keywords,
+)
 
 if TYPE_CHECKING:  # mpi4py is optional (the `mpi` extra)
     import scipy.sparse as sp
@@ -71,43 +77,11 @@ class KSPSolver:
         Settings of the transpose solve; by default the forward ones.
     divtol : float, optional
         PETSc divergence tolerance (default: PETSc's own, ``PETSC_DEFAULT``).
-    nullspace : "constant" or array_like (k, n), optional
-        Null space of a singular operator (pure Neumann, periodic), attached to the
-        matrix with ``MatSetNullSpace``.  Krylov iterates stay orthogonal to it and
-        the right-hand side is projected onto the range of A, so the solve returns
-        the minimum-norm least-squares solution ``A⁺ b``, also when b is not
-        compatible (documented projection, no error).  It must not depend on θ.
-    transpose_nullspace : "constant" or array_like (k, n), optional
-        Null space of Aᵀ (``MatSetTransposeNullSpace``); defaults to `nullspace`,
-        right for symmetric operators.  Both are checked against every new operator
-        (``‖A v‖ ≤ 1e-8 ‖A‖ ‖v‖``), since a wrong one would silently solve another
-        problem.
-    block_size : int
-        Unknowns per node of a vector field (2 or 3 for elasticity), set on every
-        Mat (``MatSetBlockSize``): GAMG aggregates whole nodes, point-block
-        preconditioners (``pbjacobi``) invert d × d blocks.  Only right when the
-        operator's dofs are numbered node by node (scikit-fem's ``ElementVector``
-        numbering is; see `prdp_petsc.fem.vector.block_size`) and every node keeps
-        all of its components.  Default 1.
-    near_nullspace : "constant", array_like (k, n) or PETSc.NullSpace, optional
-        Vectors A maps to almost nothing without boundary conditions, attached with
-        ``MatSetNearNullSpace``: GAMG builds its coarse spaces from them.  For
-        elasticity the rigid-body modes (`prdp_petsc.fem.vector.rigid_body_modes`,
-        on the dofs the operator keeps), with ``block_size`` the dimension.  Not
-        checked against A (a near-null vector is no null vector).
-    fields : mapping of str to array of int, optional
-        The fields of a block operator, e.g. ``{"u": u_dofs, "p": p_dofs}`` for a
-        saddle point: row indices of the operator (after any Dirichlet
-        elimination), together covering every row once.  Given to the forward PC
-        and, if it has its own, to the adjoint PC (``PCFieldSplitSetIS``, once per
-        PC) for ``pc_type fieldsplit``; other PCs ignore them.  The name is the
-        split's: its solver reads ``-{prefix}fieldsplit_{name}_ksp_type`` and so
-        on, ``fieldsplit_p_pc_type`` in `options`.
-    symmetric : bool, optional
-        Declared structure of every operator this solver gets: ``True`` (A = Aᵀ),
-        ``False``, or ``None`` (default) to take the operator's own declaration
-        (`ParametricMatrix.symmetric`, the ``symmetric=`` of `set_operator`) or
-        else test every entry against its mirror whenever the values change.
+    structure : Structure, optional
+        What is known about every operator this solver gets — symmetry, null
+        spaces, the near-null space, the block size, the fields of a block operator
+        — declared once (`prdp_petsc.core.structure.Structure`); set on every Mat
+        and PC the solver builds.  Default: nothing declared (``Structure()``).
     check_structure : bool
         Refuse a symmetric-only KSP or PC (CG, MINRES, CR, ICC, Cholesky, ...; see
         `prdp_petsc.core.structure`) on an operator known to be non-symmetric, with
@@ -207,36 +181,26 @@ class KSPSolver:
         atol: float = 0.0,
         adjoint: AdjointSettings | dict | None = None,
         divtol: float | None = None,
-        nullspace: str | np.ndarray | None = None,
-        transpose_nullspace: str | np.ndarray | None = None,
-        block_size: int = 1,
-        near_nullspace: str | np.ndarray | PETSc.NullSpace | None = None,
-        fields: dict | None = None,
-        symmetric: bool | None = None,
+        structure: Structure | None = None,
         check_structure: bool = True,
         pc_lag: int = 1,
         pc_lag_tol: float = 1.2,
         comm: PETSc.Comm | MPI.Comm | None = None,
+        **declared: Any,
     ) -> None:
         self.comm = as_petsc_comm(comm)
         self._lag = PCLag(pc_lag, pc_lag_tol)
         #: options, prefixes and tolerances (`prdp_petsc.core.configuration.Configuration`)
         self.config = Configuration(options, prefix, max_it, rtol, atol, adjoint, divtol)
-        self.declared_symmetric = symmetric
+        #: the declared structure of every operator (`prdp_petsc.core.structure.Structure`)
+        self.structure = merged_structure(structure, declared)
         self.check_structure = bool(check_structure)
-        self.nullspace = normalize_nullspace(nullspace)
-        self.transpose_nullspace = (
-            self.nullspace
-            if transpose_nullspace is None
-            else normalize_nullspace(transpose_nullspace, "transpose_nullspace")
-        )
-        if isinstance(block_size, bool) or not isinstance(block_size, int | np.integer):
-            raise InputError(f"block_size must be an integer >= 1, got {plain(block_size)!r}")
-        if block_size < 1:
-            raise InputError(f"block_size must be an integer >= 1, got {int(block_size)}")
-        self.block_size = int(block_size)
-        self.near_nullspace = normalize_nullspace(near_nullspace, "near_nullspace")
-        self.fields = normalize_fields(fields)
+        self.declared_symmetric = self.structure.symmetric
+        self.nullspace = self.structure.nullspace
+        self.transpose_nullspace = self.structure.transpose_nullspace
+        self.block_size = self.structure.block_size
+        self.near_nullspace = self.structure.near_nullspace
+        self.fields = self.structure.fields
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
         self.last_forward: CallInfo | None = None
@@ -327,11 +291,12 @@ class KSPSolver:
         self.config.apply(ksp, adj)
         logger.debug("KSPs %r, %r built", self.prefix, self.adjoint_prefix)
 
-    def setup(self, comm: PETSc.Comm | None = None) -> None:
+    def rebuild_on(self, comm: PETSc.Comm | None = None) -> None:
         """Rebuild the KSPs on `comm` if its size differs from theirs (else nothing to do).
 
         Called when an operator on another communicator arrives; `comm` (the
-        attribute) stays the one Mats made from scipy operators live on.
+        attribute) stays the one Mats made from scipy operators live on.  (Not
+        PETSc's ``KSPSetUp``, which every solve runs as needed.)
         """
         self._alive()
         if comm is not None and comm.getSize() != self._ksp.getComm().getSize():
@@ -341,6 +306,15 @@ class KSPSolver:
                 self._ksp.setOperators(self._op.mat)
                 self._adj.setOperators(self._op.mat)
                 self._op.version += 1
+
+    def setup(self, comm: PETSc.Comm | None = None) -> None:
+        """Deprecated name of `rebuild_on` (it never meant PETSc's ``KSPSetUp``)."""
+        warnings.warn(
+            "KSPSolver.setup(comm) is deprecated: it is KSPSolver.rebuild_on(comm)",
+            FutureWarning,
+            stacklevel=2,
+        )
+        self.rebuild_on(comm)
 
     def destroy(self) -> None:
         """Free the KSPs, the Mat made here and the work vectors; the solver is unusable."""
@@ -421,7 +395,12 @@ class KSPSolver:
         self._apply_tolerances()
 
     def set_tolerances(self, *, rtol: float | None = None, atol: float | None = None) -> None:
-        """Change the forward stopping tolerances (e.g. for an rtol schedule); None keeps."""
+        """Deprecated: set the properties, ``solver.rtol = ...`` / ``solver.atol = ...``."""
+        warnings.warn(
+            "KSPSolver.set_tolerances(...) is deprecated: set solver.rtol / solver.atol",
+            FutureWarning,
+            stacklevel=2,
+        )
         given = {k: v for k, v in (("rtol", rtol), ("atol", atol)) if v is not None}
         self.config.set_tolerances(**given)
         self._apply_tolerances()
@@ -453,14 +432,14 @@ class KSPSolver:
         structure check, the PC lag and the communicator are copied;
         keyword arguments (any of `KSPSolver`'s) replace them.
         """
+        declared = {k: changes.pop(k) for k in STRUCTURE_FIELDS if k in changes}
+        structure = changes.pop("structure", self.structure)
+        if declared:  # the old spelling: what it names replaces the copied declaration
+            structure = merged_structure(replace(structure, **declared), {})
+            warn_structure_keywords(declared)
         kwargs = {
             **self.config.arguments(),
-            "nullspace": self.nullspace,
-            "transpose_nullspace": self.transpose_nullspace,
-            "block_size": self.block_size,
-            "near_nullspace": self.near_nullspace,
-            "fields": self.fields,
-            "symmetric": self.declared_symmetric,
+            "structure": structure,
             "check_structure": self.check_structure,
             "pc_lag": self.pc_lag,
             "pc_lag_tol": self.pc_lag_tol,
@@ -527,7 +506,7 @@ class KSPSolver:
         """Put a new Mat (new pattern, size or communicator) under both KSPs, with the
         declared structure: null spaces, near-null space, fields."""
         if mat.getComm().getSize() != self._ksp.getComm().getSize():
-            self.setup(mat.getComm())
+            self.rebuild_on(mat.getComm())
         if self.nullspace is not None:
             attach_nullspaces(mat, self.nullspace, self.transpose_nullspace)
         if self.near_nullspace is not None:

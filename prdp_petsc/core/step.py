@@ -180,7 +180,8 @@ class SolveStep:
                 f"{info.iterations} iterations, but its iterate does not solve the system "
                 f"({residual.describe()}): PETSc tested no residual, or the KSP's own "
                 "(often preconditioned) norm, which the true one contradicts. Check the "
-                "preconditioner and whether the operator is singular (declare nullspace=); "
+                "preconditioner and whether the operator is singular (declare "
+                "Structure(nullspace=...)); "
                 "-ksp_norm_type unpreconditioned tests the true residual",
                 reason="FALSE_CONVERGENCE",
             )
@@ -188,12 +189,13 @@ class SolveStep:
     def _singular(self, info: SolveInfo, residual) -> SingularOperatorError:
         declared = self.mat.getNullSpace()
         has = declared is not None and bool(declared)
-        what = "a null space the declared nullspace= does not cover" if has else "a null space"
+        what = "a null space the declared one does not cover" if has else "a null space"
         return SingularOperatorError(
             f"{self.kind} solve ({self._types()}): the operator is singular, with {what}: "
             f"after {info.iterations} iterations ({info.reason}) x is a null vector of A, "
             f"{residual.describe()}. Declare the whole null space, e.g. "
-            "KSPSolver(nullspace=rigid_body_modes(basis)) for elasticity without Dirichlet "
+            "KSPSolver(structure=pp.Structure(nullspace=rigid_body_modes(basis))) for elasticity "
+            "without Dirichlet "
             "conditions or nullspace='constant' for a pure Neumann problem, or add boundary "
             "conditions",
         )

@@ -1,4 +1,10 @@
-"""Methods that assume a symmetric operator, checked against the operator's structure.
+"""The structure of an operator: its declaration (`Structure`), and the check of
+methods that assume a symmetric operator against it.
+
+`Structure` gathers what is known about every operator a `KSPSolver` gets — symmetry,
+null spaces, the near-null space, the block size and the fields of a block operator —
+in one object, given once (``KSPSolver(structure=pp.Structure(...))``).
+
 
 CG and its pipelined variants, MINRES, CR, SYMMLQ and the trust-region CGs
 (``nash``, ``stcg``, ``gltr``, ``qcg``) build their iterates from a short
@@ -20,11 +26,135 @@ and are not.  Experts turn the check off with ``KSPSolver(check_structure=False)
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
 from petsc4py import PETSc
 
-from ..errors import StructureError
+from ..errors import InputError, StructureError, plain
+from .fields import normalize_fields
+from .nullspace import normalize_nullspace
 
-__all__ = ["SYMMETRIC_ONLY_KSP", "SYMMETRIC_ONLY_PC", "check_structure", "symmetric_only"]
+__all__ = [
+    "STRUCTURE_FIELDS",
+    "SYMMETRIC_ONLY_KSP",
+    "SYMMETRIC_ONLY_PC",
+    "Structure",
+    "check_structure",
+    "merged_structure",
+    "symmetric_only",
+    "warn_structure_keywords",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class Structure:
+    """What is known about every operator a solver gets, declared once.
+
+    Parameters
+    ----------
+    symmetric : bool, optional
+        ``True`` (A = Aᵀ), ``False``, or ``None`` (default) to take the operator's own
+        declaration (`ParametricMatrix.symmetric`, the ``symmetric=`` of
+        `KSPSolver.set_operator`) or else test every entry against its mirror whenever
+        the values change.
+    nullspace : "constant" or array_like (k, n), optional
+        Null space of a singular operator (pure Neumann, periodic), attached to every
+        Mat with ``MatSetNullSpace``: Krylov iterates stay orthogonal to it and the
+        right-hand side is projected onto the range of A, so a solve returns the
+        minimum-norm least-squares solution ``A⁺ b``.  It must not depend on θ, and
+        it is checked against every new operator (``‖A v‖ ≤ 1e-8 ‖A‖ ‖v‖``).
+    transpose_nullspace : "constant" or array_like (k, n), optional
+        Null space of Aᵀ (``MatSetTransposeNullSpace``); defaults to `nullspace`,
+        right for symmetric operators.
+    near_nullspace : "constant", array_like (k, n) or PETSc.NullSpace, optional
+        Vectors A maps to almost nothing without boundary conditions
+        (``MatSetNearNullSpace``): GAMG builds its coarse spaces from them.  For
+        elasticity the rigid-body modes (`prdp_petsc.fem.vector.rigid_body_modes`, on
+        the dofs the operator keeps), with `block_size` the dimension.  Not checked
+        against A (a near-null vector is no null vector).
+    block_size : int
+        Unknowns per node of a vector field (``MatSetBlockSize``): GAMG aggregates
+        whole nodes, point-block preconditioners invert d × d blocks.  Only right
+        when the dofs are numbered node by node and every node keeps all of its
+        components (`prdp_petsc.fem.vector.block_size` computes it).  Default 1.
+    fields : mapping of str to array of int, optional
+        The fields of a block operator, e.g. ``{"u": u_dofs, "p": p_dofs}``: row
+        indices (after any Dirichlet elimination), together covering every row once,
+        given to the PCs with ``PCFieldSplitSetIS`` for ``pc_type fieldsplit`` (other
+        PCs ignore them).  A split's solver reads ``-{prefix}fieldsplit_{name}_...``.
+    """
+
+    symmetric: bool | None = None
+    nullspace: Any = None
+    transpose_nullspace: Any = None
+    near_nullspace: Any = None
+    block_size: int = 1
+    fields: Any = None
+
+    def __post_init__(self):
+        if self.symmetric not in (None, True, False):
+            raise InputError(f"symmetric must be True, False or None, got {self.symmetric!r}")
+        size = self.block_size
+        if isinstance(size, bool) or not isinstance(size, int | np.integer) or size < 1:
+            raise InputError(f"block_size must be an integer >= 1, got {plain(size)!r}")
+        nullspace = normalize_nullspace(self.nullspace)
+        transpose = self.transpose_nullspace
+        set_ = object.__setattr__
+        set_(self, "nullspace", nullspace)
+        set_(
+            self,
+            "transpose_nullspace",
+            nullspace
+            if transpose is None
+            else normalize_nullspace(transpose, "transpose_nullspace"),
+        )
+        set_(self, "near_nullspace", normalize_nullspace(self.near_nullspace, "near_nullspace"))
+        set_(self, "block_size", int(size))
+        set_(self, "fields", normalize_fields(self.fields))
+
+
+#: the declarations of a `Structure`, also accepted one by one (the old spelling) by
+#: `KSPSolver` and `KSPSolver.clone`
+STRUCTURE_FIELDS = (
+    "symmetric",
+    "nullspace",
+    "transpose_nullspace",
+    "near_nullspace",
+    "block_size",
+    "fields",
+)
+
+
+def warn_structure_keywords(declared: dict) -> None:
+    """The deprecation warning of ``KSPSolver(nullspace=..., ...)``."""
+    names = ", ".join(f"{k}=" for k in declared)
+    warnings.warn(
+        f"KSPSolver({names}) is deprecated: declare the structure once, "
+        f"KSPSolver(structure=pp.Structure({names.replace('=', '=...')}))",
+        FutureWarning,
+        stacklevel=3,
+    )
+
+
+def merged_structure(structure: Structure | None, declared: dict) -> Structure:
+    """`structure` (None: nothing declared), or the old keyword arguments `declared`."""
+    unknown = set(declared) - set(STRUCTURE_FIELDS)
+    if unknown:
+        raise TypeError(f"KSPSolver got unexpected keyword arguments {sorted(unknown)}")
+    if structure is not None and not isinstance(structure, Structure):
+        raise TypeError(f"structure must be a pp.Structure, got {type(structure).__name__}")
+    if not declared:
+        return structure if structure is not None else Structure()
+    if structure is not None:
+        raise InputError(
+            f"declare the structure once: structure= and {sorted(declared)} were both given"
+        )
+    warn_structure_keywords(declared)
+    return Structure(**declared)
+
 
 #: KSP types whose iteration is only valid for a symmetric operator (PETSc 3.26)
 SYMMETRIC_ONLY_KSP = frozenset(

@@ -6,8 +6,8 @@ motions as kernel when no Dirichlet condition holds the body: 3 in 2D (two
 translations, one rotation), 6 in 3D.  Clamped, they are no longer null vectors,
 but A still maps them to little, and algebraic multigrid converges at a rate
 independent of the mesh only if its coarse spaces reproduce them: give them to
-`prdp_petsc.KSPSolver` as ``near_nullspace=`` (``MatSetNearNullSpace``), or as
-``nullspace=`` for the floating body itself.
+`prdp_petsc.KSPSolver` as ``Structure(near_nullspace=...)`` (``MatSetNearNullSpace``),
+or as ``Structure(nullspace=...)`` for the floating body itself.
 
 `rigid_body_modes` computes them from the dof locations (``basis.doflocs``) and
 the component of each dof (``basis.split_indices()``), so it needs no assumption
@@ -90,7 +90,7 @@ def rigid_body_modes(basis: skfem.CellBasis, dofs: np.ndarray | None = None) -> 
         Translations along each axis, then rotations about the centroid of the dof
         locations (2D: ``(-y, x)``; 3D: about x ``(0, -z, y)``, y ``(z, 0, -x)``, z
         ``(-y, x, 0)``), each scaled to unit length.  Pass them to
-        ``KSPSolver(near_nullspace=...)`` with ``block_size=basis.mesh.dim()``
+        ``Structure(near_nullspace=...)`` with ``block_size=basis.mesh.dim()``
         (`block_size` checks that), or as ``nullspace=`` for a body no
         Dirichlet condition holds (`KSPSolver` orthonormalises either).
 

@@ -289,7 +289,7 @@ def check_ns2d(t):
     A, b, x0 = t.scene.probe()
     assert x0 is None  # GMRES from zero
     with pp.KSPSolver(t.module.GMRES, prefix="t_demo_ns_", max_it=50_000, rtol=1e-12,
-                      nullspace=mac.nullspace(n)) as solver:  # fmt: skip
+                      structure=pp.Structure(nullspace=mac.nullspace(n))) as solver:  # fmt: skip
         solver.set_operator(A)
         x = solver.solve(b)
         assert solver.last.converged

@@ -23,7 +23,12 @@ def state(n, count, seed=0):
 
 def converged(n, **kw):
     return pp.KSPSolver(
-        NS2D.GMRES, prefix="t_ns_", max_it=50_000, rtol=1e-12, nullspace=mac.nullspace(n), **kw
+        NS2D.GMRES,
+        prefix="t_ns_",
+        max_it=50_000,
+        rtol=1e-12,
+        structure=pp.Structure(nullspace=mac.nullspace(n)),
+        **kw,
     )
 
 

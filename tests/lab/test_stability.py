@@ -136,7 +136,10 @@ def test_neumann_against_bordered_direct_solve_and_b_gradient():
     bordered = sp.bmat([[M, one], [one.T, None]]).tocsc()
     x_ref = spl.spsolve(bordered, np.append(b, 0.0))[:n]
     solver = pp.KSPSolver(
-        "-ksp_type cg -pc_type gamg", max_it=200, rtol=1e-12, nullspace="constant"
+        "-ksp_type cg -pc_type gamg",
+        max_it=200,
+        rtol=1e-12,
+        structure=pp.Structure(nullspace="constant"),
     )
     b_t = torch.from_numpy(b).requires_grad_(True)
     x = pp.solve(M, b_t, solver)
@@ -152,13 +155,16 @@ def test_neumann_against_bordered_direct_solve_and_b_gradient():
 def test_wrong_nullspace_is_rejected():
     A, theta = _neumann_matrix()
     M = A.matrix(theta) + sp.identity(A.shape[0])  # not singular: 1 is no null vector
-    solver = pp.KSPSolver("-ksp_type cg", max_it=5, nullspace="constant")
+    solver = pp.KSPSolver("-ksp_type cg", max_it=5, structure=pp.Structure(nullspace="constant"))
     with pytest.raises(ValueError, match="not a null space"):
         solver.set_operator(M)
     with pytest.raises(ValueError, match="linearly independent"):
-        pp.KSPSolver(max_it=5, nullspace=np.zeros((1, 4)))
+        pp.KSPSolver(
+            max_it=5,
+            structure=pp.Structure(nullspace=np.zeros((1, 4))),
+        )
     with pytest.raises(ValueError, match="'constant'"):
-        pp.KSPSolver(max_it=5, nullspace="constants")
+        pp.KSPSolver(max_it=5, structure=pp.Structure(nullspace="constants"))
 
 
 # -- K = 1 and K far beyond convergence --------------------------------------------------------

@@ -125,7 +125,9 @@ def test_singular_operator_with_null_space(nullspace):
     b = np.random.default_rng(3).standard_normal(n)
     out = []
     for comm in (PETSc.COMM_SELF, PETSc.COMM_WORLD):
-        with pp.KSPSolver({"ksp_type": "cg"}, nullspace=spec, comm=comm, **CONVERGED) as s:
+        with pp.KSPSolver(
+            {"ksp_type": "cg"}, structure=pp.Structure(nullspace=spec), comm=comm, **CONVERGED
+        ) as s:
             s.set_operator(K)
             out.append(s.solve(b))
     assert all_ranks(_rel(out[1], out[0]) <= 1e-10)

@@ -41,10 +41,10 @@ def cube():
 
 def test_replicated_layout_splits_whole_blocks_and_keeps_the_modes(cube):
     basis, bc, M, f = cube
-    structure = {"near_nullspace": pp.rigid_body_modes(basis, bc.interior), "block_size": 3}
+    structure = pp.Structure(near_nullspace=pp.rigid_body_modes(basis, bc.interior), block_size=3)
     out = []
     for comm in (PETSc.COMM_SELF, PETSc.COMM_WORLD):
-        with pp.KSPSolver(GAMG, comm=comm, **structure, **CONVERGED) as solver:
+        with pp.KSPSolver(GAMG, comm=comm, structure=structure, **CONVERGED) as solver:
             solver.set_operator(M)
             out.append(solver.solve(f))
             start, end = solver.mat.getOwnershipRange()
@@ -69,7 +69,9 @@ def test_owned_layout_with_a_callers_mat(cube):
     )
     mat.assemble()
     modes = pp.rigid_body_modes(basis, bc.interior)[:, start:end]
-    with pp.KSPSolver(GAMG, near_nullspace=modes, block_size=3, **CONVERGED) as solver:
+    with pp.KSPSolver(
+        GAMG, structure=pp.Structure(near_nullspace=modes, block_size=3), **CONVERGED
+    ) as solver:
         solver.set_operator(mat)
         x = np.concatenate(COMM.allgather(solver.solve(f[start:end])))
         assert all_ranks(mat.getBlockSize() == 3 and solver.last.iterations <= 20)
@@ -89,7 +91,7 @@ def test_owned_rows_that_split_a_block_are_refused():
         local.indptr, local.indices, local.data, (n, n), (end - start, end - start),
         PETSc.COMM_WORLD,
     )  # fmt: skip
-    with pp.KSPSolver(max_it=5, block_size=2) as solver:
+    with pp.KSPSolver(max_it=5, structure=pp.Structure(block_size=2)) as solver:
         with pytest.raises(pp.InputError, match="whole blocks"):
             solver.set_operator(owned)
 
@@ -100,7 +102,9 @@ def test_stokes_fields_on_two_ranks_equal_serial():
     b = np.random.default_rng(3).standard_normal(M.shape[0])
     out = []
     for comm in (PETSc.COMM_SELF, PETSc.COMM_WORLD):
-        with pp.KSPSolver(SCHUR, comm=comm, fields=fields, **CONVERGED) as solver:
+        with pp.KSPSolver(
+            SCHUR, comm=comm, structure=pp.Structure(fields=fields), **CONVERGED
+        ) as solver:
             solver.set_operator(M)
             out.append(solver.solve(b))
             splits = solver.ksp.getPC().getFieldSplitSubKSP()
@@ -118,7 +122,9 @@ def test_singular_operator_raises_on_every_rank():
         with pytest.raises(pp.SingularOperatorError):
             solver.solve(body_load(basis))
     modes = pp.rigid_body_modes(basis)
-    with pp.KSPSolver(GAMG, comm=PETSc.COMM_WORLD, nullspace=modes, **CONVERGED) as solver:
+    with pp.KSPSolver(
+        GAMG, comm=PETSc.COMM_WORLD, structure=pp.Structure(nullspace=modes), **CONVERGED
+    ) as solver:
         solver.set_operator(K)
         x = solver.solve(body_load(basis))
     expected = np.linalg.pinv(K.toarray()) @ body_load(basis)

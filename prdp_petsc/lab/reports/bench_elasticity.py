@@ -82,7 +82,7 @@ def _declaration(variant: str, basis, bc) -> dict:
 
 def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
     """Solve every size in every declaration; return the JSON-ready record."""
-    from prdp_petsc import KSPSolver
+    from prdp_petsc import KSPSolver, Structure
 
     options = {"ksp_type": "cg", "pc_type": "gamg"}
     rows = []
@@ -93,7 +93,9 @@ def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
         results = {}
         for variant in reversed(VARIANTS):  # modes first: its solution is the reference
             declared = _declaration(variant, basis, bc)
-            with KSPSolver(options, prefix="elas_", max_it=max_it, rtol=rtol, **declared) as s:
+            with KSPSolver(
+                options, prefix="elas_", max_it=max_it, rtol=rtol, structure=Structure(**declared)
+            ) as s:
                 s.set_operator(M)
                 t0 = time.perf_counter()
                 x = s.solve(b)

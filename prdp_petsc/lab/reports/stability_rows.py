@@ -105,7 +105,7 @@ def evaluate(
     """
     import torch
 
-    from prdp_petsc import KSPSolver, SolverError, solve
+    from prdp_petsc import KSPSolver, SolverError, Structure, solve
 
     rng = np.random.default_rng(seed)
     n = A.shape[0]
@@ -126,7 +126,9 @@ def evaluate(
         "outcome": "ok",
         "note": note,
     }
-    solver = KSPSolver(options, max_it=max_it, rtol=rtol, adjoint=adjoint, nullspace=nullspace)
+    solver = KSPSolver(
+        options, max_it=max_it, rtol=rtol, adjoint=adjoint, structure=Structure(nullspace=nullspace)
+    )
     b_t = torch.from_numpy(np.asarray(b, dtype=np.float64))
     w_t = torch.from_numpy(w)
     t0 = time.perf_counter()

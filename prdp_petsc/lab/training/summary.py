@@ -5,7 +5,7 @@
 and wall time, split into progressive refinement and incomplete convergence), the
 validation-error ratio that says whether they are at equal accuracy
 (`ACCURACY_RATIO`), the smallest constant K that would have done
-(`prdp_petsc.equal_accuracy_k`), every run's ``time_to_full_accuracy`` and
+(`prdp_petsc.lab.training.accuracy.equal_accuracy_k`), every run's ``time_to_full_accuracy`` and
 ``speedup_vs_best_full`` (the fastest full-fidelity run's time over the fastest
 reduced run's).  `format_table` prints it.
 """
@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import math
 
-from prdp_petsc import ACCURACY_BAND, equal_accuracy_k, savings
+from prdp_petsc import ACCURACY_BAND, savings
 
+from .accuracy import equal_accuracy_k
 from .routes import REACH_FACTOR, accuracy_target, fastest, time_to_accuracy
 
 __all__ = [
