@@ -683,6 +683,13 @@ def _scene_file_command(argv: list[str]) -> int:
     return _extra_command(argv[0], argv[1:], f"prdp-petsc scene {argv[0]}")
 
 
+def missing_lab_packages() -> list[str]:
+    """The packages of the ``lab`` extra that are not installed."""
+    import importlib.util
+
+    return [name for name in ("matplotlib", "tqdm") if importlib.util.find_spec(name) is None]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``prdp-petsc`` console script."""
     apply_warning_options()
@@ -693,6 +700,14 @@ def main(argv: list[str] | None = None) -> int:
 
         print(f"prdp-petsc {__version__}")
         return 0
+    missing = missing_lab_packages()
+    if missing and argv and argv[0] not in ("-h", "--help"):
+        print(
+            f"prdp-petsc: the lab needs {', '.join(missing)}, which the library does not "
+            "install: pip install 'prdp-petsc[lab]'",
+            file=sys.stderr,
+        )
+        return 2
     if argv and argv[0] in _TOOLS:
         return _tool_command(argv[0], argv[1:])
     if argv and argv[0] == "scene":

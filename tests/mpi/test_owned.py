@@ -271,3 +271,21 @@ def test_an_owned_layout_run_is_not_resumed_on_several_ranks(tmp_path):
     run(scene, "fixed:5", preset="quick", epochs=1, out=out, parallel="domain", progress=False)
     with pytest.raises(InputError, match="cannot be resumed on several ranks"):
         run(resume=out, epochs=2, parallel="domain", progress=False)
+
+
+def test_owned_solve_returns_its_solution_with_the_adjoint_outcome(part):
+    """``return_solution=True`` in the owned layout: the outcome of both solves, collective."""
+    local = skfem.Basis(part.mesh, skfem.ElementTetP1())
+    A = DistributedParametricMatrix.from_local(_operator(local, False), part)
+    bc = pp.Dirichlet(A, part.boundary_vertices())
+    rng = np.random.default_rng(7 + COMM.rank)
+    theta = torch.from_numpy(1.0 + rng.random(bc.A_II.n_params)).requires_grad_(True)
+    b = torch.from_numpy(rng.standard_normal(bc.A_II.local_shape[0]))
+    options = {"ksp_type": "cg", "pc_type": "jacobi"}
+    with pp.KSPSolver(options, prefix="own_sol_", comm=PETSc.COMM_WORLD, max_it=7) as solver:
+        sol = pp.solve(bc.A_II, b, solver, theta=theta, return_solution=True)
+        plain = pp.solve(bc.A_II, b, solver, theta=theta.detach())
+        _sum(sol.value.square().sum()).backward()
+    assert all_ranks(sol.iterations == 7 and sol.reason == "DIVERGED_MAX_IT")
+    assert all_ranks(sol.adjoint is not None and sol.adjoint.iterations.tolist() == [7])
+    assert all_ranks(torch.equal(sol.value.detach(), plain))
