@@ -56,10 +56,8 @@ Run ``python demos/heat2d.py compare --preset paper --routes cg/icc --out result
 
 from __future__ import annotations
 
-import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.lab.components.emulators import heat_emulator_scene
-from prdp_petsc.lab.training.routes import parse_routes
+from prdp_petsc.lab.components.emulators import heat_emulator_build
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
 # step matrix M + Δt K is SPD, so CG with ICC or GAMG; K_full from the guess on
@@ -142,32 +140,7 @@ PRESETS["paper_mlp"] = {**PRESETS["paper"], **_MLP, "n_train": 64}
 
 
 def build(config: dict, seed: int) -> lab.Scene:
-    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
-    mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
-    return heat_emulator_scene(
-        mesh,
-        seed,
-        prefix="heat2d_",
-        dt=config["dt"],
-        net=config["net"],
-        modes=config["modes"],
-        width=config["width"],
-        depth=config["depth"],
-        warm_start=config["warm_start"],
-        spans=config["spans"],
-        n_train=config["n_train"],
-        n_val=config["n_val"],
-        val_steps=config["val_steps"],
-        rollout_steps=config["rollout_steps"],
-        unroll=config["unroll"],
-        epochs=config["epochs"],
-        batch=config["batch"],
-        lr=config["lr"],
-        gamma=config["gamma"],
-        k_init=config["k_init"],
-        k_step=config["k_step"],
-        info=config,
-    )
+    return heat_emulator_build(config, seed, prefix="heat2d_")
 
 
 if __name__ == "__main__":

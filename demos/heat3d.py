@@ -40,10 +40,8 @@ Run ``python demos/heat3d.py compare --preset paper --routes cg/icc --out result
 
 from __future__ import annotations
 
-import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.lab.components.emulators import heat_emulator_scene
-from prdp_petsc.lab.training.routes import parse_routes
+from prdp_petsc.lab.components.emulators import heat_emulator_build
 
 # heat2d's settings on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`).
 # ``routes``, the KSP/PC pairs `compare` also runs (``--routes`` overrides them): the
@@ -99,32 +97,7 @@ PRESETS = {
 
 
 def build(config: dict, seed: int) -> lab.Scene:
-    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
-    mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
-    return heat_emulator_scene(
-        mesh,
-        seed,
-        prefix="heat3d_",
-        dt=config["dt"],
-        net=config["net"],
-        modes=config["modes"],
-        width=config["width"],
-        depth=config["depth"],
-        warm_start=config["warm_start"],
-        spans=config["spans"],
-        n_train=config["n_train"],
-        n_val=config["n_val"],
-        val_steps=config["val_steps"],
-        rollout_steps=config["rollout_steps"],
-        unroll=config["unroll"],
-        epochs=config["epochs"],
-        batch=config["batch"],
-        lr=config["lr"],
-        gamma=config["gamma"],
-        k_init=config["k_init"],
-        k_step=config["k_step"],
-        info=config,
-    )
+    return heat_emulator_build(config, seed, prefix="heat3d_")
 
 
 if __name__ == "__main__":
