@@ -27,6 +27,7 @@ from prdp_petsc import lab
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.emulators import heat_step_system
 from prdp_petsc.lab.components.modal import laplacian_modes
+from prdp_petsc.lab.reports import topopt as topopt_reports
 from prdp_petsc.lab.training.harness import build_scene, find_k_full, run
 from prdp_petsc.lab.training.scene import load_scene
 
@@ -315,7 +316,7 @@ def check_topopt3d(t):
     config, problem = t.config, t.scene.problem
     assert float(t.scene.designs[-1].mean()) == pytest.approx(config["volfrac"], abs=1e-6)
     assert t.errors[-1] < config["move"]  # the design change settled below the move limit
-    final = t.module.scored(t.scene, config)[-1]
+    final = topopt_reports.scored(t.module, t.scene, config)[-1]
     with problem.solver(1000, rtol=1e-10, prefix="t_demo_to_") as solver:
         solid = problem.compliance(np.ones(problem.A.n_params), solver)
         e_uniform = float(t.module.simp(torch.tensor(config["volfrac"]), config["penal"],
