@@ -9,103 +9,69 @@ advection: one monolithic (u, v, p) system of 3N² unknowns per step (6 912 on t
 
 Solver in the loop: PETSc GMRES(8) without preconditioner (``ksp_gmres_restart 8``,
 ``pc_type none``), the constant-pressure null space attached, in fixed mode
-(rtol = atol = 0).  The schedule's K counts GMRES iterations and PRDP moves it in
-steps of 8 (``k_init = k_step = 8``): one PRDP step is one restart cycle, as in the
-reference (its "K" is ``max_it = 8K``).  The operator depends on the velocity
-through the Picard wind: A(θ) = A₀ + Gθ with θ = [a⁺; a⁻], so `prdp_petsc.solve`
-gives gradients with respect to the right-hand side *and* to the velocity that
-built the operator.  The adjoint (transpose) solve is a real one: by default it
-runs the same K iterations as the forward solve; ``adjoint_rtol`` gives it its own
-tolerance relative to its own right-hand side (the reference's JAX GMRES instead
-reuses the forward's absolute tolerance and runs zero adjoint iterations).
-Any PETSc solver is one option away: ``-ns2d_pc_type fieldsplit
--ns2d_pc_fieldsplit_detect_saddle_point -ns2d_pc_fieldsplit_type schur ...`` (a Schur
-complement PC on the velocity/pressure blocks; point PCs such as ILU or SOR fail on the
-zero pressure block) cuts K_full from ≈ 440 to ≈ 70 on 48².
+(rtol = atol = 0).  K counts GMRES iterations and PRDP moves it in steps of 8
+(``k_init = k_step = 8``): one PRDP step is one restart cycle, as in the reference
+(its "K" is ``max_it = 8K``).  The operator depends on the velocity through the
+Picard wind, A(θ) = A₀ + Gθ with θ = [a⁺; a⁻], so `prdp_petsc.solve` gives gradients
+with respect to the right-hand side *and* to the velocity that built the operator.
+The adjoint (transpose) solve runs the same K iterations as the forward solve;
+``adjoint_rtol`` gives it its own tolerance relative to its own right-hand side.  Any
+PETSc solver is one option away (``-ns2d_pc_type fieldsplit ...``); ``SCHUR`` is the
+fieldsplit Schur-complement route that ``compare --routes schur`` runs.
 
 Learning problem (solver-in-the-loop correction, as the reference): a
 `~prdp_petsc.lab.components.networks.ConvResNet` C (3 → 3 channels u, v, p; circular
-padding; 64 hidden channels, 3 blocks on `paper`; float32 inside) corrects the
-coarse step after every step, s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the
-MSE of both states of a 2-step unroll through solver and network against the
-reference, summed.  Training windows (s_t, s_t+1, s_t+2) start at every step of
-``n_train`` reference trajectories of ``train_steps`` steps (the reference starts
-all its windows at t = 0; later starts match the validation rollout's states
-better).  Reference data: the same scheme on a 2N × 2N grid (direct sparse solve)
-restricted to N × N by face averages (which keep the discrete divergence zero;
-the reference instead sub-samples a 97² grid).  Initial velocities: random
-smooth divergence-free fields from a stream function (spectrum ∝ exp(−0.12|k|²),
-velocity std 1), zero pressure.  Adam with cosine decay 1e-3 → 1e-4 per epoch.
+padding; ``hidden`` channels, ``blocks`` blocks; float32 inside) corrects the coarse
+step after every step, s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the MSE of the
+states of an ``unroll``-step rollout through solver and network against the
+reference, summed.  Training windows start every ``window_stride`` steps of
+``n_train`` reference trajectories of ``train_steps`` steps.  Reference data: the same
+scheme on a 2N × 2N grid (direct sparse solve) restricted to N × N by face averages
+(which keep the discrete divergence zero), built once per process and kept on disk
+(`reference_data`).  Initial velocities: random smooth divergence-free fields from a
+stream function (spectrum ∝ exp(−0.12|k|²), velocity std 1), zero pressure.  Adam
+with cosine decay ``lr`` → ``lr_final`` per epoch.
 
-Validation (what PRDP watches, τ_step 0.95): the 5-step rollout nMSE of the
-x-velocity on held-out samples, ‖û₅ − u₅‖²/‖u₅‖², with the solver at full
-fidelity (GMRES(8) to ``rtol_full``; the same cost in every run, counted in the
-wall time).  ``val_solver: "schur"`` (the ``large`` presets) validates with GMRES(30)
-and a fieldsplit Schur-complement PC (`SCHUR`) to the same ``rtol_full``: the same
-converged step (the two solutions agree to 5e-5 relative on a 64² flow) at about a
-third of the time, so validation stays a small, equal share of every run.  The
-harness also records the per-step normalised velocity error ‖(û, v̂) − (u, v)‖/‖(u, v)‖
-of a ``rollout_steps``-step rollout (≥ 20).
+Validation (what PRDP watches): the ``val_steps``-step rollout nMSE of the x-velocity
+on held-out flows, ‖û − u‖²/‖u‖², with the solver at full fidelity (the training
+solver to ``rtol_full``, or with ``val_solver: "schur"`` the Schur route to the same
+tolerance); ``val_metric: "rollout_mean"`` validates on the mean velocity error of that
+rollout instead.  The harness also records the per-step velocity error of a
+``rollout_steps``-step rollout with the corrector (``rollout``) and without it
+(``uncorrected_rollout``).
 
-Warm starts across epochs (``warm_start_epochs: True``; default False): every
-training solve starts from that window's solution of the same unroll step in the last
-epoch (`prdp_petsc.autograd.WarmStarts`, keyed by step and window) instead of from
-zero, so the capped GMRES continues where the last epoch's stopped; validation
-solves (to ``rtol_full``) and K_full's probe still start from zero.
+Settings beyond the sizes:
 
-Preconditioner reuse (``pc_lag: N``; default 1): the training solver sets its PC up
-only at every N-th operator change (`prdp_petsc.KSPSolver`'s ``pc_lag``, with its
-quality guard); the validation solver always sets up its own.  An epoch's record then
-counts its ``pc_setups``.  Measured on ``large_k64`` with the ``schur`` route it does
-not pay: the operator changes with every state the corrector meets, so the guard sets
-the PC up again after nearly every reuse and the stale solves lose accuracy at the
-same K (the ns2d ablation page).
+* ``solver_grad: False`` detaches the solver from the graph (the reference's effective
+  gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
+  times the velocity std) instead of unrolling.
+* ``unroll: m``, ``checkpoint``, ``unroll_curriculum: E`` (`prdp_petsc.lab.training.unroll`):
+  m-step rollouts of the hybrid, the network's activations recomputed in the backward
+  pass, m doubled from 1 every E epochs.
+* ``correction: "indirect"`` feeds the network's output into the implicit step as a
+  momentum forcing, s ↦ P_K(s; f = C(s)) with C: 3 → 2 channels (the Indirect Neural
+  Corrector).
+* ``train_solver: "schur"`` trains with the Schur route (K counts its iterations).
+* ``warm_start_epochs: True`` starts every training solve from that window's solution
+  of the last epoch (`prdp_petsc.autograd.WarmStarts`); ``pc_lag: N`` sets the training
+  solver's PC up only at every N-th operator (`prdp_petsc.KSPSolver`'s ``pc_lag``).
+* ``routes``: the KSP/PC routes ``compare`` also runs (names in ``ROUTES``).
 
-Variants (config keys): ``solver_grad: False`` detaches the solver from the graph
-(the second step's solve sees a constant input: the reference's effective
-gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
-times the velocity std) instead of unrolling — presets ``paper_detached`` and
-``paper_noise`` (``quick_…`` likewise).  ``paper_k64`` and ``large_k64`` start PRDP at
-K = 64 (8 restart cycles; ``large_k64`` also refines by 64) instead of one cycle;
-``paper_k64`` trained 48 epochs (``--epochs 48``) reaches full fidelity's validation
-error (README).  ``large_k192`` starts and refines by 192 (24 restart cycles; 24
-iterations on the ``schur`` route, whose K_full is about 80): the time-to-accuracy
-setting.  With ``large_k64``'s steps of 64 (8 on the Schur route) PRDP on that route
-climbed too slowly to reach full-fidelity accuracy within 16 epochs on 4 of 6 seeds;
-with 192 it reaches it on every seed (the ``ns2d_large_k192_speedup`` results page).
+Presets: ``quick`` (12², tests), ``paper`` (48², the reference network and batch, 25
+training windows and 24 epochs instead of the reference's 200 samples and 100
+epochs), ``large`` (64², a small network, validated on the Schur route: the solve
+dominates the training step), ``long`` (32², 32-step unrolls on 50-step trajectories,
+Schur training and validation on the mean error of a 50-step rollout) and its
+baselines ``long_nograd`` and ``long_noise``; ``long_quick`` (tests).  Variants:
+``{quick,paper}_detached`` and ``{quick,paper}_noise``; ``paper_k64`` and
+``large_k64`` start PRDP at 8 restart cycles, ``large_k192`` starts and refines by
+192 iterations (24 on the Schur route).  Why the presets are set as they are: the
+scenes guide (ns2d); what they measure: the ns2d results pages.
 
-Long horizons (`prdp_petsc.lab.training.unroll`): ``unroll: m`` trains on m-step rollouts
-of the hybrid (windows of m + 1 reference states starting every ``window_stride``
-steps), ``checkpoint: True`` recomputes the network's activations in the backward pass
-instead of keeping them (the solves are not rerun), ``unroll_curriculum: E`` doubles m
-from 1 every E epochs.  ``correction: "indirect"`` feeds the network's output into the
-implicit step as a momentum forcing, s ↦ P_K(s; f = C(s)) with C: 3 → 2 channels and
-f/Δt added to the momentum rows of the right-hand side (the Indirect Neural Corrector),
-instead of adding it to the solver's output.  ``train_solver: "schur"`` trains with
-GMRES(30) and the Schur-complement PC (`SCHUR`; K counts its iterations).
-``val_metric: "rollout_mean"`` validates on the mean velocity error of the
-``val_steps``-step rollout instead of the final x-velocity nMSE.  Every run records
-``uncorrected_rollout``, the same held-out rollout with the solver alone.
-
-Presets: ``quick`` (12², seconds, tests), ``paper`` (48², the reference network
-and batch; 5 trajectories × 5 windows = 25 training samples, one batch per epoch,
-instead of 200 samples, and 24 epochs instead of 100, to fit this 2-core machine),
-``large`` (64², 12 288 unknowns per sample, 4 trajectories × 2 windows, two
-validation flows, a small network: the solve dominates the training step).
-``long`` (32², 12 trajectories of 50 steps, m = 32 from every 8th step, Schur
-training and validation, validation on the mean error of a 50-step rollout of two
-held-out flows, PRDP from K = 8 in steps of 4), with the baselines on the same data,
-network and epochs:
-``long_nograd`` (m = 32 without solver gradients) and ``long_noise`` (one step at a
-time from noisy inputs, every start); ``long_quick`` (12², tests).
-On ``paper``, ``large`` and ``long`` the reference data take minutes (direct solves on the
-2N grid); they are cached per process and on disk (`reference_data`), so ``compare``
-and later runs build them once.
-
-Run ``python demos/ns2d.py compare --preset paper --out results/ns2d``;
-``python demos/ns2d.py adjoint --preset paper --k 8 64 256`` (or ``prdp-petsc scene
-demos/ns2d.py adjoint ...``) prints the adjoint figures (cost per step, gradient against
-the converged and the detached one).
+Run ``prdp-petsc compare demos/ns2d.py --preset paper --out results/ns2d``;
+``prdp-petsc scene demos/ns2d.py adjoint --preset paper --k 8 64 256`` prints the cost
+and effect of the capped adjoint, ``... energy RUN_FOLDER`` a trained run's rollout
+error, energy and correlation (`prdp_petsc.lab.reports.ns2d`).
 """
 
 from __future__ import annotations
@@ -154,11 +120,7 @@ _BASE = {
     "warm_start_epochs": False,
     "pc_lag": 1,
     # the KSP/PC pairs `compare` also runs (``--routes`` overrides them): none here;
-    # ``paper`` and ``large`` run ``schur`` (`ROUTES`).  The operator is not symmetric
-    # (CG, ICC refused) and has a zero pressure block: ILU fails on it, Jacobi stalls
-    # (GMRES) or diverges (BiCGStab), and the unpreconditioned alternatives are no
-    # faster (K_full on ``paper``: BiCGStab 744, TFQMR 397, GMRES(8) 436).  The route
-    # that pays is the fieldsplit Schur-complement PC (`SCHUR`).
+    # ``paper`` and ``large`` run ``schur`` (`ROUTES`; the scenes guide says why)
     "routes": "",
 }
 
@@ -227,8 +189,7 @@ PRESETS["long"] = {
     "hidden": 24,
     "blocks": 2,
     "epochs": 20,
-    # PRDP from K = 8 in steps of 4 (K_full ≈ 35): from K = 2 the corrector first learns
-    # to fix a far-from-converged step and ends less accurate (docs/results)
+    # PRDP from K = 8 in steps of 4 (the scenes guide says why not from K = 2)
     "k_init": 8,
     "k_step": 4,
     "compare_ks": [],
@@ -255,8 +216,8 @@ PRESETS["paper_detached"] = {**PRESETS["paper"], "solver_grad": False}
 PRESETS["paper_noise"] = {**PRESETS["paper"], "unroll": 1, "noise": 0.05}
 
 GMRES = {"ksp_type": "gmres", "ksp_gmres_restart": 8, "pc_type": "none"}
-# the validation solver of ``val_solver: "schur"``: GMRES with the velocity–pressure Schur
-# complement PC, ILU(0) on both blocks (per rank under MPI); ≈ 9× fewer iterations on 64²
+# the Schur route (``val_solver``/``train_solver: "schur"``, ``--routes schur``): GMRES with
+# the velocity–pressure Schur complement PC, ILU(0) on both blocks (per rank under MPI)
 SCHUR = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 30,

@@ -13,7 +13,7 @@ Inverse problem: Adam on θ (no network) minimises
 mesh's element adjacency (elements sharing an edge, from ``mesh.f2t``), a small
 smoothness regulariser.  One "batch" per epoch, several Adam steps in it.  Validation
 metric: the element-area weighted relative L2 error of the recovered κ against the
-true κ; it starts at about 0.6 (κ = 1 everywhere).
+true κ.
 
 Solver in the loop: CG + Jacobi (``-pf_ksp_type``/``-pf_pc_type``) in fixed mode,
 K = ``max_it`` iterations from zero, implicit (adjoint) gradients.  A truncated solve
@@ -29,27 +29,7 @@ Run ``python demos/poisson_field.py compare --preset paper --routes cg/gamg --ou
 ``python demos/poisson_field.py plot --preset paper --out fields.png`` (or ``prdp-petsc
 scene demos/poisson_field.py plot ...``) draws true against recovered κ.
 ``config["mode"]`` picks implicit (PETSc adjoint) or unrolled (the CG iteration in
-torch) gradients.
-
-Measured (paper preset, seed 0, one thread, the harness's ``run`` for each; K_full =
-188 for CG + Jacobi, 7 for CG + GAMG; PRDP capped at K_full; "reached" = the epoch
-from which the κ error stays within 5 % of the implicit CG + Jacobi full-fidelity
-error, 0.272):
-
-=====================  ========  =======  ===========  =======  ========
-run                    κ error   wall     inner its    K final  reached
-=====================  ========  =======  ===========  =======  ========
-PRDP implicit Jacobi   0.2720    5.89 s   90 800       140      3.72 s
-K_full implicit Jacobi 0.2723    8.35 s   150 400      188      5.47 s
-PRDP unrolled Jacobi   0.2856    56.3 s   95 600       180      56.3 s
-K_full unrolled Jacobi 0.2723    86.2 s   150 400      188      56.0 s
-PRDP implicit GAMG     0.2719    4.97 s   3 600        6        3.11 s
-K_full implicit GAMG   0.2723    5.62 s   5 600        7        3.68 s
-=====================  ========  =======  ===========  =======  ========
-
-PRDP on CG + GAMG reaches the recovery error first (3.1 s); implicit gradients are
-10-15x faster than unrolled ones at the same K (unrolled pays torch's per-iteration
-cost and keeps every iterate for the backward).
+torch) gradients (the bridge benchmark compares their cost).
 """
 
 from __future__ import annotations
