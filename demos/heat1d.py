@@ -145,9 +145,8 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, val_traj[1].numpy(), None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        # the paper's settings, plus restart_window: at K = 1-2 the rollout blows up
-        # (1e3-1e4 against ~0.05 converged), and with the reference's EMA that spike
-        # masks every plateau for dozens of epochs (README, heat 1D)
+        # the paper's settings, plus restart_window: at the smallest K the rollout blows
+        # up, and with the reference's EMA that spike would mask the plateaus that follow
         prdp={
             "k_init": config["k_init"],
             "k_step": 1,

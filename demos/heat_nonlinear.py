@@ -64,8 +64,7 @@ from prdp_petsc.lab.training.routes import parse_routes
 from prdp_petsc.lab.training.scene import shuffled_batches
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
-# Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG:
-# K_full 13 and 6 on ``paper`` against GMRES + Jacobi's 36.
+# Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG.
 PRESETS = {
     "quick": {
         "mesh": "lshape",
