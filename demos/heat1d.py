@@ -21,16 +21,11 @@ Multi-step training (``unroll`` = m, default 1): the chain s ← P_K(N(s)) runs 
 from u⁰ under autograd, its k-th state is compared with the exact u²ᵏ, and the loss
 is the sum of the m terms (`prdp_petsc.lab.training.unroll.windows` cuts the training
 windows u⁰, u², …, u²ᵐ from the exact trajectories).  m = 1 is the one-step loss
-above, to the bit.  It does not close PRDP's gap to full fidelity on ``paper``; it
-widens it (docs/results/heat1d_seeds.md and heat1d_m2_seeds.md).  That gap is the
-training path, not the final K: PRDP ends near K = 22, where a constant K trains to
-within a few per cent of K_full.  Trained through P_K, N learns the slowest mode's
-multiplier s₁/(1 − ρ₁^K) (s₁ = 0.990 the exact step's, ρ₁ = 0.72 damped Jacobi's),
-an amplifying map below K ≈ 14 whose 10-step growth is 3·10⁵ at K = 1, 8 at K = 5
-and 1.35 at K = 10; what the network learns in the first epochs at K = 1-9 it then
-unlearns at a decayed learning rate.  Preset ``paper_k10`` starts PRDP at K₀ = 10
-(``k_init``), the smallest K whose learned map stays of order one over the 10-step
-horizon, and keeps the rest of ``paper`` (docs/results/heat1d_k10_seeds.md).
+above, to the bit.
+
+Presets: ``quick`` (tests), ``paper`` (the reference's settings) and ``paper_k10``
+(``paper`` with PRDP from K₀ = 10; the scenes guide says why; results pages
+heat1d_seeds, heat1d_m2_seeds, heat1d_k10_seeds).
 
 Run ``python demos/heat1d.py compare --preset paper --out results/heat1d``.
 """
@@ -150,9 +145,8 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, val_traj[1].numpy(), None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        # the paper's settings, plus restart_window: at K = 1-2 the rollout blows up
-        # (1e3-1e4 against ~0.05 converged), and with the reference's EMA that spike
-        # masks every plateau for dozens of epochs (README, heat 1D)
+        # the paper's settings, plus restart_window: at the smallest K the rollout blows
+        # up, and with the reference's EMA that spike would mask the plateaus that follow
         prdp={
             "k_init": config["k_init"],
             "k_step": 1,

@@ -10,14 +10,12 @@ Solver in the loop: damped Jacobi (``richardson`` + ``jacobi``, scale 0.8, the
 paper's solver) in fixed mode, K = ``max_it`` iterations; implicit (adjoint)
 gradients.  The solve starts from its input ûⁿ⁺¹ (``solve(..., x0=)``, PETSc's
 nonzero initial guess), as a time stepper would: the step changes smooth fields
-little, so the slow, smooth Jacobi modes start almost converged.  From zero
-(``warm_start: False``) those modes carry the capped solve's bias, the network
-learns to undo it, and its rollout needs K ≈ 0.8 K_full to match full fidelity.
-K_full counts the iterations from the guess to PETSc's default test ``‖r‖ ≤
-10⁻⁶ ‖b‖`` (68 instead of 91 on ``paper``), so the baseline gains from the guess
-too.  Any PETSc solver is one option away (``-heat2d_ksp_type cg
--heat2d_pc_type icc``); ``compare --routes cg/icc`` runs PRDP and full fidelity
-with it as well and says which route is fastest.
+little, so the slow, smooth Jacobi modes start almost converged (``warm_start:
+False`` starts from zero; the scenes guide says what that costs).  K_full counts the
+iterations from the guess to PETSc's default test ``‖r‖ ≤ 10⁻⁶ ‖b‖``, so the
+full-fidelity baseline gains from the guess too.  Any PETSc solver is one option
+away (``-heat2d_ksp_type cg -heat2d_pc_type icc``); ``compare --routes cg/icc`` runs
+PRDP and full fidelity with it as well and says which route is fastest.
 
 Learning problem (the paper's mixed chain): a network N maps uⁿ to ûⁿ⁺¹, the
 loss compares the *capped* solver step P_K(ûⁿ⁺¹) with the exact uⁿ⁺², so a
@@ -25,12 +23,9 @@ small K biases what N learns.  Training pairs (uₜ, uₜ₊₂) start at t = 0,
 ``spans`` − 1 of each training trajectory, so N sees the smoother states a rollout
 meets, not only initial conditions.  N is a `prdp_petsc.lab.components.modal.ModalNet`:
 one learned weight per eigenmode of ``K φ = λ M φ`` (the mesh's Fourier basis;
-the spectral layer of a Fourier neural operator), ``modes`` of them.  It replaced
-`prdp_petsc.lab.components.networks.MeshNet` (message passing over the mesh's edges),
-which plateaued at ≈ 12 % rollout error here and diverged in 3D: the solve damps
-the high-frequency part of N's error, so the loss barely constrains a local
-network there, and Adam on correlated edge weights is badly conditioned.  Modal
-coefficients are M-orthonormal, each weight is fitted by its own mode, and the
+the spectral layer of a Fourier neural operator), ``modes`` of them (why not a
+message-passing `~prdp_petsc.lab.components.networks.MeshNet`: the known limitations).
+Modal coefficients are M-orthonormal, each weight is fitted by its own mode, and the
 modes N drops are those the step damps most.  Validation metric: the mean
 normalised error of a 10-step autoregressive rollout of N on held-out initial
 conditions; the harness also records a 30-step rollout curve.
@@ -41,29 +36,22 @@ states against the exact uₜ₊₂, …, uₜ₊₂ₘ (`heat_emulator_scene`);
 one-step chain above.
 
 Presets: ``quick`` (tests), ``paper`` (5 457 unknowns, Δt κ/h² ≈ 1.2) and
-``stiff`` (Δt κ/h² ≈ 6e3: damped Jacobi needs thousands of iterations, CG +
-ICC about 70 — there the PC choice decides).  ``paper_mlp`` is ``paper`` with the
-reference's emulator class instead of ModalNet (``net: "mlp"``: a
-`~prdp_petsc.lab.components.networks.ResidualMLP` over the nodal values) and 64 training
-trajectories: the control experiment of the README, where the network does about
-as well as the identity map (better on seed 0, worse on seed 1), so its own error
-hides the solver's.  Every preset spells out every setting (``net``, ``width``,
-``depth``, ``warm_start`` included), so ``--set net=mlp`` works on any of them.  The
-scene itself is `prdp_petsc.lab.components.emulators.heat_emulator_scene`, shared with heat3d.
+``stiff`` (Δt κ/h² ≈ 6e3, where damped Jacobi is slow and the PC choice decides).
+``paper_mlp`` is ``paper`` with the reference's emulator class instead of ModalNet
+(``net: "mlp"``: a `~prdp_petsc.lab.components.networks.ResidualMLP` over the nodal
+values) and 64 training trajectories.  ``routes`` names the KSP/PC pairs ``compare``
+also runs: the step matrix M + Δt K is SPD, so CG with ICC or GAMG.  The scene is
+`prdp_petsc.lab.components.emulators.heat_emulator_build`, shared with heat3d; this
+file holds its presets and its options prefix ``heat2d_``.
 
 Run ``python demos/heat2d.py compare --preset paper --routes cg/icc --out results/heat2d``.
 """
 
 from __future__ import annotations
 
-import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.lab.components.emulators import heat_emulator_scene
-from prdp_petsc.lab.training.routes import parse_routes
+from prdp_petsc.lab.components.emulators import heat_emulator_build
 
-# ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
-# step matrix M + Δt K is SPD, so CG with ICC or GAMG; K_full from the guess on
-# ``paper`` 6 and 4 against damped Jacobi's 68, on ``stiff`` 86 and 9 against 14 144.
 PRESETS = {
     "quick": {
         "mesh": "lshape",
@@ -136,38 +124,13 @@ PRESETS = {
     },
 }
 
-# the paper's emulator class: a residual MLP over the nodal values (see the docstring)
+# the reference's emulator class: a residual MLP over the nodal values
 _MLP = {"net": "mlp", "lr": 1e-3, "gamma": 0.95, "k_init": 4, "k_step": 4}
 PRESETS["paper_mlp"] = {**PRESETS["paper"], **_MLP, "n_train": 64}
 
 
 def build(config: dict, seed: int) -> lab.Scene:
-    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
-    mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
-    return heat_emulator_scene(
-        mesh,
-        seed,
-        prefix="heat2d_",
-        dt=config["dt"],
-        net=config["net"],
-        modes=config["modes"],
-        width=config["width"],
-        depth=config["depth"],
-        warm_start=config["warm_start"],
-        spans=config["spans"],
-        n_train=config["n_train"],
-        n_val=config["n_val"],
-        val_steps=config["val_steps"],
-        rollout_steps=config["rollout_steps"],
-        unroll=config["unroll"],
-        epochs=config["epochs"],
-        batch=config["batch"],
-        lr=config["lr"],
-        gamma=config["gamma"],
-        k_init=config["k_init"],
-        k_step=config["k_step"],
-        info=config,
-    )
+    return heat_emulator_build(config, seed, prefix="heat2d_")
 
 
 if __name__ == "__main__":

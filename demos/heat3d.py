@@ -10,44 +10,35 @@ boundary.
 
 Solver in the loop: damped Jacobi (``richardson`` + ``jacobi``, scale 0.8) in fixed
 mode, K = ``max_it`` iterations from the input ûⁿ⁺¹ as initial guess (see heat2d),
-implicit (adjoint) gradients; the same
-scene as ``heat2d`` (both built by `prdp_petsc.lab.components.emulators.heat_emulator_scene`), so
-``-heat3d_ksp_type cg -heat3d_pc_type icc`` and ``compare --routes cg/icc`` work
-the same way.  The mesh is sized so that the solve dominates training: at K_full
-the solver takes most of each epoch's wall time (`solver %` in compare's table), so
-PRDP's savings in iterations show in wall time.
+implicit (adjoint) gradients; the same scene as ``heat2d`` (both built by
+`prdp_petsc.lab.components.emulators.heat_emulator_build`), so ``-heat3d_ksp_type cg
+-heat3d_pc_type icc`` and ``compare --routes cg/icc`` work the same way.  The mesh is
+sized so that the solve dominates training (``compare`` reports the solver's share of
+the wall time), so PRDP's savings in iterations show in wall time.
 
 Learning problem (the paper's mixed chain): a network N maps uⁿ to ûⁿ⁺¹ and the loss
 compares the capped solver step P_K(ûⁿ⁺¹) with the exact uⁿ⁺².  Training pairs
 (uₜ, uₜ₊₂) start at t = 0, …, ``spans`` − 1 of each training trajectory, so N sees
 the states a rollout meets.  N is a `prdp_petsc.lab.components.modal.ModalNet`, as in
 heat2d: one learned weight per eigenmode of ``K φ = λ M φ`` (the mesh's Fourier
-basis), the ``modes`` lowest.  The message-passing `MeshNet` that heat2d used
-before does not emulate this step: trained through the solve, its rollouts
-drifted or diverged (the solve damps the high-frequency part of N's error, so the
-loss barely constrains a local network there).  Modal weights are fitted each by
-its own mode, and the modes N drops are those the step damps most and cannot be
-amplified; a kept mode's weight above 1 still grows in a rollout (as at K = 1).
-Validation metric: the mean normalised error of
+basis), the ``modes`` lowest.  Modal weights are fitted each by its own mode, and the
+modes N drops are those the step damps most and cannot be amplified; a kept mode's
+weight above 1 still grows in a rollout.  Validation metric: the mean normalised error of
 a 10-step autoregressive rollout on held-out initial conditions; the harness also
 records a 20-step curve.
 ``unroll`` = m > 1 trains on m chained steps instead of one, as in heat2d.
 
-Presets: ``quick`` (tests; 465 unknowns, seconds) and ``paper``.
+Presets: ``quick`` (tests; 465 unknowns) and ``paper``, heat2d's settings on the cube
+(another mesh and time step); ``routes`` as in heat2d (the step matrix is SPD).
 
 Run ``python demos/heat3d.py compare --preset paper --routes cg/icc --out results/heat3d``.
 """
 
 from __future__ import annotations
 
-import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.lab.components.emulators import heat_emulator_scene
-from prdp_petsc.lab.training.routes import parse_routes
+from prdp_petsc.lab.components.emulators import heat_emulator_build
 
-# heat2d's settings on the cube: another mesh and time step (Δt κ/h² ≈ 0.7 on `paper`).
-# ``routes``, the KSP/PC pairs `compare` also runs (``--routes`` overrides them): the
-# step matrix is SPD, so CG with ICC or GAMG (K_full 8 and 5 on ``paper``, Jacobi's 84)
 PRESETS = {
     "quick": {
         "mesh": "box3d",
@@ -99,32 +90,7 @@ PRESETS = {
 
 
 def build(config: dict, seed: int) -> lab.Scene:
-    parse_routes(config["routes"])  # `compare` runs them; a malformed one fails here too
-    mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
-    return heat_emulator_scene(
-        mesh,
-        seed,
-        prefix="heat3d_",
-        dt=config["dt"],
-        net=config["net"],
-        modes=config["modes"],
-        width=config["width"],
-        depth=config["depth"],
-        warm_start=config["warm_start"],
-        spans=config["spans"],
-        n_train=config["n_train"],
-        n_val=config["n_val"],
-        val_steps=config["val_steps"],
-        rollout_steps=config["rollout_steps"],
-        unroll=config["unroll"],
-        epochs=config["epochs"],
-        batch=config["batch"],
-        lr=config["lr"],
-        gamma=config["gamma"],
-        k_init=config["k_init"],
-        k_step=config["k_step"],
-        info=config,
-    )
+    return heat_emulator_build(config, seed, prefix="heat3d_")
 
 
 if __name__ == "__main__":

@@ -16,9 +16,8 @@ because the Newton Jacobian ``M + Δt K(κ(u)) + Δt C(u)`` is not symmetric
 (whose operator ``M + Δt K(κ(u))`` is SPD, so CG would do) because it needs fewer
 outer steps, hence fewer assemblies, and the adjoint needs J either way.
 ``ksp_gmres_restart`` is 200, so K is the Krylov dimension.  Gradients are implicit:
-one transpose GMRES solve with J(u*) per sample.  Two Newton steps with K = 1, 2, 4, 8
-leave about 60, 35, 12 and 1 % of the exact step's increment; K_full (rtol 1e-6 on
-the first Newton system of a held-out step) is 36.
+one transpose GMRES solve with J(u*) per sample.  K_full is measured with rtol 1e-6 on
+the first Newton system of a held-out step.
 
 Learning problem (the paper's mixed chain, as heat1d and heat2d): a network N maps uⁿ
 to ûⁿ⁺¹, and the loss compares the capped Newton step ``Newton_K(ûⁿ⁺¹)`` with the
@@ -29,9 +28,8 @@ to `ModalNet`), here with GELU, since the step is nonlinear.  Validation metric:
 mean normalised error ``mean_t ‖ûₜ − uₜ‖/‖uₜ‖`` of a 10-step autoregressive rollout of
 N against the exact trajectories of held-out initial conditions (the harness also
 records a 20-step curve); the exact steps are Newton with a PETSc LU solve to ‖R‖ ≤
-1e-10 ‖R₀‖.  This small local network cannot emulate the implicit step closely (its
-rollout error stays near 0.4, that of the identity map is about 1), but K still shows:
-at K = 1 the error settles near 0.48, from K ≈ 4 on near 0.39.
+1e-10 ‖R₀‖.  This small local network cannot emulate the implicit step closely, but
+the capped K still shows in its error (the known limitations).
 
 Warm starts across epochs (``warm_start_epochs: True``; default False): each training
 sample's Newton loop starts from that sample's capped result of the last epoch
@@ -41,11 +39,10 @@ implicit one at the returned iterate either way (the start receives none).
 ``pc_lag: N`` (default 1) sets the Jacobian's PC up only at every N-th Jacobian
 (`prdp_petsc.KSPSolver`'s ``pc_lag``), for the ``gmres/gamg`` route's dear set-up.
 
-Presets: ``quick`` (tests; seconds) and ``paper`` (about 20 s per run on this
-project's 2-core machine).  At K_full the inner GMRES iterations take about a third
-of an epoch (R and J are assembled element by element, the MeshNet and the Newton
-loop's Python take the rest), so PRDP's ~90 % fewer inner iterations become ~30 %
-less wall time (README).
+Presets: ``quick`` (tests) and ``paper``.  R and J are assembled element by element,
+so the inner GMRES iterations are a smaller share of an epoch than in the linear
+scenes, and saved iterations save less wall time (results pages heat_nonlinear_speedup
+and heat_nonlinear_ablation).
 
 Run ``python demos/heat_nonlinear.py compare --preset paper --out results/heat_nonlinear``.
 """
@@ -67,8 +64,7 @@ from prdp_petsc.lab.training.routes import parse_routes
 from prdp_petsc.lab.training.scene import shuffled_batches
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
-# Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG:
-# K_full 13 and 6 on ``paper`` against GMRES + Jacobi's 36.
+# Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG.
 PRESETS = {
     "quick": {
         "mesh": "lshape",

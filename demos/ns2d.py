@@ -9,116 +9,76 @@ advection: one monolithic (u, v, p) system of 3N² unknowns per step (6 912 on t
 
 Solver in the loop: PETSc GMRES(8) without preconditioner (``ksp_gmres_restart 8``,
 ``pc_type none``), the constant-pressure null space attached, in fixed mode
-(rtol = atol = 0).  The schedule's K counts GMRES iterations and PRDP moves it in
-steps of 8 (``k_init = k_step = 8``): one PRDP step is one restart cycle, as in the
-reference (its "K" is ``max_it = 8K``).  The operator depends on the velocity
-through the Picard wind: A(θ) = A₀ + Gθ with θ = [a⁺; a⁻], so `prdp_petsc.solve`
-gives gradients with respect to the right-hand side *and* to the velocity that
-built the operator.  The adjoint (transpose) solve is a real one: by default it
-runs the same K iterations as the forward solve; ``adjoint_rtol`` gives it its own
-tolerance relative to its own right-hand side (the reference's JAX GMRES instead
-reuses the forward's absolute tolerance and runs zero adjoint iterations).
-Any PETSc solver is one option away: ``-ns2d_pc_type fieldsplit
--ns2d_pc_fieldsplit_detect_saddle_point -ns2d_pc_fieldsplit_type schur ...`` (a Schur
-complement PC on the velocity/pressure blocks; point PCs such as ILU or SOR fail on the
-zero pressure block) cuts K_full from ≈ 440 to ≈ 70 on 48².
+(rtol = atol = 0).  K counts GMRES iterations and PRDP moves it in steps of 8
+(``k_init = k_step = 8``): one PRDP step is one restart cycle, as in the reference
+(its "K" is ``max_it = 8K``).  The operator depends on the velocity through the
+Picard wind, A(θ) = A₀ + Gθ with θ = [a⁺; a⁻], so `prdp_petsc.solve` gives gradients
+with respect to the right-hand side *and* to the velocity that built the operator.
+The adjoint (transpose) solve runs the same K iterations as the forward solve;
+``adjoint_rtol`` gives it its own tolerance relative to its own right-hand side.  Any
+PETSc solver is one option away (``-ns2d_pc_type fieldsplit ...``); ``SCHUR`` is the
+fieldsplit Schur-complement route that ``compare --routes schur`` runs.
 
 Learning problem (solver-in-the-loop correction, as the reference): a
 `~prdp_petsc.lab.components.networks.ConvResNet` C (3 → 3 channels u, v, p; circular
-padding; 64 hidden channels, 3 blocks on `paper`; float32 inside) corrects the
-coarse step after every step, s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the
-MSE of both states of a 2-step unroll through solver and network against the
-reference, summed.  Training windows (s_t, s_t+1, s_t+2) start at every step of
-``n_train`` reference trajectories of ``train_steps`` steps (the reference starts
-all its windows at t = 0; later starts match the validation rollout's states
-better).  Reference data: the same scheme on a 2N × 2N grid (direct sparse solve)
-restricted to N × N by face averages (which keep the discrete divergence zero;
-the reference instead sub-samples a 97² grid).  Initial velocities: random
-smooth divergence-free fields from a stream function (spectrum ∝ exp(−0.12|k|²),
-velocity std 1), zero pressure.  Adam with cosine decay 1e-3 → 1e-4 per epoch.
+padding; ``hidden`` channels, ``blocks`` blocks; float32 inside) corrects the coarse
+step after every step, s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the MSE of the
+states of an ``unroll``-step rollout through solver and network against the
+reference, summed.  Training windows start every ``window_stride`` steps of
+``n_train`` reference trajectories of ``train_steps`` steps.  Reference data: the same
+scheme on a 2N × 2N grid (direct sparse solve) restricted to N × N by face averages
+(which keep the discrete divergence zero), built once per process and kept on disk
+(`reference_data`).  Initial velocities: random smooth divergence-free fields from a
+stream function (spectrum ∝ exp(−0.12|k|²), velocity std 1), zero pressure.  Adam
+with cosine decay ``lr`` → ``lr_final`` per epoch.
 
-Validation (what PRDP watches, τ_step 0.95): the 5-step rollout nMSE of the
-x-velocity on held-out samples, ‖û₅ − u₅‖²/‖u₅‖², with the solver at full
-fidelity (GMRES(8) to ``rtol_full``; the same cost in every run, counted in the
-wall time).  ``val_solver: "schur"`` (the ``large`` presets) validates with GMRES(30)
-and a fieldsplit Schur-complement PC (`SCHUR`) to the same ``rtol_full``: the same
-converged step (the two solutions agree to 5e-5 relative on a 64² flow) at about a
-third of the time, so validation stays a small, equal share of every run.  The
-harness also records the per-step normalised velocity error ‖(û, v̂) − (u, v)‖/‖(u, v)‖
-of a ``rollout_steps``-step rollout (≥ 20).
+Validation (what PRDP watches): the ``val_steps``-step rollout nMSE of the x-velocity
+on held-out flows, ‖û − u‖²/‖u‖², with the solver at full fidelity (the training
+solver to ``rtol_full``, or with ``val_solver: "schur"`` the Schur route to the same
+tolerance); ``val_metric: "rollout_mean"`` validates on the mean velocity error of that
+rollout instead.  The harness also records the per-step velocity error of a
+``rollout_steps``-step rollout with the corrector (``rollout``) and without it
+(``uncorrected_rollout``).
 
-Warm starts across epochs (``warm_start_epochs: True``; default False): every
-training solve starts from that window's solution of the same unroll step in the last
-epoch (`prdp_petsc.autograd.WarmStarts`, keyed by step and window) instead of from
-zero, so the capped GMRES continues where the last epoch's stopped; validation
-solves (to ``rtol_full``) and K_full's probe still start from zero.
+Settings beyond the sizes:
 
-Preconditioner reuse (``pc_lag: N``; default 1): the training solver sets its PC up
-only at every N-th operator change (`prdp_petsc.KSPSolver`'s ``pc_lag``, with its
-quality guard); the validation solver always sets up its own.  An epoch's record then
-counts its ``pc_setups``.  Measured on ``large_k64`` with the ``schur`` route it does
-not pay: the operator changes with every state the corrector meets, so the guard sets
-the PC up again after nearly every reuse and the stale solves lose accuracy at the
-same K (the ns2d ablation page).
+* ``solver_grad: False`` detaches the solver from the graph (the reference's effective
+  gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
+  times the velocity std) instead of unrolling.
+* ``unroll: m``, ``checkpoint``, ``unroll_curriculum: E`` (`prdp_petsc.lab.training.unroll`):
+  m-step rollouts of the hybrid, the network's activations recomputed in the backward
+  pass, m doubled from 1 every E epochs.
+* ``correction: "indirect"`` feeds the network's output into the implicit step as a
+  momentum forcing, s ↦ P_K(s; f = C(s)) with C: 3 → 2 channels (the Indirect Neural
+  Corrector).
+* ``train_solver: "schur"`` trains with the Schur route (K counts its iterations).
+* ``warm_start_epochs: True`` starts every training solve from that window's solution
+  of the last epoch (`prdp_petsc.autograd.WarmStarts`); ``pc_lag: N`` sets the training
+  solver's PC up only at every N-th operator (`prdp_petsc.KSPSolver`'s ``pc_lag``).
+* ``routes``: the KSP/PC routes ``compare`` also runs (names in ``ROUTES``).
 
-Variants (config keys): ``solver_grad: False`` detaches the solver from the graph
-(the second step's solve sees a constant input: the reference's effective
-gradient); ``noise: σ`` trains one step at a time from noisy inputs (Gaussian, σ
-times the velocity std) instead of unrolling — presets ``paper_detached`` and
-``paper_noise`` (``quick_…`` likewise).  ``paper_k64`` and ``large_k64`` start PRDP at
-K = 64 (8 restart cycles; ``large_k64`` also refines by 64) instead of one cycle;
-``paper_k64`` trained 48 epochs (``--epochs 48``) reaches full fidelity's validation
-error (README).  ``large_k192`` starts and refines by 192 (24 restart cycles; 24
-iterations on the ``schur`` route, whose K_full is about 80): the time-to-accuracy
-setting.  With ``large_k64``'s steps of 64 (8 on the Schur route) PRDP on that route
-climbed too slowly to reach full-fidelity accuracy within 16 epochs on 4 of 6 seeds;
-with 192 it reaches it on every seed (the ``ns2d_large_k192_speedup`` results page).
+Presets: ``quick`` (12², tests), ``paper`` (48², the reference network and batch, 25
+training windows and 24 epochs instead of the reference's 200 samples and 100
+epochs), ``large`` (64², a small network, validated on the Schur route: the solve
+dominates the training step), ``long`` (32², 32-step unrolls on 50-step trajectories,
+Schur training and validation on the mean error of a 50-step rollout) and its
+baselines ``long_nograd`` and ``long_noise``; ``long_quick`` (tests).  Variants:
+``{quick,paper}_detached`` and ``{quick,paper}_noise``; ``paper_k64`` and
+``large_k64`` start PRDP at 8 restart cycles, ``large_k192`` starts and refines by
+192 iterations (24 on the Schur route).  Why the presets are set as they are: the
+scenes guide (ns2d); what they measure: the ns2d results pages.
 
-Long horizons (`prdp_petsc.lab.training.unroll`): ``unroll: m`` trains on m-step rollouts
-of the hybrid (windows of m + 1 reference states starting every ``window_stride``
-steps), ``checkpoint: True`` recomputes the network's activations in the backward pass
-instead of keeping them (the solves are not rerun), ``unroll_curriculum: E`` doubles m
-from 1 every E epochs.  ``correction: "indirect"`` feeds the network's output into the
-implicit step as a momentum forcing, s ↦ P_K(s; f = C(s)) with C: 3 → 2 channels and
-f/Δt added to the momentum rows of the right-hand side (the Indirect Neural Corrector),
-instead of adding it to the solver's output.  ``train_solver: "schur"`` trains with
-GMRES(30) and the Schur-complement PC (`SCHUR`; K counts its iterations).
-``val_metric: "rollout_mean"`` validates on the mean velocity error of the
-``val_steps``-step rollout instead of the final x-velocity nMSE.  Every run records
-``uncorrected_rollout``, the same held-out rollout with the solver alone.
-
-Presets: ``quick`` (12², seconds, tests), ``paper`` (48², the reference network
-and batch; 5 trajectories × 5 windows = 25 training samples, one batch per epoch,
-instead of 200 samples, and 24 epochs instead of 100, to fit this 2-core machine),
-``large`` (64², 12 288 unknowns per sample, 4 trajectories × 2 windows, two
-validation flows, a small network: the solve dominates the training step).
-``long`` (32², 12 trajectories of 50 steps, m = 32 from every 8th step, Schur
-training and validation, validation on the mean error of a 50-step rollout of two
-held-out flows, PRDP from K = 8 in steps of 4), with the baselines on the same data,
-network and epochs:
-``long_nograd`` (m = 32 without solver gradients) and ``long_noise`` (one step at a
-time from noisy inputs, every start); ``long_quick`` (12², tests).
-On ``paper``, ``large`` and ``long`` the reference data take minutes (direct solves on the
-2N grid); they are cached per process and on disk (`reference_data`), so ``compare``
-and later runs build them once.
-
-Run ``python demos/ns2d.py compare --preset paper --out results/ns2d``;
-``python demos/ns2d.py adjoint --preset paper --k 8 64 256`` (or ``prdp-petsc scene
-demos/ns2d.py adjoint ...``) prints the adjoint figures (cost per step, gradient against
-the converged and the detached one).
+Run ``prdp-petsc compare demos/ns2d.py --preset paper --out results/ns2d``;
+``prdp-petsc scene demos/ns2d.py adjoint --preset paper --k 8 64 256`` prints the cost
+and effect of the capped adjoint, ``... energy RUN_FOLDER`` a trained run's rollout
+error, energy and correlation (`prdp_petsc.lab.reports.ns2d`).
 """
 
 from __future__ import annotations
 
-import argparse
 import functools
-import hashlib
-import json
 import math
-import os
 import sys
-from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -128,9 +88,11 @@ from prdp_petsc import lab
 from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.networks import ConvResNet
+from prdp_petsc.lab.reports import ns2d as ns2d_reports
 from prdp_petsc.lab.training import unroll
+from prdp_petsc.lab.training.cache import disk_cached
 from prdp_petsc.lab.training.routes import parse_routes, route_string
-from prdp_petsc.lab.training.scene import preset_config, shuffled_batches
+from prdp_petsc.lab.training.scene import shuffled_batches
 from prdp_petsc.lab.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
 
 _BASE = {
@@ -158,11 +120,7 @@ _BASE = {
     "warm_start_epochs": False,
     "pc_lag": 1,
     # the KSP/PC pairs `compare` also runs (``--routes`` overrides them): none here;
-    # ``paper`` and ``large`` run ``schur`` (`ROUTES`).  The operator is not symmetric
-    # (CG, ICC refused) and has a zero pressure block: ILU fails on it, Jacobi stalls
-    # (GMRES) or diverges (BiCGStab), and the unpreconditioned alternatives are no
-    # faster (K_full on ``paper``: BiCGStab 744, TFQMR 397, GMRES(8) 436).  The route
-    # that pays is the fieldsplit Schur-complement PC (`SCHUR`).
+    # ``paper`` and ``large`` run ``schur`` (`ROUTES`; the scenes guide says why)
     "routes": "",
 }
 
@@ -231,8 +189,7 @@ PRESETS["long"] = {
     "hidden": 24,
     "blocks": 2,
     "epochs": 20,
-    # PRDP from K = 8 in steps of 4 (K_full ≈ 35): from K = 2 the corrector first learns
-    # to fix a far-from-converged step and ends less accurate (docs/results)
+    # PRDP from K = 8 in steps of 4 (the scenes guide says why not from K = 2)
     "k_init": 8,
     "k_step": 4,
     "compare_ks": [],
@@ -259,8 +216,8 @@ PRESETS["paper_detached"] = {**PRESETS["paper"], "solver_grad": False}
 PRESETS["paper_noise"] = {**PRESETS["paper"], "unroll": 1, "noise": 0.05}
 
 GMRES = {"ksp_type": "gmres", "ksp_gmres_restart": 8, "pc_type": "none"}
-# the validation solver of ``val_solver: "schur"``: GMRES with the velocity–pressure Schur
-# complement PC, ILU(0) on both blocks (per rank under MPI); ≈ 9× fewer iterations on 64²
+# the Schur route (``val_solver``/``train_solver: "schur"``, ``--routes schur``): GMRES with
+# the velocity–pressure Schur complement PC, ILU(0) on both blocks (per rank under MPI)
 SCHUR = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 30,
@@ -289,27 +246,17 @@ CHOICES = {
 def reference_data(n: int, count: int, steps: int, dt: float, nu: float, seed: int):
     """Reference trajectories (steps + 1, count, 3n²): the 2n² simulation restricted.
 
-    Cached in memory per process, and on disk in ``$PRDP_PETSC_CACHE`` (default
-    ``~/.cache/prdp_petsc``) under a name made of all the arguments and a hash of
-    the scheme's source (`prdp_petsc.lab.components.mac`), so that the runs of a comparison
-    build them once and a changed scheme never reads old data;
-    ``PRDP_PETSC_CACHE=""`` turns the disk cache off.
+    Cached in memory per process and on disk (`prdp_petsc.lab.training.cache.disk_cached`,
+    keyed by the arguments and the source of `prdp_petsc.lab.components.mac`).
     """
-    folder = os.environ.get("PRDP_PETSC_CACHE", str(Path.home() / ".cache" / "prdp_petsc"))
-    scheme = hashlib.sha1(Path(mac.__file__).read_bytes()).hexdigest()[:12]
-    name = f"ns2d_{scheme}_n{n}_count{count}_steps{steps}_dt{dt!r}_nu{nu!r}_seed{seed}.npy"
-    cached = Path(folder) / name if folder else None
-    if cached is not None and cached.exists():
-        return torch.from_numpy(np.load(cached))
-    rng = np.random.default_rng(seed)
-    fine = mac.simulate(mac.random_states(2 * n, count, rng), 2 * n, dt, nu, steps)
-    coarse = mac.restrict(fine, 2 * n)
-    if cached is not None:
-        cached.parent.mkdir(parents=True, exist_ok=True)
-        partial = cached.with_suffix(f".{os.getpid()}.tmp.npy")
-        np.save(partial, coarse)
-        partial.replace(cached)  # atomic: a concurrent run reads a whole file or none
-    return torch.from_numpy(coarse)
+
+    def compute():
+        rng = np.random.default_rng(seed)
+        fine = mac.simulate(mac.random_states(2 * n, count, rng), 2 * n, dt, nu, steps)
+        return mac.restrict(fine, 2 * n)
+
+    key = f"n{n}_count{count}_steps{steps}_dt{dt!r}_nu{nu!r}_seed{seed}"
+    return torch.from_numpy(disk_cached("ns2d", key, compute, sources=[mac.__file__]))
 
 
 class Corrector:
@@ -547,199 +494,8 @@ def build(config: dict, seed: int) -> lab.Scene:
     )
 
 
-def adjoint_report(preset: str, ks=(8, 64), *, seed: int = 0, warmup: int = 4) -> dict:
-    """What the physics gradient costs and changes, on one training batch of `preset`.
-
-    The corrector is first trained for `warmup` batches (K = 64, so that every layer
-    has a gradient: the untrained projection is zero).  Then, on the first of those
-    batches again, the 2-step loss is differentiated with the solver at each K of
-    `ks` (forward and adjoint K iterations), converged (forward and adjoint to rtol
-    1e-8, the adjoint relative to its own right-hand side), and converged but
-    detached (no physics gradient, what the reference effectively trains with).
-
-    Returns
-    -------
-    dict
-        Per case: forward and adjoint iterations and seconds, the adjoint/forward
-        time ratio, and the relative distance of the network gradient from the
-        converged one (``rel_to_converged``) and from the detached one
-        (``rel_to_detached``), and the cosine with the converged one.
-    """
-    torch.manual_seed(seed)
-    config = preset_config(sys.modules[__name__], preset)  # "paper n=32": a preset, changed
-    parts = setup(config, seed)
-    train, solver, hybrid = parts["train"], parts["solver"], parts["hybrid"]
-    params = list(hybrid.net.parameters())
-    optimizer = torch.optim.Adam(params, lr=config["lr"])
-    order = torch.randperm(train.shape[1], generator=torch.Generator().manual_seed(seed))
-    batch = config["batch"]
-    solver.max_it = 64
-    for i in range(warmup):
-        idx = order[(i * batch) % len(order) :][:batch]
-        optimizer.zero_grad()
-        hybrid_loss(hybrid, solver, train[:, idx]).backward()
-        optimizer.step()
-    windows = train[:, order[:batch]]
-    converged = solver.clone(
-        max_it=100_000, rtol=1e-8, adjoint=pp.AdjointSettings(rtol=1e-8, max_it=100_000)
-    )
-    cases = [(f"K={k}", solver, k, True) for k in ks]
-    cases += [("converged", converged, None, True), ("detached", converged, None, False)]
-    grads, rows = {}, {}
-    solver.max_it = ks[0]  # first-call costs (options, transpose set-up) outside the timings
-    torch.autograd.grad(hybrid_loss(hybrid, solver, windows[:, :1]), params)
-    for name, s, k, grad in cases:
-        if k is not None:
-            s.max_it = k
-        s.reset_stats()
-        loss = hybrid_loss(hybrid, s, windows, solver_grad=grad)
-        g = torch.autograd.grad(loss, params)
-        grads[name] = torch.cat([x.flatten() for x in g]).double()
-        st = s.stats
-        rows[name] = {
-            "fwd_iterations": st.forward_iterations,
-            "adj_iterations": st.adjoint_iterations,
-            "fwd_seconds": st.forward_time,
-            "adj_seconds": st.adjoint_time,
-            "adj_over_fwd_time": st.adjoint_time / st.forward_time,
-            "loss": float(loss.detach()),
-        }
-    ref, det = grads["converged"], grads["detached"]
-    for name, g in grads.items():
-        rows[name]["rel_to_converged"] = float((g - ref).norm() / ref.norm())
-        rows[name]["rel_to_detached"] = float((g - det).norm() / det.norm())
-        rows[name]["cosine_to_converged"] = float(g @ ref / (g.norm() * ref.norm()))
-    converged.destroy()
-    return {"preset": preset, "batch": int(windows.shape[1]), "warmup": warmup, "cases": rows}
-
-
-def format_adjoint_report(report: dict) -> str:
-    """The `adjoint_report` as a table."""
-    head = (
-        f"{'case':<10} {'fwd its':>8} {'adj its':>8} {'fwd s':>7} {'adj s':>7} "
-        f"{'adj/fwd':>7} {'|g-g_conv|':>10} {'|g-g_det|':>9} {'cos':>6}"
-    )
-    lines = [f"preset {report['preset']}, batch {report['batch']}", head]
-    for name, r in report["cases"].items():
-        lines.append(
-            f"{name:<10} {r['fwd_iterations']:>8} {r['adj_iterations']:>8} "
-            f"{r['fwd_seconds']:>7.2f} {r['adj_seconds']:>7.2f} {r['adj_over_fwd_time']:>7.2f} "
-            f"{r['rel_to_converged']:>10.3e} {r['rel_to_detached']:>9.3e} "
-            f"{r['cosine_to_converged']:>6.3f}"
-        )
-    return "\n".join(lines)
-
-
-def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    """Print the adjoint figures of one training batch (`adjoint_report`), on one thread."""
-    parser.add_argument("--preset", default="quick", help="preset (default quick)")
-    parser.add_argument(
-        "--k",
-        type=int,
-        nargs="+",
-        default=[8, 64],
-        metavar="K",
-        help="the capped Ks (GMRES iterations) to differentiate with (default 8 64)",
-    )
-
-    def run(args: argparse.Namespace) -> int:
-        if min(args.k) < 1:
-            parser.error(f"--k: every K must be >= 1, got {args.k}")
-        torch.set_num_threads(1)
-        print(format_adjoint_report(adjoint_report(args.preset, tuple(args.k))))
-        return 0
-
-    return run
-
-
-def energy_report(folder: str, steps: int | None = None) -> dict:
-    """Error, energy and correlation per step of a trained run's held-out rollout.
-
-    Loads the run in `folder` (`prdp_petsc.lab.training.harness.load_trained`), rebuilds
-    its validation flows and rolls them out with the full-fidelity solver, with and
-    without the corrector.  Per step t and flow: the normalised velocity error, the
-    energy ratio ‖(û, v̂)‖/‖(u, v)‖ against the reference, and the correlation
-    ⟨(û, v̂), (u, v)⟩/(‖(û, v̂)‖‖(u, v)‖), averaged over the flows.  The error
-    mixes amplitude (energy) and phase (correlation): a diffusive solver loses energy
-    but stays in phase; a corrector that restores energy can lose phase faster.
-    """
-    from prdp_petsc.lab.training.harness import load_trained, release
-
-    module = sys.modules[__name__]
-    scene = load_trained(folder, module=module)
-    record = json.loads((Path(folder) / "results.json").read_text())
-    config, seed = record["config"], record["seed"]
-    parts = setup(config, seed)
-    trained = [p for group in scene.optimizer.param_groups for p in group["params"]]
-    with torch.no_grad():
-        for p, q in zip(parts["hybrid"].net.parameters(), trained, strict=True):
-            p.copy_(q)
-    release(scene)
-    hybrid, full, val = parts["hybrid"], parts["full"], parts["val"]
-    steps = steps or config["rollout_steps"]
-    count = val.shape[1]
-
-    def curves(step) -> dict:
-        rows, s = [], val[0]
-        with torch.no_grad():
-            for t in range(steps):
-                s = step(s)
-                pred = s.reshape(count, 3, -1)[:, :2].flatten(1)
-                ref = val[t + 1].reshape(count, 3, -1)[:, :2].flatten(1)
-                norms = pred.norm(dim=1), ref.norm(dim=1)
-                rows.append(
-                    [
-                        float(((pred - ref).norm(dim=1) / norms[1]).mean()),
-                        float((norms[0] / norms[1]).mean()),
-                        float(((pred * ref).sum(1) / (norms[0] * norms[1])).mean()),
-                    ]
-                )
-        columns = [list(column) for column in zip(*rows, strict=True)]
-        return dict(zip(("error", "energy", "correlation"), columns, strict=True))
-
-    out = {
-        "folder": str(folder),
-        "corrected": curves(lambda s: hybrid(s, full)),
-        "uncorrected": curves(lambda s: hybrid.solve(s, full)),
-    }
-    for solver in (parts["solver"], full):
-        solver.destroy()
-    return out
-
-
-def format_energy_report(report: dict, marks=(1, 10, 20, 30, 40, 50)) -> str:
-    """`energy_report` at a few steps, as a table."""
-    c, u = report["corrected"], report["uncorrected"]
-    lines = [
-        report["folder"],
-        f"{'step':>4} {'error':>7} {'(none)':>7} {'energy':>7} {'(none)':>7} "
-        f"{'corr':>7} {'(none)':>7}",
-    ]
-    for t in (m for m in marks if m <= len(c["error"])):
-        i = t - 1
-        lines.append(
-            f"{t:>4} {c['error'][i]:>7.3f} {u['error'][i]:>7.3f} {c['energy'][i]:>7.3f} "
-            f"{u['energy'][i]:>7.3f} {c['correlation'][i]:>7.3f} {u['correlation'][i]:>7.3f}"
-        )
-    return "\n".join(lines)
-
-
-def energy_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    """Error, energy and correlation of a trained run's rollout, with and without the
-    corrector (`energy_report`)."""
-    parser.add_argument("folders", nargs="+", help="run folders (a compare run's out/<schedule>)")
-    parser.add_argument("--steps", type=int, help="rollout steps (default: the run's)")
-
-    def run(args: argparse.Namespace) -> int:
-        torch.set_num_threads(1)
-        for folder in args.folders:
-            print(format_energy_report(energy_report(folder, args.steps)))
-        return 0
-
-    return run
-
-
-COMMANDS = {"adjoint": adjoint_command, "energy": energy_command}
+# the scene's report commands: ``prdp-petsc scene demos/ns2d.py adjoint|energy ...``
+COMMANDS = ns2d_reports.commands(sys.modules[__name__])
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ Inverse problem: Adam on θ (no network) minimises
 mesh's element adjacency (elements sharing an edge, from ``mesh.f2t``), a small
 smoothness regulariser.  One "batch" per epoch, several Adam steps in it.  Validation
 metric: the element-area weighted relative L2 error of the recovered κ against the
-true κ; it starts at about 0.6 (κ = 1 everywhere).
+true κ.
 
 Solver in the loop: CG + Jacobi (``-pf_ksp_type``/``-pf_pc_type``) in fixed mode,
 K = ``max_it`` iterations from zero, implicit (adjoint) gradients.  A truncated solve
@@ -29,33 +29,12 @@ Run ``python demos/poisson_field.py compare --preset paper --routes cg/gamg --ou
 ``python demos/poisson_field.py plot --preset paper --out fields.png`` (or ``prdp-petsc
 scene demos/poisson_field.py plot ...``) draws true against recovered κ.
 ``config["mode"]`` picks implicit (PETSc adjoint) or unrolled (the CG iteration in
-torch) gradients.
-
-Measured (paper preset, seed 0, one thread, the harness's ``run`` for each; K_full =
-188 for CG + Jacobi, 7 for CG + GAMG; PRDP capped at K_full; "reached" = the epoch
-from which the κ error stays within 5 % of the implicit CG + Jacobi full-fidelity
-error, 0.272):
-
-=====================  ========  =======  ===========  =======  ========
-run                    κ error   wall     inner its    K final  reached
-=====================  ========  =======  ===========  =======  ========
-PRDP implicit Jacobi   0.2720    5.89 s   90 800       140      3.72 s
-K_full implicit Jacobi 0.2723    8.35 s   150 400      188      5.47 s
-PRDP unrolled Jacobi   0.2856    56.3 s   95 600       180      56.3 s
-K_full unrolled Jacobi 0.2723    86.2 s   150 400      188      56.0 s
-PRDP implicit GAMG     0.2719    4.97 s   3 600        6        3.11 s
-K_full implicit GAMG   0.2723    5.62 s   5 600        7        3.68 s
-=====================  ========  =======  ===========  =======  ========
-
-PRDP on CG + GAMG reaches the recovery error first (3.1 s); implicit gradients are
-10-15x faster than unrolled ones at the same K (unrolled pays torch's per-iteration
-cost and keeps every iterate for the backward).
+torch) gradients (the bridge benchmark compares their cost).
 """
 
 from __future__ import annotations
 
-import argparse
-from collections.abc import Callable
+import sys
 
 import numpy as np
 import scipy.sparse as sp
@@ -64,6 +43,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.lab.reports import poisson_field as field_reports
 
 PRESETS = {
     "quick": {
@@ -202,75 +182,8 @@ def build(config: dict, seed: int) -> lab.Scene:
     )
 
 
-def recover(preset: str = "quick", schedule: str = "prdp", seed: int = 0) -> np.ndarray:
-    """Train once with `prdp_petsc.lab.training.harness.run`; return the recovered θ = log κ."""
-    import types
-
-    from prdp_petsc.lab.training.harness import run
-
-    scenes = []
-
-    def build_and_keep(config, seed):
-        scenes.append(build(config, seed))
-        return scenes[-1]
-
-    module = types.SimpleNamespace(PRESETS=PRESETS, build=build_and_keep)
-    run(__file__, schedule, preset=preset, seed=seed, progress=False, module=module)
-    return scenes[-1].optimizer.param_groups[0]["params"][0].detach().numpy().copy()
-
-
-def plot_fields(theta, out_png) -> None:
-    """Draw the true and the recovered κ = exp(θ) per element side by side (tripcolor).
-
-    The mesh is the L-shape at the refinement whose element count matches ``len(theta)``.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.tri import Triangulation
-
-    theta = np.asarray(theta, dtype=np.float64)
-    refine = next((r for r in range(4) if 2808 * 4**r == len(theta)), None)
-    if refine is None:
-        raise ValueError(f"theta has {len(theta)} entries; no L-shape preset mesh has as many")
-    mesh = pp.load_mesh("lshape", refine=refine)
-    tri = Triangulation(mesh.p[0], mesh.p[1], mesh.t.T)
-    kappa_true = true_kappa(mesh.p[:, mesh.t].mean(axis=1))
-    kappa = np.exp(theta)
-    e1 = mesh.p[:, mesh.t[1]] - mesh.p[:, mesh.t[0]]
-    e2 = mesh.p[:, mesh.t[2]] - mesh.p[:, mesh.t[0]]
-    area = np.abs(e1[0] * e2[1] - e1[1] * e2[0])  # the validation metric's weights
-    error = np.sqrt(np.sum(area * (kappa - kappa_true) ** 2) / np.sum(area * kappa_true**2))
-    vmin, vmax = min(kappa_true.min(), kappa.min()), max(kappa_true.max(), kappa.max())
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), constrained_layout=True)
-    for ax, values, title in (
-        (axes[0], kappa_true, "true κ"),
-        (axes[1], kappa, f"recovered κ (relative L2 error {error:.2f})"),
-    ):
-        image = ax.tripcolor(tri, facecolors=values, vmin=vmin, vmax=vmax, cmap="viridis")
-        ax.set_aspect("equal")
-        ax.set_title(title)
-    fig.colorbar(image, ax=axes, shrink=0.9, label="κ")
-    fig.savefig(out_png, dpi=120)
-    plt.close(fig)
-
-
-def plot_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    """Recover κ with PRDP on a preset and draw it against the true κ (`plot_fields`)."""
-    parser.add_argument("--preset", default="quick", help="preset (default quick)")
-    parser.add_argument(
-        "--out", default="poisson_field.png", help="the PNG to write (default poisson_field.png)"
-    )
-
-    def run(args: argparse.Namespace) -> int:
-        plot_fields(recover(args.preset), args.out)
-        return 0
-
-    return run
-
-
-COMMANDS = {"plot": plot_command}
+# ``prdp-petsc scene demos/poisson_field.py plot ...``: true against recovered κ
+COMMANDS = field_reports.commands(sys.modules[__name__])
 
 
 if __name__ == "__main__":

@@ -13,9 +13,7 @@ smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``:
 `prdp_petsc.lab.components.emulators.gaussian_bumps`).  f is a learnable sparse linear map
 on A's pattern (`SparseLinear`, one value per entry, starting at zero; input divided
 and output multiplied by fixed data scales): the class of the inverse physics
-``M⁻¹ A`` it has to learn, up to mass lumping.  (A linear MeshNet was tried first and
-barely trained in a few epochs.)  ``method`` selects the
-training rule:
+``M⁻¹ A`` it has to learn, up to mass lumping.  ``method`` selects the training rule:
 
 ``dp_adam``
     loss ½‖P_K(f(y*)) − y*‖² / s_y², gradient through the implicit adjoint (one
@@ -33,9 +31,10 @@ training rule:
     something to decide.
 
 Validation metric (what PRDP watches): the x-space error ``‖f(y*) − x_true‖/‖x_true‖``
-averaged over the validation samples.  After training, ``Scene.rollout`` returns the
-y-space error ``‖P(f(y*)) − y*‖/‖y*‖`` per validation sample (P solved exactly by
-splu) and writes both means into ``Scene.info["final"]``.
+averaged over the validation samples (why x and not y: the scenes guide).  After
+training, ``Scene.rollout`` returns the y-space error ``‖P(f(y*)) − y*‖/‖y*‖`` per
+validation sample (P solved exactly by splu) and writes both means into
+``Scene.info["final"]``.
 
 Solver in the loop: CG + Jacobi (prefix ``sip_``: ``-sip_ksp_type``,
 ``-sip_pc_type``), K = ``max_it`` iterations from zero (rtol = atol = 0); PRDP raises K
@@ -45,30 +44,6 @@ Presets: ``quick`` (DP + Adam, κ = 1; tests), ``paper`` (DP + Adam, κ contrast
 one per method and conditioning: ``quick_{dp_sgd,sip}``, ``contrast_{dp_adam,dp_sgd,sip}``.
 
 Run ``python demos/poisson_sip.py run --preset contrast_sip``.
-
-Measured (``contrast_*`` presets, 30 epochs × 8 steps of batch 8, seed 0, one thread,
-2-core shared machine; K_full = 112 for rtol 1e-6; ``harness.run(scene, "prdp" |
-"fixed:112", preset="contrast_<method>", progress=False)``; x/y errors are the final
-validation means, "it/step" forward (+ adjoint) CG iterations per optimiser step, i.e.
-8 solves of each kind per step; SIP also does 8 splu mass solves, no adjoint):
-
-==========  =========  ======  ======  ======  ==========  =======
-method      schedule   x err   y err   wall    K final     it/step
-==========  =========  ======  ======  ======  ==========  =======
-DP + Adam   PRDP       1.728   0.216   2.96 s  90          482+483
-DP + Adam   K_full     0.559   0.199   4.88 s  112         892+896
-DP + SGD    PRDP       0.672   0.311   1.81 s  40          258+259
-DP + SGD    K_full     0.633   0.217   4.78 s  112         892+896
-SIP + Adam  PRDP       0.582   0.303   1.16 s  30          205+0
-SIP + Adam  K_full     0.468   0.204   2.79 s  112         892+0
-==========  =========  ======  ======  ======  ==========  =======
-
-SIP is the most accurate in x and the cheapest per step (no adjoint solve; PRDP stops
-at K = 30).  DP + SGD barely moves from the zero network's x error (1.0 → 0.63): the
-ill-conditioned gradient.  DP + Adam is accurate only with converged solves; under PRDP
-its x error climbs above 3 while K is small (it fits the truncated P_K) and is still
-1.7 when K reaches 90.  The y errors are all 0.2–0.3: x components that P damps are
-invisible in y, which is why the x-space metric separates the methods.
 """
 
 from __future__ import annotations

@@ -54,10 +54,8 @@ to record it for the results page.  Things to try: ``--set e_min=1e-6``,
 
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -68,6 +66,7 @@ from scipy.spatial import cKDTree
 import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.lab.components.emulators import torch_sparse
+from prdp_petsc.lab.reports import topopt as topopt_reports
 
 #: the settings every preset shares: SIMP p = 3, E_min = 1e-9 E_0, 30 % volume, a filter
 #: of 1.5 element widths, OC's move limit 0.2, fixed-K solves (rtol 0)
@@ -271,151 +270,9 @@ def build(config: dict, seed: int) -> lab.Scene:
     return scene
 
 
-# -- results: schedules against converged solves, per load case ---------------------------------
-def optimise(preset: str, schedule: str, seed: int) -> tuple[dict, lab.Scene]:
-    """One optimisation with `prdp_petsc.lab.training.harness.run`; its record and scene."""
-    import types
-
-    from prdp_petsc.lab.training.harness import run
-
-    scenes = []
-
-    def build_and_keep(config, seed):
-        scenes.append(build(config, seed))
-        return scenes[-1]
-
-    module = types.SimpleNamespace(PRESETS=PRESETS, build=build_and_keep)
-    return run(__file__, schedule, preset=preset, seed=seed, progress=False, module=module), scenes[
-        -1
-    ]
-
-
-def scored(scene: lab.Scene, config: dict) -> list[float]:
-    """The compliance of every recorded design, solved to rtol 1e-10 (CG + GAMG)."""
-    problem = scene.problem
-    with problem.solver(10_000, rtol=1e-10, prefix="to_score_") as solver:
-        return [
-            problem.compliance(
-                simp(
-                    torch.from_numpy(rho.astype(np.float64)), config["penal"], config["e_min"]
-                ).numpy(),
-                solver,
-            )  # fmt: skip
-            for rho in scene.designs
-        ]
-
-
-#: the schedules of `results`: label -> (schedule, preset changes)
-def routes(ks: list[int]) -> dict:
-    out = {"converged": ("fixed:10000", "rtol=1e-8")}
-    out.update({f"K={k}": (f"fixed:{k}", "") for k in ks})
-    out["PRDP (auto)"] = ("auto", "")
-    # the rtol schedule's tolerance is tested on the true residual: in GAMG's preconditioned
-    # norm on SIMP contrast, rtol 0.1 "converges" with an iterate worse than zero, which
-    # the solver refuses (FALSE_CONVERGENCE)
-    out["rtol"] = ("rtol", "norm=unpreconditioned")
-    return out
-
-
-def results(preset: str, seeds, ks) -> dict:
-    """Per load case: every route of `routes`, its final compliance (scored with a
-    converged solve), inner iterations, wall time, and the time at which its design
-    first came within 1 % of the converged route's final compliance."""
-    from prdp_petsc.lab.training.harness import torch_threads
-
-    cases = []
-    for seed in seeds:
-        rows = {}
-        for label, (schedule, changes) in routes(ks).items():
-            with torch_threads(1):
-                record, scene = optimise(f"{preset} {changes}".strip(), schedule, seed)
-            if record["stopped"] is not None:
-                rows[label] = {"schedule": schedule, "stopped": record["stopped"]}
-                continue
-            compliances = scored(scene, record["config"])
-            epochs = record["epochs"]
-            rows[label] = {
-                "schedule": schedule,
-                "preset": f"{preset} {changes}".strip(),
-                "compliance": compliances[-1],
-                "compliances": compliances,
-                "volume": float(scene.designs[-1].mean()),
-                "iterations": record["totals"]["fwd_iterations"]
-                + record["totals"]["adj_iterations"],
-                "wall_time": record["totals"]["wall_time"],
-                "solver_time": record["totals"]["solver_time"],
-                "cumulative_wall": np.cumsum([e["wall_time"] for e in epochs]).tolist(),
-                "ks": [e["k"] for e in epochs],
-                "k_full": (record.get("prdp") or {}).get("k_full"),
-                "certificate": record.get("certificate"),
-                "design": scene.designs[-1].tolist(),
-            }
-        target = rows["converged"]["compliance"]
-        for row in rows.values():
-            if "compliance" not in row:
-                continue
-            row["ratio"] = row["compliance"] / target
-            within = [i for i, c in enumerate(row["compliances"]) if c <= 1.01 * target]
-            row["time_to_1pct"] = row["cumulative_wall"][within[0]] if within else None
-            row["saved"] = 1.0 - row["iterations"] / rows["converged"]["iterations"]
-        cases.append({"seed": seed, "load_height": load_case(seed), "routes": rows})
-    config = dict(PRESETS[preset.split()[0]])
-    return {"scene": "topopt3d", "preset": preset, "config": config, "ks": list(ks),
-            "cases": cases}  # fmt: skip
-
-
-def plot_designs(data: dict, out_png, labels=("converged", "PRDP (auto)")) -> None:
-    """The density on the mid-plane y = ½ of every load case, for `labels` side by side."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = data["config"]["n"]
-    cases = data["cases"]
-    fig, axes = plt.subplots(len(cases), len(labels), figsize=(4.2 * len(labels), 2.4 * len(cases)),
-                             squeeze=False, constrained_layout=True)  # fmt: skip
-    problem = Cantilever((2 * n, n, n))
-    ix, iy, iz = np.floor(problem.centroids * n).astype(int)
-    mid = iy == n // 2
-    for row, case in zip(axes, cases, strict=True):
-        for ax, label in zip(row, labels, strict=True):
-            route = case["routes"][label]
-            image = np.zeros((n, 2 * n))
-            image[iz[mid], ix[mid]] = np.asarray(route["design"])[mid]
-            ax.imshow(image, origin="lower", cmap="gray_r", vmin=0, vmax=1, extent=(0, 2, 0, 1))
-            ax.set_title(f"z_c = {case['load_height']}: {label}, C = {route['compliance']:.4g}",
-                         fontsize=9)  # fmt: skip
-            ax.set_xlabel("x")
-            ax.set_ylabel("z")
-    fig.savefig(out_png, dpi=110)
-    plt.close(fig)
-
-
-def results_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    """Converged solves, constant K, PRDP (auto) and rtol on three load cases."""
-    parser.add_argument("--preset", default="quick", help="preset (default quick)")
-    parser.add_argument("--seeds", default="0,1,2", help="load cases (default 0,1,2)")
-    parser.add_argument("--ks", default="2,4,8", help="constant Ks (default 2,4,8)")
-    parser.add_argument("--out", required=True, help="folder for topopt.json and the picture")
-
-    def run_results(args: argparse.Namespace) -> int:
-        from prdp_petsc.lab.reports.topopt import format_results
-
-        seeds = [int(s) for s in args.seeds.split(",")]
-        ks = [int(k) for k in args.ks.split(",")]
-        data = results(args.preset, seeds, ks)
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "topopt.json").write_text(json.dumps(data, indent=1))
-        plot_designs(data, out / "designs.png")
-        print(format_results(data))
-        return 0
-
-    return run_results
-
-
-COMMANDS = {"results": results_command}
+# the comparison of schedules on three load cases (`prdp_petsc.lab.reports.topopt`):
+# ``prdp-petsc scene demos/topopt3d.py results ...``
+COMMANDS = topopt_reports.commands(sys.modules[__name__])
 
 
 if __name__ == "__main__":

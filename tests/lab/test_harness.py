@@ -163,36 +163,39 @@ import numpy as np, scipy.sparse as sp, torch
 import prdp_petsc as pp
 from prdp_petsc import lab
 
+NEVER = 10**9
+BASE = {"two_solvers": False, "interrupt_at": NEVER, "invalid_at": NEVER, "bug_at": NEVER,
+        "advection": 0.0, "nan_at": NEVER, "odd_info": False, "rising": False}
 PRESETS = {
-    "quick": {},
-    "two_solvers": {"two_solvers": True},
-    "interrupt": {"interrupt_at": 1},
-    "invalid": {"invalid_at": 2},
-    "bug": {"bug_at": 1},
-    "advection": {"advection": 0.3},
-    "nan_loss": {"nan_at": 2},
-    "odd_info": {"odd_info": True},
-    "rising": {"rising": True},
+    "quick": BASE,
+    "two_solvers": {**BASE, "two_solvers": True},
+    "interrupt": {**BASE, "interrupt_at": 1},
+    "invalid": {**BASE, "invalid_at": 2},
+    "bug": {**BASE, "bug_at": 1},
+    "advection": {**BASE, "advection": 0.3},
+    "nan_loss": {**BASE, "nan_at": 2},
+    "odd_info": {**BASE, "odd_info": True},
+    "rising": {**BASE, "rising": True},
 }
 
 def build(config, seed):
     A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
-    if config.get("advection"):  # a non-symmetric operator: CG does not fit it
+    if config["advection"]:  # a non-symmetric operator: CG does not fit it
         A = (A + config["advection"] * sp.diags([np.ones(9), -np.ones(9)], [1, -1])).tocsr()
     solvers = [pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi"},
                             prefix="tiny_", max_it=1)]
-    if config.get("two_solvers"):
+    if config["two_solvers"]:
         solvers.append(pp.KSPSolver({"ksp_type": "cg", "pc_type": "none"},
                                     prefix="tiny2_", max_it=1))
     theta = torch.ones(10, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.SGD([theta], lr=0.1)
 
     def batches(epoch, generator):
-        if epoch == config.get("interrupt_at"):
+        if epoch == config["interrupt_at"]:
             raise KeyboardInterrupt
-        if epoch >= config.get("invalid_at", 10**9):
+        if epoch >= config["invalid_at"]:
             raise pp.NonFiniteError("b contains NaN or Inf")
-        if epoch >= config.get("bug_at", 10**9):  # a bug in the scene, not a solver outcome
+        if epoch >= config["bug_at"]:  # a bug in the scene, not a solver outcome
             np.ones(3) + np.ones(4)
         return [epoch]
 
@@ -200,19 +203,19 @@ def build(config, seed):
 
     def validate():
         calls.append(None)
-        if config.get("rising"):  # a metric that only gets worse: PRDP refines every epoch
+        if config["rising"]:  # a metric that only gets worse: PRDP refines every epoch
             return float(len(calls))
         return float(theta.detach().square().sum())
 
     info = {"threads_seen": torch.get_num_threads()}
-    if config.get("odd_info"):
+    if config["odd_info"]:
         info.update(mesh=Path("meshes") / "lshape.msh", h=np.float64(0.5), n=np.int64(3),
                     field=np.arange(3), flag=np.bool_(True), pair=(1, 2))
         info[np.int64(7)] = "seven"
     return lab.Scene(
         solvers=solvers, optimizer=opt, batches=batches,
         loss=lambda epoch: sum(pp.solve(A, theta, s).square().sum() for s in solvers)
-        * (float("nan") if epoch >= config.get("nan_at", 10**9) else 1.0),
+        * (float("nan") if epoch >= config["nan_at"] else 1.0),
         validate=validate,
         probe=lambda: (A, np.ones(10), None), epochs=4,
         prdp={"window": 1, "ema_window": 1, "k_step": 2}, info=info,

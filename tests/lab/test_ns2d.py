@@ -9,6 +9,7 @@ import torch
 import prdp_petsc as pp
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.networks import ConvResNet
+from prdp_petsc.lab.reports import ns2d as ns2d_reports
 from prdp_petsc.lab.training.harness import build_scene, run
 from prdp_petsc.lab.training.scene import load_scene
 
@@ -250,7 +251,7 @@ def test_adjoint_with_own_tolerance_runs_to_its_rtol():
 
 
 def test_adjoint_report_physics_gradient_matters():
-    report = NS2D.adjoint_report("quick", ks=(8, 64), warmup=2)["cases"]
+    report = ns2d_reports.adjoint_report(NS2D, "quick", ks=(8, 64), warmup=2)["cases"]
     assert report["detached"]["adj_iterations"] == 0
     assert report["converged"]["adj_iterations"] > 0
     assert report["K=64"]["adj_iterations"] == 64 * 8  # fixed K, one adjoint per sample
@@ -366,7 +367,7 @@ def test_energy_report_of_a_trained_run(tmp_path):
     scene's own record, and error, energy and correlation are consistent numbers."""
     out = tmp_path / "run"
     result = run(SCENE, "fixed:20", preset="long_quick", seed=0, progress=False, out=out)
-    report = NS2D.energy_report(out)
+    report = ns2d_reports.energy_report(NS2D, out)
     c, u = report["corrected"], report["uncorrected"]
     assert len(c["error"]) == len(u["error"]) == 50
     assert np.allclose(u["error"], result["uncorrected_rollout"], rtol=1e-9)
@@ -377,7 +378,7 @@ def test_energy_report_of_a_trained_run(tmp_path):
         assert np.all((k <= 1 + 1e-12) & (r > 0))
         assert np.allclose(e**2, 1 + r**2 - 2 * r * k, rtol=0.3)
     assert u["energy"][-1] < u["energy"][0] < 1  # the coarse upwind step loses energy
-    assert "step" in NS2D.format_energy_report(report).splitlines()[1]
+    assert "step" in ns2d_reports.format_energy_report(report).splitlines()[1]
 
 
 def test_pc_lag_on_the_schur_route_sets_the_pc_up_less_often(tmp_path):

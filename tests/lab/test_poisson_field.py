@@ -69,5 +69,7 @@ def test_unrolled_and_implicit_modes_give_the_same_forward_loss():
 def test_plot_fields_writes_a_png(tmp_path):
     pytest.importorskip("matplotlib")
     theta = np.zeros(2808)  # κ = 1 on the quick mesh
-    MODULE.plot_fields(theta, tmp_path / "fields.png")
+    from prdp_petsc.lab.reports.poisson_field import plot_fields
+
+    plot_fields(MODULE, theta, tmp_path / "fields.png")
     assert (tmp_path / "fields.png").stat().st_size > 10_000

@@ -198,9 +198,9 @@ def test_results_command_scores_every_route_on_quick():
     """`results` on quick, one load case: the converged route is the reference
     (ratio 1, nothing saved), a constant K = 2 costs exactly 2 forward + 2 adjoint
     iterations per design iteration, and the page's table has a line per route."""
-    from prdp_petsc.lab.reports.topopt import format_results, target_met
+    from prdp_petsc.lab.reports.topopt import format_results, results, target_met
 
-    data = SCENE.results("quick", [0], [2])
+    data = results(SCENE, "quick", [0], [2])
     (case,) = data["cases"]
     routes = case["routes"]
     assert routes["converged"]["ratio"] == 1.0 and routes["converged"]["saved"] == 0.0

@@ -1,7 +1,9 @@
 """Heat emulators on a mesh: the implicit-Euler P1 step, its data, and a scene that learns it.
 
 The heat scenes ``demos/heat2d.py`` (L-shape) and ``demos/heat3d.py`` (unit cube) are
-one learning problem on two meshes, built by `heat_emulator_scene`: a network N maps
+one learning problem on two meshes, built from a preset by `heat_emulator_build` (what
+differs between them is their presets and options prefix) and from arguments by
+`heat_emulator_scene`: a network N maps
 uⁿ to ûⁿ⁺¹, and the loss compares the *capped* solver step P_K(ûⁿ⁺¹) with the exact
 uⁿ⁺² (the paper's mixed chain), or, unrolled m times, each state of the chain
 sⁿ⁺² = P_K(N(sⁿ)) with the exact one.  The pieces it is made of are public, so that
@@ -20,9 +22,10 @@ import skfem
 import torch
 from skfem.models.poisson import laplace, mass
 
-from prdp_petsc import KSPSolver, solve
+from prdp_petsc import KSPSolver, load_mesh, solve
 
 from ..training.rollout import rollout_errors
+from ..training.routes import parse_routes
 from ..training.scene import Scene, shuffled_batches
 from ..training.unroll import windows
 from .modal import ModalNet
@@ -30,10 +33,12 @@ from .networks import ResidualMLP
 
 __all__ = [
     "DAMPED_JACOBI",
+    "HEAT_EMULATOR_SETTINGS",
     "NETWORKS",
     "bubble",
     "emulator_net",
     "gaussian_bumps",
+    "heat_emulator_build",
     "heat_emulator_scene",
     "heat_step_system",
     "training_pairs",
@@ -346,6 +351,31 @@ def heat_emulator_scene(
             **(info or {}),
         },
     )
+
+
+#: The settings `heat_emulator_build` passes to `heat_emulator_scene` by name; a heat
+#: emulator preset names these, ``mesh``, ``refine`` and ``routes``.
+HEAT_EMULATOR_SETTINGS = (
+    "dt", "net", "modes", "width", "depth", "warm_start", "spans", "n_train", "n_val",
+    "val_steps", "rollout_steps", "unroll", "epochs", "batch", "lr", "gamma", "k_init",
+    "k_step",
+)  # fmt: skip
+
+
+def heat_emulator_build(config: dict, seed: int, *, prefix: str) -> Scene:
+    """The ``build`` of a heat emulator scene (``demos/heat2d.py``, ``demos/heat3d.py``).
+
+    Loads the shipped mesh ``config["mesh"]`` refined ``config["refine"]`` times
+    (`prdp_petsc.load_mesh`), checks ``config["routes"]`` (the KSP/PC pairs that
+    ``compare`` also runs, `prdp_petsc.lab.training.routes.parse_routes`; a malformed
+    one fails here), and returns `heat_emulator_scene` with every setting of
+    `HEAT_EMULATOR_SETTINGS` read from `config`, the solver's options prefix `prefix`
+    and the whole preset recorded in ``Scene.info``.
+    """
+    parse_routes(config["routes"])
+    mesh = load_mesh(config["mesh"], refine=config["refine"])
+    settings = {key: config[key] for key in HEAT_EMULATOR_SETTINGS}
+    return heat_emulator_scene(mesh, seed, prefix=prefix, info=config, **settings)
 
 
 def torch_sparse(M: sp.spmatrix) -> torch.Tensor:

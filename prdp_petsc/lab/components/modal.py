@@ -63,7 +63,7 @@ class ModalNet(torch.nn.Module):
     layer of a Fourier neural operator (a learned weight per mode, here with one
     channel) in the mesh's own eigenbasis.  A weight per mode, rather than a dense
     m × m matrix, is what keeps training and rollouts sound: a dense matrix trained
-    through the solve reached a 2 % one-step loss yet had eigenvalues above one in
+    through the solve reached a small one-step loss yet had eigenvalues above one in
     directions the data barely excite, and its rollouts grew.  With one weight per
     mode, each weight is fitted by that mode's content alone and is the map's own
     eigenvalue.  The weights start at one, so the network starts as the

@@ -5,14 +5,14 @@ A scene file (the shipped ones live in ``demos/``) defines
 ``PRESETS``
     ``{"quick": {...}, "paper": {...}}``: plain dicts of settings (sizes, epochs,
     learning rate, ...).  ``quick`` is for tests and CI, ``paper`` for the
-    reference settings.
+    reference settings.  Every preset names the same keys, those of the first one
+    (`check_presets`, run by `load_scene` and `preset_config`): so ``--set
+    key=value`` reaches a setting on any preset, and the results record it.
 ``build(config: dict, seed: int) -> Scene``
     builds the physics, data, network, loss and validation metric for one preset,
-    and nothing the scene does not need.  It reads every setting as
-    ``config["key"]``, and every key it reads is in every preset, with its value
-    (no ``config.get(key, default)``): so ``--set key=value`` reaches it on any
-    preset, and the results record it.  Code that several scenes share lives in
-    the library (`prdp_petsc.lab.components.emulators`), not in a scene another imports.
+    and nothing the scene does not need.  ``config`` is the preset's dict
+    (`preset_config`); reading a key it lacks raises a ``KeyError`` that names the
+    key and the preset.
 ``COMMANDS`` (optional)
     ``{"adjoint": adjoint_command, ...}``: the scene's own commands besides ``run``
     and ``compare`` (a report, a plot), run by ``prdp-petsc scene SCENE_FILE NAME
@@ -55,6 +55,8 @@ from prdp_petsc import PRDP, KSPSolver
 __all__ = [
     "PRDP_SETTINGS",
     "Scene",
+    "Settings",
+    "check_presets",
     "load_scene",
     "preset_config",
     "shuffled_batches",
@@ -177,7 +179,88 @@ def load_scene(path: str | Path) -> ModuleType:
             raise AttributeError(
                 f"scene {path.name} must define {attr} (see prdp_petsc.lab.training.scene)"
             )
+    check_presets(module)
     return module
+
+
+def check_presets(module) -> None:
+    """Refuse a scene whose presets do not all name the same settings.
+
+    The first preset of ``module.PRESETS`` (in the dict's order; ``quick`` in the
+    shipped scenes) names the scene's settings.  Every other preset must name exactly
+    those keys: a key it lacks (which ``build`` would read as ``config["key"]`` and
+    not find) or a key the first preset does not name (which ``--set`` could not
+    reach on the first preset) is refused here, when the scene is loaded, with the
+    preset and the key named, instead of as a ``KeyError`` in the middle of a run.
+
+    Raises
+    ------
+    TypeError
+        ``PRESETS`` is not a non-empty dict of dicts with string keys.
+    ValueError
+        A preset lacks a key of the first preset, or names one it does not.
+    """
+    where = _scene_name(module)
+    presets = getattr(module, "PRESETS", None)
+    if not isinstance(presets, dict) or not presets:
+        raise TypeError(f"scene {where}: PRESETS must be a non-empty dict of dicts")
+    for name, settings in presets.items():
+        if not (isinstance(name, str) and isinstance(settings, dict)):
+            raise TypeError(
+                f"scene {where}: PRESETS[{name!r}] must be a dict of settings under a "
+                f"string name, got {type(settings).__name__}"
+            )
+        bad = [key for key in settings if not (isinstance(key, str) and key.isidentifier())]
+        if bad:
+            raise TypeError(
+                f"scene {where}: preset {name!r}: setting names must be identifiers, got {bad}"
+            )
+    first, *others = presets
+    keys = set(presets[first])
+    for name in others:
+        missing = sorted(keys - set(presets[name]))
+        unknown = sorted(set(presets[name]) - keys)
+        if missing:
+            raise ValueError(
+                f"scene {where}: preset {name!r} lacks the setting{'s' * (len(missing) > 1)} "
+                f"{', '.join(map(repr, missing))} that preset {first!r} names; every "
+                "preset names the same settings"
+            )
+        if unknown:
+            raise ValueError(
+                f"scene {where}: preset {name!r} names the setting"
+                f"{'s' * (len(unknown) > 1)} {', '.join(map(repr, unknown))}, which preset "
+                f"{first!r} does not; every preset names the same settings (give "
+                f"{first!r} the key, with the value that keeps it as it is)"
+            )
+
+
+def _scene_name(module) -> str:
+    file = getattr(module, "__file__", None)
+    return Path(file).name if file else getattr(module, "__name__", "(scene)")
+
+
+class Settings(dict):
+    """A preset's settings (`preset_config`): a dict whose missing key names the
+    scene and the preset in its ``KeyError``."""
+
+    def __init__(self, settings: dict, *, scene: str = "", preset: str = ""):
+        super().__init__(settings)
+        self.scene, self.preset = scene, preset
+
+    def __missing__(self, key):
+        raise KeyError(
+            f"setting {key!r} is not in preset {self.preset!r} of scene {self.scene} "
+            f"(its settings: {', '.join(sorted(self))}); every setting a scene reads "
+            "belongs in all its presets"
+        )
+
+    def __reduce__(self):  # pickles (and copies) as the dict it holds, with its names
+        return (_settings, (dict(self), self.scene, self.preset))
+
+
+def _settings(settings: dict, scene: str, preset: str) -> Settings:
+    return Settings(settings, scene=scene, preset=preset)
 
 
 def preset_config(module: ModuleType, preset: str) -> dict:
@@ -189,11 +272,15 @@ def preset_config(module: ModuleType, preset: str) -> dict:
     no preset names is still set, as a Python literal or else a string, with a
     warning (once per key): a scene reads only the keys of its presets, so such a
     key is most likely misspelt and would otherwise change nothing silently.
+
+    The presets are checked first (`check_presets`), and the result is a `Settings`:
+    a dict whose ``KeyError`` names the preset.
     """
     name, pairs = _parse(preset)
+    check_presets(module)
     if name not in module.PRESETS:
         raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {name!r}")
-    config = dict(module.PRESETS[name])
+    config = Settings(module.PRESETS[name], scene=_scene_name(module), preset=str(preset))
     known = {}
     for settings in module.PRESETS.values():
         for key, value in settings.items():
@@ -205,8 +292,8 @@ def preset_config(module: ModuleType, preset: str) -> dict:
         if key in PRDP_SETTINGS:  # a setting of the controller: `with_prdp_settings`
             config[key] = _typed(key, text, PRDP_SETTINGS[key])
             continue
-        if (module.__name__, key) not in _WARNED:
-            _WARNED.add((module.__name__, key))
+        if (_scene_name(module), key) not in _WARNED:
+            _WARNED.add((_scene_name(module), key))
             logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
         config[key] = _typed(key, text, None)
     return config
