@@ -33,7 +33,7 @@ the capped K still shows in its error (the known limitations).
 
 Warm starts across epochs (``warm_start_epochs: True``; default False): each training
 sample's Newton loop starts from that sample's capped result of the last epoch
-(`prdp_petsc.autograd.WarmStarts`) instead of from ûⁿ⁺¹, so the two capped Newton
+(`prdp_petsc.WarmStarts`) instead of from ûⁿ⁺¹, so the two capped Newton
 steps of every epoch continue where the last epoch's stopped; the gradient is the
 implicit one at the returned iterate either way (the start receives none).
 ``pc_lag: N`` (default 1) sets the Jacobian's PC up only at every N-th Jacobian
@@ -57,7 +57,6 @@ from petsc4py import PETSc
 
 import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.lab.components.networks import MeshNet
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.routes import parse_routes
@@ -191,7 +190,7 @@ def build(config: dict, seed: int) -> lab.Scene:
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
     interior_t = torch.from_numpy(interior)
     newton = {"solves": 0, "steps": 0}  # running totals, written with the results
-    starts = WarmStarts() if config["warm_start_epochs"] else None
+    starts = pp.WarmStarts() if config["warm_start_epochs"] else None
 
     def newton_step(u_hat: torch.Tensor, sample: int) -> torch.Tensor:
         """Newton_K(û): the capped step from û, differentiable in û; the Newton loop starts

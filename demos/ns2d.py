@@ -53,7 +53,7 @@ Settings beyond the sizes:
   Corrector).
 * ``train_solver: "schur"`` trains with the Schur route (K counts its iterations).
 * ``warm_start_epochs: True`` starts every training solve from that window's solution
-  of the last epoch (`prdp_petsc.autograd.WarmStarts`); ``pc_lag: N`` sets the training
+  of the last epoch (`prdp_petsc.WarmStarts`); ``pc_lag: N`` sets the training
   solver's PC up only at every N-th operator (`prdp_petsc.KSPSolver`'s ``pc_lag``).
 * ``routes``: the KSP/PC routes ``compare`` also runs (names in ``ROUTES``).
 
@@ -85,7 +85,6 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.autograd import WarmStarts
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.networks import ConvResNet
 from prdp_petsc.lab.reports import ns2d as ns2d_reports
@@ -270,7 +269,9 @@ class Corrector:
     from the solutions stored under them and stores its own.
     """
 
-    def __init__(self, config: dict, net: torch.nn.Module, warm_starts: WarmStarts | None = None):
+    def __init__(
+        self, config: dict, net: torch.nn.Module, warm_starts: pp.WarmStarts | None = None
+    ):
         self.n, self.dt = config["n"], config["dt"]
         self.A = mac.ns_operator(self.n, self.dt, config["nu"])
         W = mac.wind_matrix(self.n).tocoo()
@@ -364,7 +365,7 @@ def setup(config: dict, seed: int) -> dict:
         prefix="ns2d_",
         max_it=config["k_init"],
         adjoint=adjoint,
-        nullspace=mac.nullspace(n),
+        structure=pp.Structure(nullspace=mac.nullspace(n)),
         pc_lag=config["pc_lag"],
     )
     val_solver = config["val_solver"]
@@ -374,13 +375,13 @@ def setup(config: dict, seed: int) -> dict:
             prefix="ns2d_val_",
             max_it=100_000,
             rtol=config["rtol_full"],
-            nullspace=mac.nullspace(n),
+            structure=pp.Structure(nullspace=mac.nullspace(n)),
         )
     else:  # the training solver run to rtol_full (with a fresh PC at every solve)
         full = solver.clone(max_it=100_000, rtol=config["rtol_full"], pc_lag=1)
     out = 3 if config["correction"] == "direct" else 2  # indirect: a momentum forcing
     net = ConvResNet(3, out, hidden=config["hidden"], blocks=config["blocks"])
-    hybrid = Corrector(config, net, WarmStarts() if config["warm_start_epochs"] else None)
+    hybrid = Corrector(config, net, pp.WarmStarts() if config["warm_start_epochs"] else None)
     return {"train": train, "val": val, "solver": solver, "full": full, "hybrid": hybrid}
 
 

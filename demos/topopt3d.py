@@ -143,8 +143,9 @@ class Cantilever:
             prefix=prefix,
             max_it=max_it,
             rtol=rtol,
-            block_size=3,
-            near_nullspace=pp.rigid_body_modes(self.basis, self.bc.interior),
+            structure=pp.Structure(
+                block_size=3, near_nullspace=pp.rigid_body_modes(self.basis, self.bc.interior)
+            ),
         )
 
     def compliance(self, theta: np.ndarray, solver: pp.KSPSolver) -> float:

@@ -10,8 +10,8 @@ CG and its pipelined variants, MINRES, CR, SYMMLQ and the trust-region CGs
 (``nash``, ``stcg``, ``gltr``, ``qcg``) build their iterates from a short
 recurrence that is only valid for A = Aᵀ; ICC and Cholesky factor only one
 triangle.  On a non-symmetric operator they run without error and, capped at K,
-return an iterate that can be far from the solution (measured: 1-45x off on an
-advection-diffusion operator at K = 40, with reason ``DIVERGED_MAX_IT``).  A
+return an iterate that can be far from the solution, with the ordinary reason
+``DIVERGED_MAX_IT`` (``tests/test_trust.py`` shows one on advection-diffusion).  A
 `KSPSolver` therefore checks, whenever a new operator (or new values) is set up,
 that no such method meets an operator *known* to be non-symmetric (declared
 ``symmetric=False``, or a CSR operator that failed the entry-against-mirror
