@@ -233,7 +233,7 @@ def _setting(text: str) -> str:
 
 
 def _seeds(text: str) -> list[int]:
-    from .training.seeds import parse_seeds
+    from .parsing import parse_seeds
 
     try:
         return parse_seeds(text)

@@ -10,7 +10,7 @@ from petsc4py import PETSc
 
 from prdp_petsc.lab.cli import main
 from prdp_petsc.lab.training.compare import compare
-from prdp_petsc.lab.training.harness import build_scene, find_k_full, run, to_json
+from prdp_petsc.lab.training.harness import RunSettings, build_scene, find_k_full, run, to_json
 from prdp_petsc.lab.training.scene import load_scene
 from prdp_petsc.lab.training.schedules import parse_schedule
 from prdp_petsc.lab.training.summary import format_table, summarize
@@ -245,6 +245,19 @@ def test_run_sets_and_restores_torch_threads(tiny, tmp_path):
         torch.set_num_threads(before)
     with pytest.raises(ValueError, match="threads"):
         run(tiny, "fixed:2", epochs=1, threads=0, progress=False)
+
+
+def test_run_takes_its_settings_grouped_or_as_keywords(tiny):
+    grouped = RunSettings(preset="quick", epochs=1, seed=3, progress=False)
+    a = run(tiny, "fixed:2", grouped)
+    b = run(tiny, "fixed:2", epochs=1, seed=3, progress=False)
+    c = run(tiny, "fixed:2", grouped.replace(epochs=2), seed=4)  # a keyword changes one
+    assert [e["val_metric"] for e in a["epochs"]] == [e["val_metric"] for e in b["epochs"]]
+    assert (a["seed"], len(a["epochs"])) == (3, 1) and (c["seed"], len(c["epochs"])) == (4, 2)
+    with pytest.raises(TypeError, match="epoch"):
+        run(tiny, "fixed:2", epoch=1)  # a misspelt setting is refused
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        RunSettings(checkpoint_every=0)
 
 
 def test_epochs_must_be_positive(tiny):

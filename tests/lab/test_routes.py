@@ -165,7 +165,8 @@ def test_the_pilot_times_after_a_warm_up_epoch_and_skips_a_candidate_that_stops(
     first_epoch = {"": 0.1, "icc": 50.0, "sor": 0.01, "gamg": 9.0}  # untimed: ignored
     later = {"": 3.0, "icc": 1.0, "sor": 0.5, "gamg": 2.0}
 
-    def fake_run(scene_file, schedule, *, epochs, **kwargs):
+    def fake_run(scene_file, schedule, settings, **kwargs):
+        epochs = settings.epochs
         opts = PETSc.Options()  # the route's PC, as route_options set it (none: the scene's)
         pc = opts.getString("heat_pc_type") if opts.hasName("heat_pc_type") else ""
         walls = [first_epoch[pc]] + [later[pc]] * (epochs - 1)

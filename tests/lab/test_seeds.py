@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from prdp_petsc.lab.cli import main
+from prdp_petsc.lab.parsing import parse_seeds
 from prdp_petsc.lab.training.compare import TWIN_SEED_OFFSET, compare
 from prdp_petsc.lab.training.harness import build_scene, run
 from prdp_petsc.lab.training.scene import load_scene, preset_config
@@ -16,7 +17,6 @@ from prdp_petsc.lab.training.seeds import (
     _aggregate,
     compare_seeds,
     format_seeds,
-    parse_seeds,
     ratio_statistics,
 )
 
@@ -244,10 +244,10 @@ def test_an_interrupted_twin_keeps_the_summary(tmp_path, monkeypatch):
 
     real = compare_module.run
 
-    def run(*args, torch_seed=None, **kwargs):
-        if torch_seed is not None:
+    def run(scene_file, schedule, settings, **kwargs):
+        if settings.torch_seed is not None:
             raise KeyboardInterrupt
-        return real(*args, torch_seed=torch_seed, **kwargs)
+        return real(scene_file, schedule, settings, **kwargs)
 
     monkeypatch.setattr(compare_module, "run", run)
     with pytest.raises(KeyboardInterrupt):

@@ -59,8 +59,8 @@ def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **k
         ..., "result": compare_seeds result}}``, the baseline first) and ``effects``
         (``{lever: {"reduced_vs_baseline": stats, "full_vs_baseline": stats}}``).
     """
-    from ..training.harness import write_json
     from ..training.parallel import Parallel
+    from ..training.records import write_json
     from ..training.seeds import compare_seeds
 
     root = Parallel(kwargs.get("parallel")).root  # rank 0 alone writes files
@@ -191,7 +191,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> int:
-    from ..training.seeds import parse_seeds
+    from ..parsing import parse_seeds
 
     parser = _parser()
     args = parser.parse_args(argv)

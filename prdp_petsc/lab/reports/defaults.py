@@ -27,7 +27,10 @@ SCHEDULES = {"tuned": "prdp", "default": "auto"}
 
 def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None) -> dict:
     """Full fidelity, the tuned PRDP and the default construction on every seed."""
-    from ..training.harness import build_scene, find_k_full, load_scene, release, run
+    from ..training.building import build_scene, release
+    from ..training.harness import run
+    from ..training.probe import find_k_full
+    from ..training.scene import load_scene
     from ..training.seeds import ratio_statistics
     from ..training.summary import ACCURACY_RATIO
 
@@ -159,8 +162,8 @@ def notes(result: dict) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    from ..training.harness import torch_threads
-    from ..training.seeds import parse_seeds
+    from ..parsing import parse_seeds
+    from ..training.threads import torch_threads
 
     parser = argparse.ArgumentParser(prog="prdp-petsc defaults", description=__doc__.split("\n")[0])
     parser.add_argument("scene_file")

@@ -50,7 +50,7 @@ def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: in
     """One row of the report, measured in this process (module notes)."""
     import torch
 
-    from ..training.harness import build_scene
+    from ..training.building import build_scene
     from ..training.scene import load_scene
     from ..training.unroll import SavedTensorMeter
 

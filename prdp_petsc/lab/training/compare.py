@@ -27,22 +27,18 @@ from pathlib import Path
 
 from prdp_petsc import SolverError, StructureError
 
+from ..parsing import check_epochs
+from .building import build_scene, release
 from .checkpoint import CHECKPOINT
-from .harness import (
-    RESULTS,
-    build_scene,
-    check_epochs,
-    find_k_full,
-    release,
-    run,
-    torch_threads,
-    write_json,
-)
+from .harness import RunSettings, run
 from .parallel import Parallel
+from .probe import find_k_full
 from .provenance import provenance
+from .records import RESULTS, write_json
 from .routes import AUTO, parse_routes, route_options, route_settings
 from .scene import load_scene, preset_config
 from .summary import TWIN, summarize
+from .threads import torch_threads
 
 logger = logging.getLogger(__name__)
 
@@ -191,6 +187,9 @@ def compare(
     if ranks.root:
         out.mkdir(parents=True, exist_ok=True)
     scene_name = Path(scene_file).stem
+    # every run's settings but its schedule, epochs and output (a run without output is quiet)
+    quiet = RunSettings(preset=preset, seed=seed, progress=False, threads=threads,
+                        parallel=parallel)  # fmt: skip
     write = write_json if ranks.root else lambda path, data: None
     with torch_threads(threads), ranks.solvers():
         scene = build_scene(module, preset, seed)
@@ -271,24 +270,19 @@ def compare(
                         reused.append(name)
                         continue
                     if not warmed:  # imports, PETSc and torch first-call costs: a fair first run
-                        run(scene_file, "fixed:1", preset=preset, epochs=1, seed=seed,
-                            progress=False, threads=threads, module=module,
-                            parallel=parallel)  # fmt: skip
+                        run(scene_file, "fixed:1", quiet.replace(epochs=1), module=module)
                         warmed = True
                     again = resume and _resumable(folder, target)
                     logs[name] = run(
                         scene_file,
-                        **settings,
-                        epochs=target,
-                        out=folder,
-                        progress=progress,
-                        threads=threads,
+                        schedule,
+                        quiet.replace(
+                            epochs=target, torch_seed=torch_seed, out=folder, progress=progress,
+                            prdp=prdp or None, checkpoint_every=checkpoint_every,
+                        ),
                         module=module,
-                        prdp=prdp or None,
-                        parallel=parallel,
-                        checkpoint_every=checkpoint_every,
                         resume=folder if again else None,
-                    )
+                    )  # fmt: skip
             except KeyboardInterrupt:
                 # the interrupted run has written what it measured: summarise it too
                 results = folder / RESULTS if folder else None
@@ -373,9 +367,9 @@ def pilot_routes(
                     continue
                 finally:
                     release(probe)
-            log = run(scene_file, f"fixed:{k}", preset=preset, epochs=epochs + 1, seed=seed,
-                      progress=False, threads=threads, module=module,
-                      parallel=parallel)  # fmt: skip
+            quiet = RunSettings(preset=preset, epochs=epochs + 1, seed=seed, progress=False,
+                                threads=threads, parallel=parallel)  # fmt: skip
+            log = run(scene_file, f"fixed:{k}", quiet, module=module)
         timed = log["epochs"][1:]  # the first epoch pays the candidate's first-use costs
         stop = log.get("stopped")
         if stop or len(timed) < epochs:  # a candidate that cannot train is no candidate

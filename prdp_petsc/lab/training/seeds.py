@@ -37,8 +37,8 @@ import math
 from pathlib import Path
 
 from .compare import compare
-from .harness import write_json
 from .parallel import Parallel
+from .records import write_json
 from .summary import ACCURACY_RATIO, format_table, stopped_runs
 
 __all__ = [
@@ -48,7 +48,6 @@ __all__ = [
     "format_seeds",
     "lever_ratios",
     "optional_ratio_statistics",
-    "parse_seeds",
     "plot_seeds",
     "ratio_statistics",
     "seeds_figure",
@@ -57,25 +56,6 @@ __all__ = [
 
 #: The speedup over the best full-fidelity route a reduced run should reach (2: twice as fast)
 SPEEDUP_GOAL = 2.0
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"0,1,2"``, ``"0-3"`` or a mix (``"0-2,7"``) as a list of distinct seeds."""
-    seeds: list[int] = []
-    for part in (p.strip() for p in text.split(",")):
-        if not part:
-            continue
-        first, dash, last = part.partition("-")
-        try:
-            lo, hi = int(first), int(last) if dash else int(first)
-        except ValueError:
-            raise ValueError(f"seeds: expected e.g. 0,1,2 or 0-3, got {text!r}") from None
-        if hi < lo:
-            raise ValueError(f"seeds: empty range {part!r}")
-        seeds += [s for s in range(lo, hi + 1) if s not in seeds]
-    if not seeds:
-        raise ValueError(f"seeds: none given in {text!r}")
-    return seeds
 
 
 def ratio_statistics(ratios: list[float]) -> dict:

@@ -1,0 +1,201 @@
+"""The epoch loop of a training run (`train`) and what it records: per-epoch costs,
+their `totals`, and why a run stopped (`stopped`, `stop_reason`).
+
+`prdp_petsc.lab.training.harness.run` sets a run up and calls `train`; a solver
+outcome (`SolverError`, `InputError`: a diverged solve, a non-finite loss) stops the
+loop with a ``stopped`` record, anything else propagates.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict
+
+import numpy as np
+import torch
+
+from prdp_petsc import PRDP, InputError, NonFiniteError, SolverError, rtol_from_level
+
+from .checkpoint import CHECKPOINT, restore, save_checkpoint
+from .parallel import Parallel
+from .records import RESULTS, to_json, write_json
+from .schedules import Schedule, gradient_check
+
+__all__ = ["interrupted", "stop_reason", "stopped", "totals", "train"]
+
+logger = logging.getLogger(__name__)
+
+
+def stopped(epoch: int, reason: str | None, message: str) -> dict:
+    """A run's ``stopped`` record: the `epoch` it stopped in, why, and the message."""
+    return {"epoch": epoch, "reason": reason, "message": message}
+
+
+def interrupted(result: dict) -> None:
+    """Record in `result` that Ctrl-C stopped its run (the caller re-raises)."""
+    epoch = len(result["epochs"])
+    logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
+    message = f"KeyboardInterrupt during epoch {epoch}; earlier epochs are complete"
+    result["stopped"] = stopped(epoch, "interrupted", message)
+
+
+def train(
+    scene,
+    result: dict,
+    plan: Schedule,
+    epochs: int,
+    torch_seed: int,
+    out,
+    progress: bool,
+    ranks: Parallel,
+    *,
+    every: int = 1,
+    state: dict | None = None,
+) -> None:
+    """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place,
+    from a checkpoint's `state` if given, saving one every `every` epochs into `out`."""
+    from tqdm.auto import tqdm
+
+    generator = torch.Generator().manual_seed(torch_seed)
+    check = gradient_check(scene) if plan.kind == "auto" else None
+    if plan.kind == "auto":
+        controller = PRDP.for_problem(scene.prdp["k_full"])
+    else:
+        controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
+    levels = result.get("rtol") if plan.kind == "rtol" else None
+    start = 0
+    if state is not None:
+        restore(scene, state, controller=controller, generator=generator)
+        start = state["epoch"]
+    k = plan.k if plan.kind == "fixed" else levels["max_it"] if levels else controller.k
+    level = controller.level if levels else None  # rtol: the controller's K counts levels
+    bar = tqdm(
+        range(start, epochs),
+        desc=f"{result['scene']} {result['schedule']}",
+        initial=start,
+        total=epochs,
+        disable=None if progress else True,  # None: tqdm hides itself when not a terminal
+        leave=False,
+    )
+    try:
+        for epoch in bar:
+            rtol = None
+            if levels:  # PRDP's level as PETSc's rtol (the adjoint follows unless set apart)
+                rtol = rtol_from_level(level, levels["rtol_init"], levels["factor"],
+                                       levels["rtol_min"])  # fmt: skip
+            for s in scene.solvers:
+                s.max_it = k
+                if rtol is not None:
+                    s.rtol = rtol
+                s.reset_stats()
+            t0 = time.perf_counter()
+            try:
+                losses = []
+                for batch in scene.batches(epoch, generator):
+                    losses.append(ranks.step(scene, batch))
+                    _check_finite(losses[-1], f"the training loss of batch {len(losses) - 1}")
+                if scene.scheduler is not None:
+                    scene.scheduler.step()
+                metric = ranks.validate(scene)
+                _check_finite(metric, "the validation metric")
+                if controller is not None:  # its checks' solves count in this epoch's costs
+                    following = ranks.agree(controller.update(metric, check=check))
+                if check is not None and epoch == epochs - 1:  # the certified end
+                    _certify(controller, check, result)
+            except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
+                logger.error("epoch %d: %s", epoch, err)
+                result["stopped"] = stopped(epoch, stop_reason(err), str(err))
+                return
+            wall = time.perf_counter() - t0
+            stats = [s.stats for s in scene.solvers]
+            fwd, adj, solver_time = ranks.totals(
+                sum(s.forward_iterations for s in stats),
+                sum(s.adjoint_iterations for s in stats),
+                sum(s.forward_time + s.adjoint_time for s in stats),
+            )
+            record = {
+                "epoch": epoch,
+                "k": k,
+                "train_loss": float(np.mean(losses)) if losses else math.nan,
+                "val_metric": metric,
+                "wall_time": wall,
+                "fwd_iterations": fwd,
+                "adj_iterations": adj,
+                "solver_time": solver_time,
+            }
+            if any(s.pc_lag > 1 for s in scene.solvers):  # what reusing the PC saved
+                setups, rebuilds, _ = ranks.totals(
+                    sum(s.pc_setups for s in stats), sum(s.pc_quality_rebuilds for s in stats), 0.0
+                )
+                record.update(pc_setups=setups, pc_quality_rebuilds=rebuilds)
+            if rtol is not None:  # what the tolerance bought: solves and real iterations
+                fwd_solves, adj_solves, _ = ranks.totals(
+                    sum(s.forward_solves for s in stats), sum(s.adjoint_solves for s in stats), 0.0
+                )
+                record.update(rtol=rtol, rtol_level=level, fwd_solves=fwd_solves,
+                              adj_solves=adj_solves)  # fmt: skip
+            result["epochs"].append(record)
+            bar.set_postfix(K=k, val=f"{metric:.3e}", **({"rtol": f"{rtol:.0e}"} if rtol else {}))
+            if controller is not None:
+                if levels:  # rtol: the level moves, the cap stays
+                    level = following - controller.k_min
+                else:
+                    k = following
+            result["totals"] = totals(result["epochs"])
+            if out is not None:
+                done = epoch + 1
+                if done % every == 0 or done == epochs:
+                    save_checkpoint(
+                        out / CHECKPOINT, scene, epoch=done, k=k, controller=controller,
+                        generator=generator, result=to_json(result),
+                    )  # fmt: skip
+                    result["checkpoint"] = {"file": CHECKPOINT, "epoch": done}
+                write_json(out / RESULTS, result)
+    finally:
+        bar.close()
+
+
+def _certify(controller: PRDP, check, result: dict) -> None:
+    """The last epoch's certificate into ``result["certificate"]``."""
+    cert = controller.certify(check)
+    result["certificate"] = {**asdict(cert), "certified": cert.certified}
+    logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
+
+
+def _check_finite(value: float, what: str) -> None:
+    """A NaN or Inf loss or metric stops the run (`NonFiniteError`), never trains on."""
+    if not math.isfinite(value):
+        raise NonFiniteError(
+            f"{what} is {value}: training cannot continue (a diverged network, a too large "
+            "learning rate, or a solve that lost accuracy); earlier epochs are complete"
+        )
+
+
+def totals(log: list[dict]) -> dict:
+    if not log:
+        return {"epochs": 0}
+    return {
+        "epochs": len(log),
+        "wall_time": sum(e["wall_time"] for e in log),
+        "solver_time": sum(e["solver_time"] for e in log),
+        "fwd_iterations": sum(e["fwd_iterations"] for e in log),
+        "adj_iterations": sum(e["adj_iterations"] for e in log),
+        "final_val_error": log[-1]["val_metric"],
+        "best_val_error": min(e["val_metric"] for e in log),
+        "k_final": log[-1]["k"],
+        **({"rtol_final": log[-1]["rtol"]} if "rtol" in log[-1] else {}),
+    }
+
+
+def stop_reason(error: BaseException) -> str | None:
+    """The ``stopped.reason`` a training run records for `error`, or None to re-raise it.
+
+    A `SolverError` gives PETSc's reason, an `InputError` its kind
+    (``INVALID_INPUT``, ``NON_FINITE``, ``STRUCTURE``, ``MESH``); anything else is
+    not a recorded outcome.
+    """
+    if isinstance(error, SolverError | InputError):
+        return error.reason
+    return None
