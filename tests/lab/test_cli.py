@@ -269,8 +269,9 @@ def test_petsc_options_after_a_bare_double_dash_belong_to_the_inner_command():
 
 def test_without_the_lab_extra_the_command_says_how_to_install_it(monkeypatch, capsys):
     from prdp_petsc.lab import cli
+    from prdp_petsc.lab.cli import dispatch
 
-    monkeypatch.setattr(cli, "missing_lab_packages", lambda: ["tqdm"])
+    monkeypatch.setattr(dispatch, "missing_lab_packages", lambda: ["tqdm"])
     assert cli.main(["run", "demos/heat1d.py"]) == 2
     err = capsys.readouterr().err
     assert "needs tqdm" in err and "pip install 'prdp-petsc[lab]'" in err

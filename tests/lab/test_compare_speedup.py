@@ -11,7 +11,7 @@ import prdp_petsc.lab.training.compare as compare_module
 import prdp_petsc.lab.training.seeds as seeds_module
 from prdp_petsc import rtol_from_level
 from prdp_petsc.errors import SolverError
-from prdp_petsc.lab.cli import _scene_parser
+from prdp_petsc.lab.cli.training import make_parser
 from prdp_petsc.lab.training.compare import compare, scene_routes
 from prdp_petsc.lab.training.harness import load_trained, release, run
 from prdp_petsc.lab.training.routes import parse_routes, time_to_accuracy
@@ -209,7 +209,7 @@ def test_routes_are_declared_by_the_scenes_presets():
 
 
 def test_cli_routes_default_to_the_scene_and_empty_means_none():
-    parser = _scene_parser()
+    parser = make_parser()
     args = parser.parse_args(["compare", "scene.py", "--out", "o"])
     assert args.routes is None and args.schedules == ("prdp",)
     args = parser.parse_args(["compare", "scene.py", "--out", "o", "--routes", ""])

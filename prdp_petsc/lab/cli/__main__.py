@@ -1,0 +1,5 @@
+"""``python -m prdp_petsc.lab.cli``: the ``prdp-petsc`` command."""
+
+from . import main
+
+raise SystemExit(main())
