@@ -11,10 +11,10 @@ import torch
 
 from prdp_petsc.errors import InputError
 from prdp_petsc.lab.cli import main
+from prdp_petsc.lab.provenance import DISTRIBUTIONS, git_commit, provenance
 from prdp_petsc.lab.training.checkpoint import CHECKPOINT, load_checkpoint
 from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import load_trained, release, run, torch_threads
-from prdp_petsc.lab.training.provenance import DISTRIBUTIONS, git_commit, provenance
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAT2D = ROOT / "demos" / "heat2d.py"

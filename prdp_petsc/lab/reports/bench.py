@@ -41,7 +41,8 @@ Notes
 -----
 The KSPs have options prefix ``bench_``: options such as ``-bench_ksp_view`` given
 through ``PETSC_OPTIONS`` reach the bridge's KSP (the raw KSP is set up from
-``--ksp-type``/``--pc-type`` only, and the run stops if the two types differ).
+``--routes KSP/PC`` only, and the run stops if the two types differ).  ``--preset
+quick`` runs tiny sizes (a smoke test); the default is ``paper``.
 """
 
 from __future__ import annotations
@@ -49,8 +50,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
 import statistics
 import sys
 import time
@@ -58,6 +57,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
+from ..provenance import load_average, machine, versions
 from .bench_throughput import bench_throughput
 from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
 
@@ -225,40 +226,11 @@ def raw_ksp(mat, ksp_type: str, pc_type: str, k: int):
 
 
 def machine_info() -> dict:
-    """Platform, CPU, library versions and load, for the JSON record."""
-    import petsc4py
-    import scipy
-    import skfem
+    """The machine, the library versions and torch's threads, for the JSON record
+    (`prdp_petsc.lab.provenance`)."""
     import torch
-    from petsc4py import PETSc
 
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(
-                (ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu
-            )
-    except OSError:
-        pass
-    from prdp_petsc import __version__
-
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "torch_threads": torch.get_num_threads(),
-        "versions": {
-            "prdp_petsc": __version__,
-            "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
-            "petsc4py": petsc4py.__version__,
-            "torch": torch.__version__,
-            "numpy": np.__version__,
-            "scipy": scipy.__version__,
-            "scikit-fem": getattr(skfem, "__version__", "unknown"),
-        },
-    }
+    return {**machine(), "torch_threads": torch.get_num_threads(), "versions": versions()}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -269,26 +241,37 @@ def _parser() -> argparse.ArgumentParser:
         help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity)",
     )
     p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
-    p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
+    add_size_preset(p, "tiny sizes (a smoke test)")
     p.add_argument(
-        "--n", type=_positive, help="overhead problem size, rounded to a plate_holes refinement"
+        "--n", type=positive, help="overhead problem size, rounded to a plate_holes refinement"
     )
-    p.add_argument("--k", type=_positive, help="K of the overhead problem (default 100)")
-    p.add_argument("--unrolled-n", type=_positive, help="unrolled comparison: about n unknowns")
-    p.add_argument("--unrolled-k", type=_positive, help="K of the unrolled comparison (300)")
-    p.add_argument("--repeats", type=_positive, help="timed repeats after warm-up (21)")
-    p.add_argument("--ksp-type", default="cg", help="KSP type of every solve (cg)")
-    p.add_argument("--pc-type", default="jacobi", help="PC type of every solve (jacobi)")
-    p.add_argument("--threads", type=_positive, default=1, help="torch threads (default 1)")
-    p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    p.add_argument("--k", type=positive, help="K of the overhead problem (default 100)")
+    p.add_argument("--unrolled-n", type=positive, help="unrolled comparison: about n unknowns")
+    p.add_argument("--unrolled-k", type=positive, help="K of the unrolled comparison (300)")
+    p.add_argument("--repeats", type=positive, help="timed repeats after warm-up (21)")
+    p.add_argument(
+        "--routes",
+        type=_route,
+        default=("cg", "jacobi"),
+        metavar="KSP/PC",
+        help="the KSP and PC type of every solve (default cg/jacobi; one route)",
+    )
+    for old in ("--ksp-type", "--pc-type"):  # one release more: --routes KSP/PC
+        p.add_argument(old, action=DeprecatedAlias, new="--routes KSP/PC", help=argparse.SUPPRESS)
+    p.add_argument("--threads", type=positive, default=1, help="torch threads (default 1)")
+    add_debug(p)
     return p
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text}")
-    return value
+def _route(text: str) -> tuple[str, str]:
+    """``--routes KSP/PC``: one plain pair (this benchmark compares with a raw KSP of
+    the same types)."""
+    pairs = routes(text)
+    if len(pairs) != 1 or pairs[0].count("/") != 1 or ":" in pairs[0]:
+        message = f"expected one KSP/PC pair such as cg/jacobi, got {text!r}"
+        raise argparse.ArgumentTypeError(message)
+    ksp_type, pc_type = pairs[0].split("/")
+    return ksp_type, pc_type
 
 
 def main(argv: list[str]) -> int:
@@ -302,9 +285,11 @@ def main(argv: list[str]) -> int:
 
         return bench_elasticity(argv[1:])
     args = _parser().parse_args(argv)
+    ksp_type = args.ksp_type or args.routes[0]  # the deprecated --ksp-type/--pc-type first
+    pc_type = args.pc_type or args.routes[1]
     import torch
 
-    quick = args.quick
+    quick = args.preset == "quick"
     n = args.n or (4851 if quick else 75018)
     k = args.k or (10 if quick else 100)
     un = args.unrolled_n or (400 if quick else 30625)
@@ -317,10 +302,10 @@ def main(argv: list[str]) -> int:
     try:
         machine = {**machine_info(), "torch_default_threads": default_threads}
         t0 = time.perf_counter()
-        over = bench_overhead(n, k, repeats, 2, args.ksp_type, args.pc_type)
+        over = bench_overhead(n, k, repeats, 2, ksp_type, pc_type)
         logger.info("overhead %.4f", over["overhead"])
-        small = bench_throughput(4851, 10, (1, 32), max(3, repeats), 2, args.ksp_type, args.pc_type)
-        unr = bench_unrolled(un, uk, unrolled_repeats, 1, args.ksp_type, args.pc_type, memory_ks)
+        small = bench_throughput(4851, 10, (1, 32), max(3, repeats), 2, ksp_type, pc_type)
+        unr = bench_unrolled(un, uk, unrolled_repeats, 1, ksp_type, pc_type, memory_ks)
         wall = time.perf_counter() - t0
     finally:
         torch.set_num_threads(default_threads)
@@ -357,8 +342,8 @@ def main(argv: list[str]) -> int:
             "unrolled_speedup": ">= 20",
         },
         "settings": {
-            "ksp_type": args.ksp_type,
-            "pc_type": args.pc_type,
+            "ksp_type": ksp_type,
+            "pc_type": pc_type,
             "rtol": 0.0,
             "atol": 0.0,
             "mode": "fixed (rtol = atol = 0: exactly K iterations)",
@@ -379,9 +364,7 @@ def main(argv: list[str]) -> int:
         "machine": machine,
         "wall_s": wall,
     }
-    result["machine"]["load_average_end"] = (
-        list(os.getloadavg()) if hasattr(os, "getloadavg") else None
-    )
+    result["machine"]["load_average_end"] = load_average()
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "bench_bridge.json"
     path.write_text(json.dumps(result, indent=2) + "\n")

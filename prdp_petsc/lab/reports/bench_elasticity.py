@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -185,6 +184,7 @@ def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     import torch
 
+    from ..provenance import load_average
     from .bench import machine_info
 
     sizes = [2, 4] if args.quick else [int(v) for v in args.sizes.split(",")]
@@ -199,7 +199,7 @@ def main(argv: list[str]) -> int:
         result["wall_s"] = time.perf_counter() - t0
     finally:
         torch.set_num_threads(default_threads)
-    machine["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    machine["load_average_end"] = load_average()
     result["machine"] = machine
     result["settings"]["quick"] = args.quick
     args.out.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,6 @@ import argparse
 import json
 import logging
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -43,6 +42,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .memory import peak_rss_mb
 
 __all__ = ["format_report", "main"]
 
@@ -84,10 +85,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", help=argparse.SUPPRESS)
     p.add_argument("--json", type=Path, help=argparse.SUPPRESS)
     return p
-
-
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
 def _mat_mb(mat) -> float:
@@ -195,7 +192,7 @@ def _replicated_solve_worker(args) -> dict:
         "rows_per_rank": mat.getLocalSize()[0],
         "petsc_mat_mb_per_rank": _mat_mb(mat),
         "replicated_arrays_mb_per_rank": replicated / 2**20,
-        "peak_rss_mb_per_rank": _peak_rss_mb(),
+        "peak_rss_mb_per_rank": peak_rss_mb(),
     }
 
 
@@ -264,7 +261,7 @@ def _owned_solve_worker(args) -> dict:
         "ghost_elements_per_rank": int(len(part.elements.ghosts)),
         "petsc_mat_mb_per_rank": _mat_mb(mat),
         "owned_arrays_mb_per_rank": local / 2**20,
-        "peak_rss_mb_per_rank": _peak_rss_mb(),
+        "peak_rss_mb_per_rank": peak_rss_mb(),
     }
 
 
@@ -291,7 +288,7 @@ def _epoch_worker(args) -> dict:
         "epoch_s": float(np.median(walls[1:] or walls)),
         "solver_s": float(np.median([e["solver_time"] for e in result["epochs"][1:]] or [0])),
         "val_metric": result["epochs"][-1]["val_metric"],
-        "peak_rss_mb_per_rank": _peak_rss_mb(),
+        "peak_rss_mb_per_rank": peak_rss_mb(),
     }
 
 

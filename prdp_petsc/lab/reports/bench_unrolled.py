@@ -30,6 +30,8 @@ import time
 
 import numpy as np
 
+from .memory import peak_rss_mb, reset_peak, rss_mb
+
 __all__ = ["bench_unrolled", "handwritten_unrolled_cg", "unrolled_problem"]
 
 PREFIX = "bench_"
@@ -240,21 +242,9 @@ def peak_rss_increase(specs: list[dict]) -> dict:
     return peak
 
 
-def _status_kb(field: str) -> int | None:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
-
-
 def _peak_rss_child(spec_json: str) -> None:
     """Subprocess body: peak resident-set growth of one forward+backward, printed as JSON."""
     import ctypes
-    import resource
 
     import torch
 
@@ -273,16 +263,8 @@ def _peak_rss_child(spec_json: str) -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except OSError:
         pass
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        base = _status_kb("VmRSS")
-    except OSError:
-        base = None
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    base = rss_mb() if reset_peak() else None  # without /proc: the growth of the peak
+    before = peak_rss_mb()
     _unrolled_mode_solve(mode, A, b, solver, pc).backward(g)
-    if base is not None:
-        peak_kb = _status_kb("VmHWM") - base
-    else:
-        peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
-    print(json.dumps({"peak_mb": peak_kb / 1024.0}))
+    peak_mb = peak_rss_mb() - (base if base is not None else before)
+    print(json.dumps({"peak_mb": peak_mb}))

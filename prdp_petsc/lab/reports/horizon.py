@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import subprocess
 import sys
 import time
@@ -33,17 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .memory import peak_rss_mb, reset_peak
+
 __all__ = ["format_horizon_report", "horizon_row", "main"]
-
-
-def _peak_rss_mb(reset: bool = False) -> float:
-    """This process's peak resident size in MB; `reset` restarts it from the current
-    size (``/proc/self/clear_refs``)."""
-    status = Path("/proc/self/status").read_text()
-    peak = int(re.search(r"VmHWM:\s+(\d+)", status).group(1)) / 1024
-    if reset:
-        Path("/proc/self/clear_refs").write_text("5")
-    return peak
 
 
 def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: int, epochs: int):
@@ -61,7 +52,8 @@ def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: in
     for solver in scene.solvers:
         solver.max_it = k
     generator = torch.Generator().manual_seed(0)
-    start = _peak_rss_mb(reset=True)
+    start = peak_rss_mb()
+    reset_peak()  # building the data does not count
     times, saved, windows = [], 0, 0
     for epoch in range(epochs):
         tic = time.perf_counter()
@@ -82,7 +74,7 @@ def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: in
         "epoch_seconds": times,
         "seconds_per_step": float(np.median(times)) / (windows * m),
         "rss_at_start_mb": start,
-        "peak_rss_mb": max(start, _peak_rss_mb()),
+        "peak_rss_mb": max(start, peak_rss_mb()),
         "saved_tensors_mb": saved / 2**20,
     }
 

@@ -203,7 +203,7 @@ def _provenance_lines(ds: DataSet) -> list[str]:
 def _own_record(ds: DataSet) -> str | None:
     """What the result file itself records about the run that wrote it, if anything."""
     d, name = ds.main, f"`{ds.main_file}`"
-    if isinstance(d.get("provenance"), dict):  # `prdp_petsc.lab.training.provenance`
+    if isinstance(d.get("provenance"), dict):  # `prdp_petsc.lab.provenance`
         p = d["provenance"]
         git = p.get("git") or {}
         commit = f"`{(git.get('commit') or 'unknown')[:7]}`" + (

@@ -14,57 +14,21 @@ from __future__ import annotations
 import datetime
 import json
 import logging
-import os
-import platform
 import re
 import shlex
 import shutil
 import subprocess
 import sys
 import time
-from importlib import metadata
 from pathlib import Path
 
-__all__ = ["PACKAGES", "record"]
+from ..provenance import git_commit, load_average, machine, versions
+
+__all__ = ["record"]
 
 logger = logging.getLogger(__name__)
 
-#: distributions whose installed versions a record names
-PACKAGES = ("prdp-petsc", "petsc", "petsc4py", "torch", "numpy", "scipy", "scikit-fem")
 _NAME = re.compile(r"^[a-z0-9][a-z0-9_-]*$")
-
-
-def _git(*args: str) -> str | None:
-    try:
-        done = subprocess.run(["git", *args], capture_output=True, text=True, check=True)
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return done.stdout.rstrip("\n")  # keep the leading blank of `status --porcelain`
-
-
-def _load_average() -> list[float] | None:
-    return [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
-
-
-def _cpu() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def _versions() -> dict:
-    versions = {"python": platform.python_version()}
-    for name in PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    return versions
 
 
 def _out_folder(command: list[str]) -> Path:
@@ -117,23 +81,16 @@ def record(
     if not _NAME.match(name):
         raise ValueError(f"data set name {name!r}: use lower case letters, digits, _ and -")
     out = _out_folder(command)
-    dirty = _git("status", "--porcelain", "--untracked-files=no")
+    git = git_commit() or {"commit": None, "modified": []}
     provenance = {
         "command": shlex.join(["prdp-petsc", *command]),
         "argv": list(command),
         "started": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "git": {
-            "commit": _git("rev-parse", "HEAD"),
-            "modified": sorted(line[3:] for line in dirty.splitlines()) if dirty else [],
-        },
-        "machine": {
-            "platform": platform.platform(),
-            "cpu": _cpu(),
-            "cpu_count": os.cpu_count(),
-            "load_average_start": _load_average(),
-        },
-        "versions": _versions(),
+        "git": {"commit": git["commit"], "modified": git["modified"]},
+        "machine": machine(),
+        "versions": versions(),
     }
+    provenance["machine"]["load_average_start"] = provenance["machine"].pop("load_average")
     before = _stamps(out)
     start = time.time()
     from prdp_petsc.lab.subprocesses import child_env
@@ -144,7 +101,7 @@ def record(
     )
     provenance["wall_s"] = round(time.time() - start, 1)
     provenance["exit_status"] = status
-    provenance["machine"]["load_average_end"] = _load_average()
+    provenance["machine"]["load_average_end"] = load_average()
     if status != 0:
         logger.error("%s exited with status %d: nothing recorded", provenance["command"], status)
         return status

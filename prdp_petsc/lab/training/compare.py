@@ -28,12 +28,12 @@ from pathlib import Path
 from prdp_petsc import SolverError, StructureError
 
 from ..parsing import check_epochs
+from ..provenance import provenance
 from .building import build_scene, release
 from .checkpoint import CHECKPOINT
 from .harness import RunSettings, run
 from .parallel import Parallel
 from .probe import find_k_full
-from .provenance import provenance
 from .records import RESULTS, write_json
 from .routes import AUTO, parse_routes, route_options, route_settings
 from .scene import load_scene, preset_config
@@ -153,7 +153,7 @@ def compare(
         (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
         adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
         ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why;
-        ``provenance`` (`prdp_petsc.lab.training.provenance.provenance`); with
+        ``provenance`` (`prdp_petsc.lab.provenance.provenance`); with
         ``routes="auto"``, ``pilot`` (`pilot_routes`, also in ``out/pilot.json``
         from before the first run, so that `resume` keeps the pick); with `resume`,
         ``reused``: the runs read from an earlier comparison; ``schedules``.

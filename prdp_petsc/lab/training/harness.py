@@ -28,12 +28,12 @@ from pathlib import Path
 from prdp_petsc import InputError
 
 from ..parsing import check_epochs, positive_int
+from ..provenance import provenance
 from .building import build_scene, release
 from .checkpoint import CHECKPOINT, load_checkpoint
 from .loop import interrupted, totals, train
 from .parallel import Parallel
 from .probe import find_k_full, k_cap, rtol_plan
-from .provenance import provenance
 from .records import RESULTS, to_json, write_json
 from .resume import check_resume, continue_result, load_trained, recorded_run
 from .scene import load_scene, preset_config
@@ -184,7 +184,7 @@ def run(
         them; ``requested_epochs``; ``finished`` (True once all
         of them trained and the rollout is recorded); ``checkpoint`` (``file`` and
         ``epoch`` of the last save, or None); ``scene_file``; ``provenance``
-        (`prdp_petsc.lab.training.provenance.provenance` of the process that started
+        (`prdp_petsc.lab.provenance.provenance` of the process that started
         the run) and, after a resume, ``resumed``: per resume the ``epoch`` it
         started from and its ``provenance``.
 

@@ -1,0 +1,145 @@
+"""Provenance: what made a result file (versions, command line, commit, machine).
+
+The one implementation the lab has of it.  Every ``results.json`` and
+``summary.json`` the training harness writes carries a ``provenance`` object from
+`provenance`; the benchmarks record `machine` and `versions`; ``prdp-petsc pages
+record`` (`prdp_petsc.lab.reports.record`) records the command's `machine`,
+`versions` and `git_commit`.  A number can so be traced to the code and the
+libraries that produced it.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+import subprocess
+import sys
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+__all__ = [
+    "DISTRIBUTIONS",
+    "cpu",
+    "git_commit",
+    "load_average",
+    "machine",
+    "provenance",
+    "versions",
+]
+
+#: Distributions whose versions a result records (names as pip knows them).
+DISTRIBUTIONS = ("prdp-petsc", "petsc4py", "torch", "numpy", "scipy", "scikit-fem")
+
+
+def provenance(threads: int, ranks: int) -> dict:
+    """What produced a result file, as plain JSON types.
+
+    Parameters
+    ----------
+    threads : int
+        torch threads the run used (`prdp_petsc.lab.training.threads.torch_threads`).
+    ranks : int
+        MPI ranks the run used (1 for a serial run).
+
+    Returns
+    -------
+    dict
+        ``versions`` (`versions`), ``command`` (``sys.argv``), ``git``
+        (`git_commit`, or None outside a git checkout), ``timestamp`` (ISO 8601,
+        local time with its UTC offset), ``host`` (``cpus``: ``os.cpu_count()``,
+        ``platform``), ``torch_threads`` and ``mpi_ranks``.
+    """
+    return {
+        "versions": versions(),
+        "command": list(sys.argv),
+        "git": git_commit(),
+        "timestamp": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "host": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "torch_threads": threads,
+        "mpi_ranks": ranks,
+    }
+
+
+def versions() -> dict:
+    """The installed version of each of `DISTRIBUTIONS` (None for one that is not
+    installed), ``petsc`` (``PETSc.Sys.getVersion()``) and ``python``."""
+    found = {name: _version(name) for name in DISTRIBUTIONS}
+    found["petsc"] = _petsc_version()
+    found["python"] = platform.python_version()
+    return found
+
+
+def machine() -> dict:
+    """``platform``, ``cpu`` (`cpu`), ``cpu_count`` and ``load_average`` (`load_average`)."""
+    return {
+        "platform": platform.platform(),
+        "cpu": cpu(),
+        "cpu_count": os.cpu_count(),
+        "load_average": load_average(),
+    }
+
+
+def cpu() -> str:
+    """The CPU's model name (Linux ``/proc/cpuinfo``; else ``platform.processor()``)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def load_average() -> list[float] | None:
+    """The load averages over 1, 5 and 15 minutes (None where the system has none)."""
+    return [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
+
+
+def git_commit(path: str | Path | None = None) -> dict | None:
+    """``{"commit": HEAD, "dirty": bool, "modified": [files]}`` of the git checkout
+    that holds `path`.
+
+    `path` (a folder) defaults to this package's.  None when the folder holds no file
+    tracked by a git checkout (an installed wheel, a virtual environment inside a
+    checkout) or git is missing or fails: provenance never stops a run.  ``modified``
+    lists the tracked files that differ from HEAD (untracked files do not count),
+    ``dirty`` says whether there are any.
+    """
+    folder = Path(__file__).resolve().parent if path is None else Path(path)
+    try:
+        # its files must be tracked: a virtual environment inside a checkout is not
+        _git(folder, "ls-files", "--error-unmatch", ".")
+        commit = _git(folder, "rev-parse", "HEAD").strip()
+        status = _git(folder, "status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    modified = sorted(line[3:] for line in status.splitlines() if line.strip())
+    return {"commit": commit, "dirty": bool(modified), "modified": modified}
+
+
+def _git(folder: Path, *args: str) -> str:
+    done = subprocess.run(
+        ["git", "-C", str(folder), *args],
+        capture_output=True,
+        text=True,
+        timeout=10,
+        check=True,
+    )
+    return done.stdout.rstrip("\n")  # keep the leading blank of `status --porcelain`
+
+
+def _version(distribution: str) -> str | None:
+    try:
+        return version(distribution)
+    except PackageNotFoundError:
+        return None
+
+
+def _petsc_version() -> str | None:
+    try:
+        from petsc4py import PETSc
+    except ImportError:  # pragma: no cover - a dependency
+        return None
+    return ".".join(str(part) for part in PETSc.Sys.getVersion())
