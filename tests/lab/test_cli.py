@@ -275,3 +275,82 @@ def test_without_the_lab_extra_the_command_says_how_to_install_it(monkeypatch, c
     assert cli.main(["run", "demos/heat1d.py"]) == 2
     err = capsys.readouterr().err
     assert "needs tqdm" in err and "pip install 'prdp-petsc[lab]'" in err
+
+
+# One spelling per concept (prdp_petsc.lab.cli.arguments); the old ones work for one
+# release more and say so on stderr.
+
+
+def deprecation(old, new):
+    return f"prdp-petsc: {old} is deprecated and goes in the next release; use {new}\n"
+
+
+@pytest.mark.parametrize(
+    "tool, old, new, same",
+    [
+        ("bench", ["bridge", "--out", "o", "--quick"], "--preset quick",
+         ["bridge", "--out", "o", "--preset", "quick"]),
+        ("bench", ["bridge", "--out", "o", "--ksp-type", "gmres"], "--routes KSP/PC", None),
+        ("bench_elasticity", ["--out", "o", "--quick"], "--preset quick",
+         ["--out", "o", "--preset", "quick"]),
+        ("bench_mpi", ["--out", "o", "--quick"], "--preset quick",
+         ["--out", "o", "--preset", "quick"]),
+        ("bench_mpi", ["--out", "o", "--scene", "demos/heat2d.py"], "the positional SCENE_FILE",
+         ["demos/heat2d.py", "--out", "o"]),
+        ("unseen", ["--out", "o", "--quick"], "--preset quick",
+         ["--out", "o", "--preset", "quick"]),
+        ("unseen", ["--out", "o", "--seeds", "0", "2", "3"], "--seeds 0,2,3",
+         ["--out", "o", "--seeds", "0,2-3"]),
+    ],
+)  # fmt: skip
+def test_an_old_spelling_still_parses_and_says_it_is_deprecated(capsys, tool, old, new, same):
+    import importlib
+
+    module = importlib.import_module(f"prdp_petsc.lab.reports.{tool}")
+    parse = getattr(module, "parse_arguments", None) or module._parser().parse_args
+    args = vars(parse(old))
+    err = capsys.readouterr().err
+    assert err.startswith("prdp-petsc: ") and err.endswith(f"; use {new}\n"), err
+    if same is not None:
+        expected = vars(parse(same))
+        assert capsys.readouterr().err == ""  # the one spelling says nothing
+        args.pop("scene_option", None), expected.pop("scene_option", None)
+        assert args == expected
+
+
+def test_bench_reads_one_route_and_the_old_ksp_pc_types_over_it(capsys):
+    from prdp_petsc.lab.reports.bench import _parser
+
+    args = _parser().parse_args(["bridge", "--out", "o", "--routes", "gmres/ilu"])
+    assert args.routes == ("gmres", "ilu") and args.ksp_type is None is args.pc_type
+    args = _parser().parse_args(["bridge", "--out", "o", "--ksp-type", "gmres", "--pc-type", "ilu"])
+    assert (args.ksp_type, args.pc_type) == ("gmres", "ilu")
+    assert capsys.readouterr().err == deprecation("--ksp-type", "--routes KSP/PC") + deprecation(
+        "--pc-type", "--routes KSP/PC"
+    )
+    assert (
+        exit_status(_parser().parse_args, ["bridge", "--out", "o", "--routes", "cg/icc,cg/sor"])
+        == 2
+    )
+    assert "expected one KSP/PC pair" in capsys.readouterr().err
+
+
+def test_the_old_quick_flag_still_runs_a_tool(tmp_path, capsys):
+    from prdp_petsc.lab import cli
+
+    assert cli.main(["stability", "--out", str(tmp_path), "--quick", "--cases", "magnitude"]) == 0
+    assert deprecation("--quick", "--preset quick") in capsys.readouterr().err
+    assert json.loads((tmp_path / "stability.json").read_text())["meta"]["quick"] is True
+
+
+def test_usage_lists_every_command_and_refuses_an_unknown_one(capsys):
+    from prdp_petsc.lab import cli
+    from prdp_petsc.lab.cli.dispatch import COMMANDS
+
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert all(f"\n  {name} " in out for name in COMMANDS)
+    assert exit_status(cli.main, ["frobnicate"]) == 2
+    assert "unknown command 'frobnicate'; the commands: run, compare, scene, bench" in (
+        capsys.readouterr().err
+    )

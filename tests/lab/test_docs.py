@@ -196,7 +196,7 @@ def test_record_keeps_json_plots_and_provenance(tmp_path):
     out.mkdir()
     (out / "stale.json").write_text("{}")  # left by an earlier run: not recorded
     data, images = tmp_path / "data", tmp_path / "images"
-    command = ["stability", "--quick", "--cases", "magnitude", "--out", str(out)]
+    command = ["stability", "--preset", "quick", "--cases", "magnitude", "--out", str(out)]
     assert pages.record("quick_stability", command, data=data, images=images) == 0
     folder = data / "quick_stability"
     assert sorted(p.name for p in folder.iterdir()) == ["provenance.json", "stability.json"]
@@ -211,7 +211,7 @@ def test_record_keeps_json_plots_and_provenance(tmp_path):
 
 def test_record_refuses_a_command_without_out(tmp_path):
     with pytest.raises(ValueError, match="--out"):
-        pages.record("x", ["stability", "--quick"], data=tmp_path)
+        pages.record("x", ["stability", "--preset", "quick"], data=tmp_path)
     with pytest.raises(ValueError, match="data set name"):
         pages.record("../x", ["stability", "--out", str(tmp_path)], data=tmp_path)
 

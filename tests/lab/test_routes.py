@@ -111,8 +111,8 @@ def test_the_cli_checks_route_names_against_the_scene(tmp_path):
 
 
 def test_work_precision_takes_only_plain_pairs(tmp_path):
-    cmd = [sys.executable, "-m", "prdp_petsc.lab.cli", "work-precision", "poisson", "--quick",
-           "--out", str(tmp_path), "--routes", "cg/icc:pc_factor_levels=1"]  # fmt: skip
+    cmd = [sys.executable, "-m", "prdp_petsc.lab.cli", "work-precision", "poisson", "--preset",
+           "quick", "--out", str(tmp_path), "--routes", "cg/icc:pc_factor_levels=1"]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "plain ksp/pc pairs" in done.stderr
 

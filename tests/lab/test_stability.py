@@ -334,7 +334,9 @@ def test_cgls_adjoint_is_refused_before_solving():
 
 # -- the command ---------------------------------------------------------------------------------
 def test_stability_main_writes_table(tmp_path):
-    assert stability.main(["--out", str(tmp_path), "--quick", "--cases", "magnitude"]) == 0
+    assert (
+        stability.main(["--out", str(tmp_path), "--preset", "quick", "--cases", "magnitude"]) == 0
+    )
     data = json.loads((tmp_path / "stability.json").read_text())
     assert len(data["rows"]) == 9
     assert all(r["outcome"] == "ok" and r["taylor_rate"] >= 1.9 for r in data["rows"])

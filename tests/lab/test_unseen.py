@@ -49,7 +49,7 @@ def test_table_of_a_comparison():
 def test_cli_writes_the_json_the_results_page_reads(tmp_path, capsys):
     from prdp_petsc.lab.cli import main
 
-    rc = main(["unseen", "--problems", "heat_sink", "--seeds", "0", "--quick", "--out",
+    rc = main(["unseen", "--problems", "heat_sink", "--seeds", "0", "--preset", "quick", "--out",
                str(tmp_path)])  # fmt: skip
     assert rc == 0
     import json

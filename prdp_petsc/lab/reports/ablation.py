@@ -30,6 +30,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..cli.arguments import add_debug, positive, routes, seeds
+
 __all__ = ["ablation", "format_ablation", "main"]
 
 BASELINE = "baseline"
@@ -173,7 +175,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("scene", help="scene file (demos/ns2d.py)")
     parser.add_argument("--preset", default="quick", help="baseline preset string")
-    parser.add_argument("--seeds", default="0-2", help="seeds, e.g. 0-2 or 0,3,5")
+    parser.add_argument("--seeds", type=seeds, default=[0, 1, 2], help="seeds, e.g. 0-2 or 0,3,5")
     parser.add_argument(
         "--lever",
         nargs="+",
@@ -183,16 +185,15 @@ def _parser() -> argparse.ArgumentParser:
         help="a lever: its name and the preset settings it changes (repeatable)",
     )
     parser.add_argument("--schedules", default="prdp,rtol", help="reduced schedules")
-    parser.add_argument("--routes", default=None, help="routes (default: the scene's)")
-    parser.add_argument("--epochs", type=int, default=None, help="epochs (default: preset's)")
+    parser.add_argument("--routes", type=routes, default=None, help="routes (default: the scene's)")
+    parser.add_argument("--epochs", type=positive, default=None, help="epochs (default: preset's)")
     parser.add_argument("--no-twin", action="store_true", help="skip the twin runs")
     parser.add_argument("--out", required=True, help="output folder")
+    add_debug(parser)
     return parser
 
 
 def main(argv: list[str]) -> int:
-    from ..parsing import parse_seeds
-
     parser = _parser()
     args = parser.parse_args(argv)
     levers = {}
@@ -202,9 +203,8 @@ def main(argv: list[str]) -> int:
             parser.error(f"--lever NAME KEY=VALUE ...: got {' '.join(lever)!r}")
         levers[name] = " ".join(settings)
     try:
-        seeds = parse_seeds(args.seeds)
         report = ablation(
-            args.scene, levers, preset=args.preset, seeds=seeds, out=args.out,
+            args.scene, levers, preset=args.preset, seeds=args.seeds, out=args.out,
             schedules=tuple(s for s in args.schedules.split(",") if s),
             routes=args.routes, epochs=args.epochs, twin=not args.no_twin,
             progress=False, plots=False, resume=True,

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli.arguments import add_debug, add_size_preset, positive
+
 __all__ = ["VARIANTS", "format_report", "main", "run"]
 
 logger = logging.getLogger(__name__)
@@ -173,9 +175,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="folder for bench_elasticity.json")
     p.add_argument("--sizes", default="8,16,32", help="cells per axis, comma-separated (8,16,32)")
     p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (1e-8)")
-    p.add_argument("--k", type=int, default=10, help="K of the capped solve (10)")
-    p.add_argument("--quick", action="store_true", help="tiny sizes (2,4): a smoke test")
-    p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    p.add_argument("--k", type=positive, default=10, help="K of the capped solve (10)")
+    add_size_preset(p, "tiny sizes (2,4): a smoke test")
+    add_debug(p)
     return p
 
 
@@ -187,7 +189,8 @@ def main(argv: list[str]) -> int:
     from ..provenance import load_average
     from .bench import machine_info
 
-    sizes = [2, 4] if args.quick else [int(v) for v in args.sizes.split(",")]
+    quick = args.preset == "quick"
+    sizes = [2, 4] if quick else [int(v) for v in args.sizes.split(",")]
     if len(sizes) < 2 or sorted(sizes) != sizes or min(sizes) < 1:
         raise SystemExit("--sizes needs two or more increasing cell counts, e.g. 8,16,32")
     default_threads = torch.get_num_threads()
@@ -201,7 +204,7 @@ def main(argv: list[str]) -> int:
         torch.set_num_threads(default_threads)
     machine["load_average_end"] = load_average()
     result["machine"] = machine
-    result["settings"]["quick"] = args.quick
+    result["settings"]["quick"] = quick
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "bench_elasticity.json"
     path.write_text(json.dumps(result, indent=2) + "\n")

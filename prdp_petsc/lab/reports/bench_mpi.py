@@ -1,6 +1,6 @@
 """One rank against several: a distributed 3D solve and a training epoch.
 
-``prdp-petsc bench mpi --out DIR`` starts ``mpiexec -n P`` for every P in
+``prdp-petsc bench mpi [SCENE_FILE] --out DIR`` starts ``mpiexec -n P`` for every P in
 ``--ranks`` (default 1 and 2) and writes ``DIR/bench_mpi.json`` with
 
 ``solve``
@@ -13,8 +13,8 @@
     every rank holds (the assembly map G, the CSR operator and the solver's copy
     of its values, the full vectors).
 ``epoch``
-    Training epochs of a scene (default ``demos/heat3d.py``, preset ``paper``, at
-    its K_full = 96) under ``--parallel domain`` and ``--parallel batch``; the median
+    Training epochs of the scene SCENE_FILE (default ``demos/heat3d.py``, ``--preset``
+    ``paper``, at its K_full = 96) under ``--parallel domain`` and ``--parallel batch``; the median
     epoch wall time after the first (warm-up) epoch, and the speed-up.  ``--epochs 0``
     leaves it out.
 
@@ -25,6 +25,7 @@ own piece (`prdp_petsc.fem.distributed`) and hold its own rows, with the misfit 
 over the ranks.  ``--cube N`` replaces ``box3d`` by the tetrahedral unit cube with N
 points per axis (``skfem.MeshTet.init_tensor``: N³ unknowns; N = 101 gives 1 030 301).
 
+``--preset quick`` runs tiny sizes with the scene's quick preset (a smoke test).
 Timings are only meaningful on an otherwise idle machine, with one torch thread
 per rank (set here); the record includes the load average.
 """
@@ -43,9 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
 from .memory import peak_rss_mb
 
-__all__ = ["format_report", "main"]
+__all__ = ["format_report", "main", "parse_arguments"]
 
 logger = logging.getLogger(__name__)
 
@@ -69,18 +71,31 @@ def _parser() -> argparse.ArgumentParser:
         "--layout", choices=["replicated", "owned"], default="replicated",
         help="data layout of the solve benchmark (replicated)",
     )  # fmt: skip
-    p.add_argument("--k", type=int, default=200, help="K of the capped 3D solve (200)")
-    p.add_argument("--repeats", type=int, default=5, help="timed solves after one warm-up (5)")
-    p.add_argument("--scene", default="demos/heat3d.py", help="scene of the epoch benchmark")
-    p.add_argument("--preset", default="paper")
+    p.add_argument("--k", type=positive, default=200, help="K of the capped 3D solve (200)")
+    p.add_argument("--repeats", type=positive, default=5, help="timed solves after one warm-up (5)")
+    p.add_argument(
+        "scene", nargs="?", default="demos/heat3d.py",
+        help="scene file of the epoch benchmark (demos/heat3d.py)",
+    )  # fmt: skip
+    p.add_argument(
+        "--scene", dest="scene_option", action=DeprecatedAlias, new="the positional SCENE_FILE",
+        help=argparse.SUPPRESS,
+    )  # fmt: skip
+    p.add_argument(
+        "--preset", default="paper",
+        help="the scene's preset (paper); quick also runs tiny sizes (a smoke test)",
+    )  # fmt: skip
     p.add_argument("--schedule", default="fixed:96", help="K schedule of the epochs (K_full)")
     p.add_argument(
         "--epochs", type=int, default=3, help="epochs per run, the first warm-up (0: no epochs)"
     )
     p.add_argument("--mpiexec", default=os.environ.get("MPIEXEC", "mpiexec"))
     p.add_argument("--timeout", type=float, default=3600, help="seconds per mpiexec (3600)")
-    p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
-    p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    p.add_argument(
+        "--quick", action=DeprecatedFlag, dest="preset", const="quick", new="--preset quick",
+        help=argparse.SUPPRESS,
+    )  # fmt: skip
+    add_debug(p)
     p.add_argument("--worker", choices=["solve", "epoch"], help=argparse.SUPPRESS)
     p.add_argument("--mode", help=argparse.SUPPRESS)
     p.add_argument("--json", type=Path, help=argparse.SUPPRESS)
@@ -312,7 +327,7 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
         cmd = [args.mpiexec, "-n", str(ranks), sys.executable, "-m", __name__]
         cmd += ["--worker", worker, "--json", str(record), "--refine", str(args.refine)]
         cmd += ["--cube", str(args.cube), "--layout", args.layout]
-        cmd += ["--k", str(args.k), "--repeats", str(args.repeats), "--scene", args.scene]
+        cmd += ["--k", str(args.k), "--repeats", str(args.repeats), args.scene]
         cmd += ["--preset", args.preset, "--schedule", args.schedule, "--epochs", str(args.epochs)]
         if mode:
             cmd += ["--mode", mode]
@@ -330,17 +345,28 @@ def _speedups(records: dict, key: str) -> dict:
     return {p: base / r[key] for p, r in records.items()}
 
 
+def parse_arguments(argv: list[str]) -> argparse.Namespace:
+    """The arguments of ``bench mpi``, the deprecated ``--scene FILE`` read as SCENE_FILE."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.scene_option is not None:
+        if args.scene != parser.get_default("scene"):
+            parser.error("give the scene file once (the positional SCENE_FILE)")
+        args.scene = args.scene_option
+    return args
+
+
 def main(argv: list[str]) -> int:
     """Run ``bench mpi``; write ``<out>/bench_mpi.json``; return an exit code."""
-    args = _parser().parse_args(argv)
+    args = parse_arguments(argv)
     if args.worker:
         return _worker(args)
     if args.out is None:
         raise SystemExit("prdp-petsc bench mpi: --out is required")
     from .bench import machine_info
 
-    if args.quick:
-        args.refine, args.k, args.repeats, args.preset, args.epochs = 0, 20, 2, "quick", 2
+    if args.preset == "quick":  # tiny sizes: a smoke test
+        args.refine, args.k, args.repeats, args.epochs = 0, 20, 2, 2
     ranks = [int(r) for r in args.ranks.split(",")]
     if 1 not in ranks:
         ranks.insert(0, 1)

@@ -162,16 +162,16 @@ def notes(result: dict) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    from ..parsing import parse_seeds
+    from ..cli.arguments import add_debug, positive, seeds
     from ..training.threads import torch_threads
 
     parser = argparse.ArgumentParser(prog="prdp-petsc defaults", description=__doc__.split("\n")[0])
-    parser.add_argument("scene_file")
-    parser.add_argument("--preset", default="paper")
-    parser.add_argument("--seeds", default="0-2", type=parse_seeds)
-    parser.add_argument("--threads", default=1, type=int)
-    parser.add_argument("--out", required=True, type=Path)
-    parser.add_argument("--debug", action="store_true", help="tracebacks on errors")
+    parser.add_argument("scene_file", help="scene file (demos/heat2d.py)")
+    parser.add_argument("--preset", default="paper", help="preset (default paper)")
+    parser.add_argument("--seeds", default=[0, 1, 2], type=seeds, help="seeds (default 0-2)")
+    parser.add_argument("--threads", default=1, type=positive, help="torch threads (default 1)")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    add_debug(parser)
     args = parser.parse_args(argv)
     with torch_threads(args.threads):
         result = defaults(args.scene_file, args.preset, args.seeds, threads=args.threads,

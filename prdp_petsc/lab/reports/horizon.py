@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli.arguments import add_debug, positive
 from .memory import peak_rss_mb, reset_peak
 
 __all__ = ["format_horizon_report", "horizon_row", "main"]
@@ -103,13 +104,17 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("scene", help="scene file with the preset keys unroll and checkpoint")
     parser.add_argument("--preset", default="quick", help="preset (default quick)")
-    parser.add_argument("--m", type=int, nargs="+", default=[2, 4, 8, 16], help="unroll lengths")
-    parser.add_argument("--k", type=int, default=20, help="fixed K of every solve (default 20)")
-    parser.add_argument("--epochs", type=int, default=2, help="epochs per row (default 2)")
+    parser.add_argument(
+        "--m", type=positive, nargs="+", default=[2, 4, 8, 16], help="unroll lengths"
+    )
+    parser.add_argument(
+        "--k", type=positive, default=20, help="fixed K of every solve (default 20)"
+    )
+    parser.add_argument("--epochs", type=positive, default=2, help="epochs per row (default 2)")
     parser.add_argument("--out", help="output folder for horizon.json")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--no-checkpoint", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    add_debug(parser)
     return parser
 
 

@@ -21,7 +21,7 @@ the solution is its (θ-independent, conserved) mean plus a θ-dependent part 1e
 times smaller; rounding in the mean, which any float64 solver (also LU) makes at
 cond·eps ≈ 1e-8, would swamp a J that sees the mean.
 
-Run ``prdp-petsc stability --out DIR`` (``--quick`` for small meshes); it writes
+Run ``prdp-petsc stability --out DIR`` (``--preset quick`` for small meshes); it writes
 ``DIR/stability.json`` and ``DIR/stability.md``.
 """
 
@@ -350,22 +350,25 @@ def run_cases(quick: bool = False, only: list[str] | None = None) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``prdp-petsc stability --out DIR [--quick] [--cases NAME ...]``."""
+    """``prdp-petsc stability --out DIR [--preset quick] [--cases NAME ...]``."""
+    from ..cli.arguments import add_debug, add_size_preset
+
     parser = argparse.ArgumentParser(
         prog="prdp-petsc stability",
         description="Stability suite of capped PETSc solves and their gradients; writes "
         "DIR/stability.json and DIR/stability.md.",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="small meshes (seconds)")
+    add_size_preset(parser, "small meshes (seconds)")
     parser.add_argument("--cases", nargs="*", choices=sorted(CASES), help="run only these")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    add_debug(parser)
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
-    rows = run_cases(args.quick, args.cases)
+    quick = args.preset == "quick"
+    rows = run_cases(quick, args.cases)
     args.out.mkdir(parents=True, exist_ok=True)
     public = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
-    meta = {"quick": args.quick, "seconds": time.perf_counter() - t0}
+    meta = {"quick": quick, "seconds": time.perf_counter() - t0}
     (args.out / "stability.json").write_text(json.dumps({"meta": meta, "rows": public}, indent=1))
     (args.out / "stability.md").write_text(to_markdown(rows))
     failed = [r for r in rows if r["nan_or_inf"]]

@@ -16,7 +16,7 @@ from prdp_petsc import PRDP, find_k_full
 
 from .unseen_problems import PROBLEMS, RTOL_FULL, Problem, build
 
-__all__ = ["compare", "main", "table", "train"]
+__all__ = ["compare", "main", "parse_arguments", "table", "train"]
 
 
 def train(problem: Problem, schedule: str, k_full: int) -> dict:
@@ -105,27 +105,43 @@ def table(result: dict) -> str:
     return "\n".join(rows)
 
 
+def parse_arguments(argv=None):
+    """The arguments of ``unseen``; ``--seeds`` as one list (the deprecated ``--seeds 0 1
+    2`` too)."""
+    import argparse
+    from pathlib import Path
+
+    from ..cli.arguments import add_debug, add_size_preset, deprecated, seeds
+
+    parser = argparse.ArgumentParser(prog="prdp-petsc unseen")
+    parser.add_argument("--out", required=True, type=Path, help="folder for unseen.json")
+    add_debug(parser)
+    parser.add_argument(
+        "--seeds", type=seeds, nargs="+", default=[[0, 1, 2]],
+        help="seeds, e.g. 0-2 or 0,3,5 (default 0-2)",
+    )  # fmt: skip
+    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
+    add_size_preset(parser, "small sizes and few epochs")
+    args = parser.parse_args(argv)
+    groups, args.seeds = args.seeds, list(dict.fromkeys(s for group in args.seeds for s in group))
+    if len(groups) > 1:  # one release more: --seeds 0 1 2
+        deprecated("--seeds with several values", "--seeds " + ",".join(map(str, args.seeds)))
+    return args
+
+
 def main(argv=None) -> int:
-    """``prdp-petsc unseen --out DIR [--seeds 0 1 2] [--problems ...] [--quick]``.
+    """``prdp-petsc unseen --out DIR [--seeds 0-2] [--problems ...] [--preset quick]``.
 
     Writes ``DIR/unseen.json`` (every run's record) and prints the table; record it
     for the results pages with ``prdp-petsc pages record unseen -- unseen --out DIR``.
     """
-    import argparse
     import json
-    from pathlib import Path
 
     import torch
 
-    parser = argparse.ArgumentParser(prog="prdp-petsc unseen")
-    parser.add_argument("--out", required=True, type=Path)
-    parser.add_argument("--debug", action="store_true", help="tracebacks on errors")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
+    args = parse_arguments(argv)
     torch.set_num_threads(1)
-    result = compare(args.problems, args.seeds, quick=args.quick)
+    result = compare(args.problems, args.seeds, quick=args.preset == "quick")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "unseen.json").write_text(json.dumps(result, indent=1))
     print(table(result))

@@ -19,7 +19,7 @@ non-symmetric problems SOR has no transpose in PETSc, so its adjoint runs with
 solve); the time includes that.  For a symmetric operator (to rounding) `KSPSolver`
 marks the matrix symmetric and SOR's transpose is available.
 
-Run ``prdp-petsc work-precision PROBLEM --out DIR`` (``--quick`` for small sizes);
+Run ``prdp-petsc work-precision PROBLEM --out DIR`` (``--preset quick`` for small sizes);
 it writes ``work_precision_<problem>.json``, ``.png`` and ``.md`` in DIR.
 """
 
@@ -355,14 +355,11 @@ def plot(result: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``prdp-petsc work-precision PROBLEM --out DIR [--quick] [--k-max K] [--routes R,...]``."""
+    """``prdp-petsc work-precision PROBLEM --out DIR [--preset quick] [--k-max K]
+    [--routes R,...]``."""
+    from ..cli.arguments import add_debug, add_size_preset, positive
     from ..training.routes import parse_routes, route_settings
     from .problems import PROBLEMS, build_problem
-
-    def k_max(text: str) -> int:
-        if not text.isdigit() or int(text) < 1:
-            raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
-        return int(text)
 
     def routes(text: str) -> tuple[str, ...]:
         try:
@@ -381,21 +378,22 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("problem", choices=sorted(PROBLEMS))
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="small mesh and K range")
-    parser.add_argument("--k-max", type=k_max, default=None, help="largest K (power of two)")
+    add_size_preset(parser, "small mesh and K range")
+    parser.add_argument("--k-max", type=positive, default=None, help="largest K (power of two)")
     parser.add_argument(
         "--routes", type=routes, default=(), help="only these KSP/PC pairs, e.g. cg/gamg,cg/icc"
     )
-    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    add_debug(parser)
     args = parser.parse_args(argv)
-    kmax = args.k_max or (256 if args.quick else 2048)
+    quick = args.preset == "quick"
+    kmax = args.k_max or (256 if quick else 2048)
     ks = [2**i for i in range(int(np.log2(kmax)) + 1)]
     t0 = time.perf_counter()
-    problem = build_problem(args.problem, quick=args.quick)
+    problem = build_problem(args.problem, quick=quick)
     pairs = [tuple(r.split("/")) for r in args.routes] or None
-    result = sweep(problem, ks, pairs, passes=2 if args.quick else 3)
+    result = sweep(problem, ks, pairs, passes=2 if quick else 3)
     result["seconds"] = time.perf_counter() - t0
-    result["quick"] = args.quick
+    result["quick"] = quick
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / f"work_precision_{args.problem}"
     result["summary"] = summarize(result)
