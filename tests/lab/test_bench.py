@@ -191,7 +191,7 @@ def test_child_env_drops_the_mpi_runtime_of_this_process(monkeypatch):
 
 
 def test_bench_elasticity_records_every_declaration(tmp_path):
-    """`prdp-petsc bench elasticity --quick`: three declarations per size, the modes'
+    """`prdp-petsc bench elasticity --preset quick`: three declarations per size, the modes'
     error at K against its own converged solution, and growth from the counts."""
     assert main(["elasticity", "--preset", "quick", "--out", str(tmp_path)]) == 0
     data = json.loads((tmp_path / "bench_elasticity.json").read_text())

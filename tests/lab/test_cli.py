@@ -354,3 +354,16 @@ def test_usage_lists_every_command_and_refuses_an_unknown_one(capsys):
     assert "unknown command 'frobnicate'; the commands: run, compare, scene, bench" in (
         capsys.readouterr().err
     )
+
+
+def test_topopt_results_reads_k_and_the_old_ks(capsys):
+    import argparse
+
+    from prdp_petsc.lab.reports.topopt import commands
+
+    parser = argparse.ArgumentParser()
+    commands(None)["results"](parser)
+    old = parser.parse_args(["--ks", "2,4", "--seeds", "0-1", "--out", "o"])
+    assert capsys.readouterr().err == deprecation("--ks", "--k K [K ...]")
+    new = parser.parse_args(["--k", "2", "4", "--seeds", "0,1", "--out", "o"])
+    assert vars(old) == vars(new) and new.k == [2, 4] and new.seeds == [0, 1]

@@ -33,8 +33,8 @@ error (otherwise one line, exit status 1), a usage error exits 2, and a concept 
 one spelling: a positional SCENE_FILE, ``--preset NAME``, ``--routes ksp/pc,...``,
 ``--seeds 0-3``, ``--k K`` for the fixed K of every solve and ``--k-max K`` for an
 upper bound on K (`prdp_petsc.lab.cli.arguments`).  Old spellings (``--quick``,
-``--ksp-type``/``--pc-type``, ``--scene FILE``, ``--seeds 0 1 2``) still work for
-one release and say so on stderr.
+``--ksp-type``/``--pc-type``, ``--scene FILE``, ``--seeds 0 1 2``, ``--ks 2,4,8``)
+still work for one release and say so on stderr.
 
 Exit status: 0 on success; 1 if a run stopped early (diverged solve, invalid
 input) or on an error, which prints one line (``--debug`` shows the traceback);

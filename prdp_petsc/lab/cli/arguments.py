@@ -1,26 +1,23 @@
 """The command line's shared arguments: one spelling per concept, one parser per value.
 
-Every sub-command, the report tools' own parsers included, reads a concept the same
-way:
+Every sub-command, the report tools' and the scenes' commands included, reads a
+concept the same way:
 
-=====================  ======================================================
-concept                spelling
-=====================  ======================================================
-scene                  a positional ``SCENE_FILE``
-problem size           ``--preset NAME`` (the tools: ``quick`` or ``paper``)
-KSP/PC solvers         ``--routes ksp/pc,...``
-seeds                  ``--seeds 0-3`` or ``--seeds 0,2,5`` (`positive`-free:
-                       `prdp_petsc.lab.parsing.parse_seeds`)
-the fixed K of solves  ``--k K``
-an upper bound on K    ``--k-max K``
-counts                 integers >= 1 (`positive`): ``--epochs``, ``--threads``,
-                       ``--repeats``, ``--checkpoint-every``
-=====================  ======================================================
+* the scene: a positional ``SCENE_FILE``;
+* problem size: ``--preset NAME`` (the report tools: ``quick`` or ``paper``,
+  `add_size_preset`);
+* KSP/PC solvers: ``--routes ksp/pc,...`` (`routes`);
+* seeds: ``--seeds 0-3`` or ``--seeds 0,2,5`` (`seeds`);
+* the fixed K of every solve: ``--k K`` (several: ``--k K K ...``); an upper bound
+  on K: ``--k-max K``;
+* counts (``--epochs``, ``--threads``, ``--repeats``, ...): integers >= 1
+  (`positive`).
 
 Old spellings keep working for one release, each with one line on stderr
-(`deprecated`): ``--quick`` (``--preset quick``), ``--ksp-type``/``--pc-type``
-(``--routes ksp/pc``), ``--scene FILE`` (the positional scene file) and ``unseen
---seeds 0 1 2`` (``--seeds 0-2``).
+(`deprecated`, `DeprecatedFlag`, `DeprecatedAlias`): ``--quick`` (``--preset
+quick``), ``--ksp-type``/``--pc-type`` (``--routes ksp/pc``), ``--scene FILE`` (the
+positional scene file), ``unseen --seeds 0 1 2`` (``--seeds 0-2``) and topopt3d's
+``results --ks 2,4,8`` (``--k 2 4 8``).
 """
 
 from __future__ import annotations

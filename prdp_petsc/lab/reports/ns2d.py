@@ -128,7 +128,8 @@ def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> d
     mixes amplitude (energy) and phase (correlation): a diffusive solver loses energy
     but stays in phase; a corrector that restores energy can lose phase faster.
     """
-    from ..training.harness import load_trained, release
+    from ..training.building import release
+    from ..training.resume import load_trained
 
     trained = load_trained(folder, module=scene)
     record = json.loads((Path(folder) / "results.json").read_text())

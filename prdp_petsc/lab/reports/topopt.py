@@ -23,6 +23,7 @@ from types import ModuleType
 import numpy as np
 import torch
 
+from ..cli import arguments
 from .trained import train_and_keep
 
 __all__ = [
@@ -139,7 +140,7 @@ def results(scene: ModuleType, preset: str, seeds, ks) -> dict:
     """Per load case: every route of `routes`, its final compliance (scored with a
     converged solve), inner iterations, wall time, and the time at which its design
     first came within 1 % of the converged route's final compliance."""
-    from ..training.harness import torch_threads
+    from ..training.threads import torch_threads
 
     cases = []
     for seed in seeds:
@@ -231,14 +232,21 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
     def results_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
         """Converged solves, constant K, PRDP (auto) and rtol on three load cases."""
         parser.add_argument("--preset", default="quick", help="preset (default quick)")
-        parser.add_argument("--seeds", default="0,1,2", help="load cases (default 0,1,2)")
-        parser.add_argument("--ks", default="2,4,8", help="constant Ks (default 2,4,8)")
+        parser.add_argument(
+            "--seeds", type=arguments.seeds, default=[0, 1, 2], help="load cases (0-2)"
+        )
+        parser.add_argument(
+            "--k", type=arguments.positive, nargs="+", default=[2, 4, 8], help="constant Ks (2 4 8)"
+        )
+        parser.add_argument(
+            "--ks", dest="k", action=arguments.DeprecatedAlias, new="--k K [K ...]",
+            type=lambda text: [arguments.positive(k) for k in text.split(",")],
+            help=argparse.SUPPRESS,
+        )  # fmt: skip
         parser.add_argument("--out", required=True, help="folder for topopt.json and the picture")
 
         def run_results(args: argparse.Namespace) -> int:
-            seeds = [int(s) for s in args.seeds.split(",")]
-            ks = [int(k) for k in args.ks.split(",")]
-            data = results(scene, args.preset, seeds, ks)
+            data = results(scene, args.preset, args.seeds, args.k)
             out = Path(args.out)
             out.mkdir(parents=True, exist_ok=True)
             (out / "topopt.json").write_text(json.dumps(data, indent=1))
