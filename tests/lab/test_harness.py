@@ -357,31 +357,12 @@ def test_cli_version_and_tools_share_the_conventions(tmp_path, capsys):
         main(["stability", "--cases", "nope", "--out", str(tmp_path)])
     assert exit_info.value.code == 2
     # a tool's error: one line and 1, the traceback with --debug
+    quick = ["work-precision", "poisson", "--preset", "quick", "--out", str(tmp_path)]
     with pytest.raises(SystemExit) as exit_info:  # --k-max 0 was silently 256
-        main(
-            [
-                "work-precision",
-                "poisson",
-                "--preset",
-                "quick",
-                "--out",
-                str(tmp_path),
-                "--k-max",
-                "0",
-            ]
-        )
+        main([*quick, "--k-max", "0"])
     assert exit_info.value.code == 2
     capsys.readouterr()
-    argv = [
-        "work-precision",
-        "poisson",
-        "--preset",
-        "quick",
-        "--out",
-        str(tmp_path),
-        "--k-max",
-        "2",
-    ]
+    argv = [*quick, "--k-max", "2"]
     argv += ["--routes", "cg/no_such_pc"]
     assert main(argv) == 1
     err = capsys.readouterr().err

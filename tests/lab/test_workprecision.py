@@ -44,17 +44,8 @@ def test_work_precision_main(tmp_path):
     """
     pairs = ["cg/gamg", "cg/sor", "cg/jacobi", "richardson/jacobi"]
     routes = ",".join(pairs)
-    argv = [
-        "poisson",
-        "--preset",
-        "quick",
-        "--out",
-        str(tmp_path),
-        "--k-max",
-        "32",
-        "--routes",
-        routes,
-    ]
+    argv = ["poisson", "--preset", "quick", "--out", str(tmp_path), "--k-max", "32"]
+    argv += ["--routes", routes]
     assert workprecision.main(argv) == 0
     data = json.loads((tmp_path / "work_precision_poisson.json").read_text())
     assert (tmp_path / "work_precision_poisson.png").stat().st_size > 10_000
