@@ -57,6 +57,7 @@ _EXPORTS = {
     "savings": ".prdp",
     "AdjointSettings": ".core.settings",
     "KSPSolver": ".core.solver",
+    "split_petsc_options": ".core.options",
     "Structure": ".core.structure",
     "use_comm": ".core.parallel",
     "SolveInfo": ".core.results",

@@ -13,6 +13,7 @@ __all__ = [
     "option_value",
     "parse_options",
     "prefixed_options",
+    "split_petsc_options",
 ]
 
 
@@ -46,6 +47,45 @@ def is_number(tok: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Separate PETSc options (``-name [value]``, one dash) from a script's own
+    (``--name``, ``-h`` and everything after a bare ``--``): ``(ours, petsc)``.
+
+    A script that takes PETSc options on its command line hands them to PETSc before
+    PETSc is first imported::
+
+        ours, petsc = pp.split_petsc_options(sys.argv[1:])
+        petsc4py.init([sys.argv[0], *petsc])  # then every KSPSolver reads them
+        args = parser.parse_args(ours)
+
+    A negative number (``--seed -10``) is a value, not an option name.  Plain
+    Python: it imports neither PETSc nor torch.
+    """
+    ours, petsc = [], []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok == "--":
+            ours.extend(argv[i:])
+            break
+        if (
+            tok.startswith("-")
+            and not tok.startswith("--")
+            and tok != "-h"
+            and len(tok) > 2
+            and not is_number(tok)  # "--seed -10": a value of ours
+        ):
+            petsc.append(tok)
+            nxt = argv[i + 1] if i + 1 < len(argv) else None
+            if nxt is not None and (not nxt.startswith("-") or is_number(nxt)):
+                petsc.append(nxt)
+                i += 1
+        else:
+            ours.append(tok)
+        i += 1
+    return ours, petsc
 
 
 def option_value(value) -> str | None:

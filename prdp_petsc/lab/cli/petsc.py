@@ -16,47 +16,9 @@ import re
 import sys
 import warnings
 
-__all__ = ["apply_warning_options", "init_petsc", "is_number", "split_petsc_options"]
+from prdp_petsc import split_petsc_options
 
-
-def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
-    """Separate PETSc options (``-name [value]``, one dash) from ours (``--name``).
-
-    Everything after a bare ``--`` is ours, untouched: the command that
-    ``prdp-petsc pages record NAME -- COMMAND`` runs keeps its own PETSc options.
-    """
-    ours, petsc = [], []
-    i = 0
-    while i < len(argv):
-        tok = argv[i]
-        if tok == "--":
-            ours.extend(argv[i:])
-            break
-        if (
-            tok.startswith("-")
-            and not tok.startswith("--")
-            and tok != "-h"
-            and len(tok) > 2
-            and not is_number(tok)  # "--seed -10": a value of ours
-        ):
-            petsc.append(tok)
-            nxt = argv[i + 1] if i + 1 < len(argv) else None
-            if nxt is not None and (not nxt.startswith("-") or is_number(nxt)):
-                petsc.append(nxt)
-                i += 1
-        else:
-            ours.append(tok)
-        i += 1
-    return ours, petsc
-
-
-def is_number(tok: str) -> bool:
-    """``-10`` or ``-1e-3`` is a value, not an option name."""
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
+__all__ = ["apply_warning_options", "init_petsc", "split_petsc_options"]
 
 
 _ACTIONS = ("default", "always", "ignore", "module", "once", "error")
