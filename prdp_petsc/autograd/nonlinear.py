@@ -247,8 +247,8 @@ def _check_krylov(solver: KSPSolver, ksp, symmetric, what: str) -> None:
     step runs (the solver itself checks the operators it gets, declared or tested)."""
     if symmetric is False and solver.declared_symmetric:
         raise StructureError(
-            f"the {what} is not symmetric, but its KSPSolver was built with symmetric=True "
-            "(that would give wrong gradients); build it without symmetric="
+            f"the {what} is not symmetric, but its KSPSolver was built with "
+            "Structure(symmetric=True) (that would give wrong gradients); build it without"
         )
     if symmetric is False and solver.check_structure and symmetric_only(ksp):
         raise StructureError(

@@ -237,6 +237,6 @@ def check_structure(ksp: PETSc.KSP, symmetric: bool | None, kind: str, *, set_up
         "symmetric operator, but the operator is not symmetric (declared, or an entry "
         "differs from its mirror): capped, it would return a wrong answer without an "
         f"error. Use {'; '.join(fixes)}; or, if the operator is in fact symmetric, "
-        "declare it (symmetric=True); experts can turn this check off with "
+        "declare it (Structure(symmetric=True)); experts can turn this check off with "
         "KSPSolver(check_structure=False)."
     )
