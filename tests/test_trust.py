@@ -111,6 +111,52 @@ def test_operator_edited_in_place_does_not_change_the_pending_gradient(other_sol
     np.testing.assert_allclose(b.grad.numpy(), expected, rtol=1e-9)
 
 
+def test_pattern_edited_in_place_between_forward_and_backward_is_not_used():
+    """The backward's re-set operator is the solver's kept copy, not the caller's arrays."""
+    M = advection_diffusion()
+    M0 = M.copy()
+    g = np.random.default_rng(2).standard_normal(60)
+    with pp.KSPSolver("-ksp_type gmres -pc_type ilu", max_it=300, rtol=1e-13) as solver:
+        b = torch.tensor(RHS, requires_grad=True)
+        x = pp.solve(M, b, solver)
+        M.data *= 2
+        M.indices[:] = M.indices[::-1].copy()  # nonsense, and never read again
+        pp.solve(spd() * 3, torch.tensor(RHS), solver)  # another operator in between
+        x.backward(torch.tensor(g))
+    np.testing.assert_allclose(b.grad.numpy(), spla.spsolve(M0.T.tocsc(), g), rtol=1e-9)
+
+
+def test_the_solver_keeps_the_operator_without_a_copy_per_call():
+    """A scipy matrix: values copied when they change, not per call; the library's own
+    read-only values (a ParametricMatrix at θ): never copied."""
+    import tracemalloc
+
+    M = spd(4000)
+    rhs = torch.tensor(np.random.default_rng(3).standard_normal(4000), requires_grad=True)
+    with pp.KSPSolver("-ksp_type cg -pc_type jacobi", max_it=5) as solver:
+        pp.solve(M, rhs, solver).sum().backward()
+        kept = solver.operator_csr()
+        assert kept[2] is not M.data and not kept[2].flags.writeable
+        tracemalloc.start()
+        base = tracemalloc.get_traced_memory()[0]
+        pp.solve(M, rhs, solver).sum().backward()
+        peak = tracemalloc.get_traced_memory()[1] - base
+        tracemalloc.stop()
+        assert solver.operator_csr()[2] is kept[2]  # unchanged values: the same array
+        assert peak < 6 * 4000 * 8  # a few vectors (M.data alone is 3 vectors)
+        M.data *= 2
+        pp.solve(M, rhs, solver)
+        assert solver.operator_csr()[2] is not kept[2] and np.all(kept[2] == M.data / 2)
+
+    P = pp.ParametricMatrix(
+        M.indptr, M.indices, M.shape, np.zeros(M.nnz), sp.csr_matrix(M.data[:, None])
+    )
+    theta = torch.ones(1, dtype=torch.float64)
+    with pp.KSPSolver("-ksp_type cg -pc_type jacobi", max_it=5) as solver:
+        pp.solve(P, rhs, solver, theta=theta)
+        assert solver.operator_csr()[2] is P.values(theta.numpy())
+
+
 def test_parametric_matrix_is_immutable():
     A = pp.ParametricMatrix(
         spd().indptr, spd().indices, spd().shape, spd().data.copy(), sp.csr_matrix((spd().nnz, 1))

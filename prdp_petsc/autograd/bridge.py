@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..core.operator import frozen_csr
+from ..core.operator import as_csr, frozen_csr
 from ..core.results import CallInfo, SolverError
 from ..core.solver import KSPSolver
 from ..errors import InputError
@@ -38,8 +38,10 @@ def _operator(A, theta: torch.Tensor | None):
     """Return (ParametricMatrix or None, CSR tuple ``(indptr, indices, data, shape)``).
 
     ``data`` is (nnz,), or (B, nnz) for θ of shape (B, p): one operator per sample.
-    The tuple is the library's own (read-only values of a `ParametricMatrix`, or a
-    frozen copy of a scipy matrix), so a backward uses what its forward used.
+    For a `ParametricMatrix` the tuple is the library's own (its read-only pattern
+    and the read-only values computed for θ); for a scipy matrix it is the
+    caller's arrays, validated, not copied: the solver keeps what the forward
+    used (see `solve`, Notes).
     """
     if isinstance(A, ParametricMatrix):
         if theta is None:
@@ -50,7 +52,7 @@ def _operator(A, theta: torch.Tensor | None):
         raise InputError("theta= is only meaningful for a ParametricMatrix A")
     if not sp.issparse(A):
         raise TypeError(f"A must be a scipy sparse matrix or ParametricMatrix, got {type(A)}")
-    return None, frozen_csr(A)
+    return None, as_csr(A)
 
 
 def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) -> None:
@@ -101,8 +103,11 @@ class _ImplicitSolve(torch.autograd.Function):
         ctx.symmetric = P.is_symmetric if P is not None else None  # None: solver checks values
         x = _solve_each(solver, csr, b.detach().cpu().numpy(), ctx.symmetric, transpose=False)
         x = torch.from_numpy(x).to(b.device)
-        ctx.P, ctx.csr, ctx.solver, ctx.outcome = P, csr, solver, outcome
-        ctx.version = solver.operator_version if csr[2].ndim == 1 else None
+        if csr[2].ndim == 1:  # one operator: the solver keeps it (read-only, never edited)
+            ctx.csr, ctx.version = solver.operator_csr(), solver.operator_version
+        else:  # a batch of operators: the ParametricMatrix's read-only values
+            ctx.csr, ctx.version = csr, None
+        ctx.P, ctx.solver, ctx.outcome = P, solver, outcome
         if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
             ctx.save_for_backward(x)
         return x
@@ -125,10 +130,9 @@ class _ImplicitSolve(torch.autograd.Function):
         grad_theta = None
         if need_theta:
             (x,) = ctx.saved_tensors
-            x = x.detach().cpu().numpy()
             per_sample = ctx.csr[2].ndim == 2
-            grad_theta = ctx.P.theta_gradient(lam, x, per_sample=per_sample)
-            grad_theta = torch.from_numpy(grad_theta).to(grad_x.device)
+            gt = ctx.P.theta_gradient(lam, x.detach().cpu().numpy(), per_sample=per_sample)
+            grad_theta = torch.from_numpy(gt).to(grad_x.device)
         return grad_b, grad_theta, None, None, None, None
 
 
@@ -201,10 +205,21 @@ def solve(
     Notes
     -----
     The operator contract: the backward uses exactly the operator the forward
-    used.  A scipy `A` is copied (read-only) at the forward, so editing it in
-    place afterwards (``A.data *= 3``) changes neither this solve's gradient nor
-    any other; a `ParametricMatrix` is immutable (its arrays are read-only) and
-    its values for θ are computed at the forward.
+    used, so editing a scipy `A` in place after the forward (``A.data *= 3``)
+    changes neither this solve's gradient nor any other.  Nothing is copied per
+    call for it: the backward holds the operator as the solver keeps it
+    (`KSPSolver.operator_csr`: read-only arrays that new values replace, never
+    edit), and while the solver still holds that operator (its
+    `~KSPSolver.operator_version` unchanged) it solves on the solver's Mat as it
+    is.  Only if another solve set another operator in between is the kept one
+    set again (no copy, no comparison).  What the solver keeps: a
+    `ParametricMatrix`'s values for θ as they are (read-only, computed by the
+    library: the immutable matrix's own), and of a scipy matrix the caller can
+    still change a copy of its values made when they change (one comparison per
+    call finds an unchanged matrix unchanged) and of its pattern once per new
+    pattern; an array the caller marked read-only, and every array it views,
+    is taken at its word, uncopied (`prdp_petsc.core.operator.immutable`).
+    With `x0` and a scipy `A`, the product ``A x0`` keeps a read-only snapshot.
 
     A batch of operators runs one ``KSPSolve`` per sample, each after
     ``set_operator`` with that sample's values, hence B PC setups forward.  The
@@ -248,7 +263,7 @@ def _solve(A, b, solver, theta, mode, x0, outcome):
         if P is not None:
             residual = b - matvec(A, x0, theta=theta)
         else:
-            residual = b - ConstMatVec.apply(x0, _frozen_matrix(csr))
+            residual = b - ConstMatVec.apply(x0, _frozen_matrix(frozen_csr(A)))
         return x0 + _solve(A, residual, solver, theta, mode, None, outcome)
     if mode == "unrolled":
         from .unrolled import unrolled_solve

@@ -9,6 +9,18 @@ PETSc sets the preconditioner up again only when the values really changed.
 Symmetry decides which maths the adjoint runs, so it is declared by the caller
 where known, otherwise tested entry against mirror whenever the values change.
 
+What is kept, and what is copied (the operator contract: an autograd backward uses
+exactly the operator its forward used, whatever the caller does in between).  The
+values are kept as an array nobody can change: the caller's own when it is
+`immutable` (read-only, and so is every array it views: the values a
+`~prdp_petsc.fem.parametric.ParametricMatrix` computes for θ), otherwise a copy made
+when the values change, never per call.  The pattern is kept the same way, a copy
+made once per new pattern.  An array is never edited in place once kept: new values
+replace it.  `OperatorMat.csr` hands out these arrays, so a backward that holds them
+can set its operator again after another solve replaced it, at no extra copy; an
+unchanged caller's matrix passed again costs one comparison of its values (by
+identity, without a pass, when they are immutable).
+
 A block size (the d unknowns of a node of a d-dimensional vector field) is given
 to every Mat made here (``MatSetBlockSize``), and the rows of the replicated
 layout are split between the ranks by whole blocks; a caller's Mat gets it too.
@@ -33,7 +45,7 @@ from .parallel import ownership_range
 from .safeguards import operator_norm
 from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 
-__all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr"]
+__all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr", "immutable"]
 
 
 def as_csr(A) -> tuple:
@@ -50,26 +62,68 @@ def as_csr(A) -> tuple:
     if shape[0] != shape[1]:
         raise InputError(f"A must be square, got shape {shape}")
     data = np.asarray(data, dtype=np.float64)
-    if not np.all(np.isfinite(data)):
+    if not (np.isfinite(data.sum()) or np.all(np.isfinite(data))):  # sum: no temporary
         raise NonFiniteError("A has NaN or Inf entries")
     return indptr, indices, data, tuple(shape)
 
 
-def frozen_csr(A) -> tuple:
-    """`as_csr` of `A` as read-only copies the caller cannot change afterwards.
+def immutable(arr) -> bool:
+    """True when nobody can write to `arr` through numpy without first setting a flag:
+    it and every array it views are read-only (``flags.writeable`` False).
 
-    What an autograd backward uses must be exactly what its forward used, whatever
-    the caller does to its matrix in between (``M.data *= 3``); the copy costs one
-    pass over the arrays, far less than a solve.  A `KSPSolver` recognises the same
-    frozen tuple set again without comparing values.
+    Such an array is taken at its word and kept without a copy (a caller that sets
+    its flag back and edits it breaks the promise it made).  A read-only view of a
+    writeable buffer is not immutable: its owner can still change it.
+    """
+    while isinstance(arr, np.ndarray):
+        if arr.flags.writeable:
+            return False
+        if arr.base is None:
+            return True
+        arr = arr.base
+    return False
+
+
+def _kept(arr, dtype=None) -> np.ndarray:
+    """`arr` itself if `immutable` (and of `dtype`), else a read-only copy of it."""
+    out = np.asarray(arr, dtype=dtype)
+    if out is arr and immutable(out):
+        return out
+    if out is arr or out.base is not None:  # not a fresh conversion of our own
+        out = np.array(out, copy=True)
+    out.flags.writeable = False
+    return out
+
+
+_CHUNK = 1 << 14
+
+
+def equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal`` in chunks: no temporary of the arrays' size, and an early exit
+    at the first chunk that differs (new values usually differ everywhere)."""
+    if a is b:
+        return True
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape:
+        return False
+    a, b = a.reshape(-1), b.reshape(-1)
+    for start in range(0, a.size, _CHUNK):
+        end = start + _CHUNK
+        if not np.array_equal(a[start:end], b[start:end]):
+            return False
+    return True
+
+
+def frozen_csr(A) -> tuple:
+    """`as_csr` of `A` as arrays the caller cannot change afterwards: its own where
+    they are `immutable`, read-only copies of the others.
+
+    The implicit solve does not need this (the solver keeps the forward's operator,
+    `OperatorMat.csr`); a constant matrix product whose backward needs the forward's
+    matrix does.
     """
     indptr, indices, data, shape = as_csr(A)
-    out = []
-    for arr in (indptr, indices, data):
-        arr = np.array(arr, copy=True)
-        arr.flags.writeable = False
-        out.append(arr)
-    return (*out, shape)
+    return (_kept(indptr), _kept(indices), _kept(data), shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,8 +206,7 @@ class OperatorMat:
         self._declared: bool | None = None  # the caller's word on a Mat of its own
         self._pattern: tuple | None = None  # (indptr, indices, shape) as PETSc ints
         self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
-        self._data: np.ndarray | None = None  # the caller's values array, for an `is` test
-        self._values: np.ndarray | None = None
+        self._values: np.ndarray | None = None  # immutable: the caller's, or a copy
         self._tperm: np.ndarray | None = None
         self._norm: tuple[int, float] | None = None  # (version, ‖A‖) of `norm`
 
@@ -176,27 +229,18 @@ class OperatorMat:
             self.refresh_symmetry()
             self.version += 1
             return "new"
-        if (
-            isinstance(A, tuple)
-            and self._source is not None
-            and A[0] is self._source[0]
-            and A[1] is self._source[1]
-            and A[2] is self._data
-            and A[2].base is None
-            and not A[2].flags.writeable
-        ):
-            # the very read-only array (owning its data) set last: unchanged
+        if isinstance(A, tuple) and A[2] is self._values and self._known(A[0], A[1]):
+            # the values kept (immutable): this operator's own `csr`, or the caller's
+            # immutable values set last; nothing to compare
             return self._redeclare(symmetric)
         indptr, indices, data, shape = as_csr(A)
         if self._same_pattern(indptr, indices, shape):
-            # compare with a private copy: the caller may have changed `data` in place
-            if np.array_equal(data, self._values):
-                self._data = data
+            # compare with the kept values: the caller may have changed `data` in place
+            if equal(data, self._values):
                 return self._redeclare(symmetric)
             self._set_values(data)
-            self._values = data.copy()
+            self._values = _kept(data)  # replaced, never edited: a backward may hold it
             self._source = (indptr, indices)
-            self._data = data
             self._mark_symmetry(symmetric)
             self.version += 1
             return "values"
@@ -205,19 +249,27 @@ class OperatorMat:
                 f"the operator has {shape[0]} rows, not a multiple of block_size={self.block_size}"
             )
         self.destroy()
-        ip = np.asarray(indptr, dtype=PETSc.IntType)
-        ix = np.asarray(indices, dtype=PETSc.IntType)
+        ip, ix = _kept(indptr, PETSc.IntType), _kept(indices, PETSc.IntType)
         self._pattern = (ip, ix, shape)
         self._make_mat(data)
         self._owned = True
         self.replicated = True
         self._source = (indptr, indices)
-        self._values = data.copy()
-        self._data = data
+        self._values = _kept(data)
         self._tperm = transpose_permutation(ip, ix, shape)
         self._mark_symmetry(symmetric)
         self.version += 1
         return "new"
+
+    def csr(self) -> tuple | None:
+        """``(indptr, indices, data, shape)`` of the operator held, as kept here: arrays
+        nobody changes (new values replace `data`, never edit it), so a caller may hold
+        them and set them again later (`update` recognises them without a comparison).
+        None for a caller's Mat or the owned layout."""
+        if self._pattern is None or not self.replicated or not self._owned:
+            return None
+        ip, ix, shape = self._pattern
+        return ip, ix, self._values, shape
 
     def _update_owned(self, A: OwnedCSR, symmetric: bool | None) -> str:
         """`update` for this rank's rows of a distributed matrix (decided collectively)."""
@@ -232,10 +284,9 @@ class OperatorMat:
                 )
             )
         )
-        same_values = same_pattern and np.array_equal(A.data, self._values)
+        same_values = same_pattern and equal(A.data, self._values)
         same_pattern, same_values = _all_ranks(A.comm, same_pattern, same_values)
         if same_values:
-            self._data = A.data
             return self._redeclare(symmetric)
         if same_pattern:
             self.mat.setValuesCSR(self._pattern[0], self._pattern[1], A.data)
@@ -259,8 +310,7 @@ class OperatorMat:
             self._owned = True
             self.replicated = False
         self._source = (A.indptr, A.indices)
-        self._values = np.array(A.data, dtype=np.float64, copy=True)
-        self._data = A.data
+        self._values = _kept(A.data, np.float64)
         self._mark_symmetry(symmetric)
         self.version += 1
         return "values" if same_pattern else "new"
@@ -322,16 +372,20 @@ class OperatorMat:
                 known, flag = self.mat.isSymmetricKnown()
                 self.symmetric = bool(flag) if known else None
 
-    def _same_pattern(self, indptr, indices, shape) -> bool:
+    def _known(self, indptr, indices) -> bool:
+        """Whether (indptr, indices) are the arrays of the pattern held (no comparison)."""
         if self._pattern is None:
             return False
-        if self._source[0] is indptr and self._source[1] is indices:
-            return True
-        return (
-            self._pattern[2] == shape
-            and np.array_equal(self._pattern[0], indptr)
-            and np.array_equal(self._pattern[1], indices)
+        return (indptr is self._source[0] and indices is self._source[1]) or (
+            indptr is self._pattern[0] and indices is self._pattern[1]
         )
+
+    def _same_pattern(self, indptr, indices, shape) -> bool:
+        if self._pattern is None or self._pattern[2] != shape:
+            return False
+        if self._known(indptr, indices):
+            return True
+        return equal(self._pattern[0], indptr) and equal(self._pattern[1], indices)
 
     def _mark_symmetry(self, symmetric: bool | None) -> None:
         """Test A = Aᵀ entry against mirror (unless declared) and tell PETSc."""
@@ -366,7 +420,7 @@ class OperatorMat:
             self.mat.destroy()
         self.mat = None
         self._owned = False
-        self._pattern = self._source = self._values = self._tperm = self._data = None
+        self._pattern = self._source = self._values = self._tperm = None
 
 
 def _all_ranks(comm: PETSc.Comm, *flags: bool) -> list[bool]:

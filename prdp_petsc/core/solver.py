@@ -471,6 +471,14 @@ class KSPSolver:
         permutation), e.g. to measure its memory besides PETSc's Mat."""
         return self._op.arrays()
 
+    def operator_csr(self) -> tuple | None:
+        """``(indptr, indices, data, shape)`` of the operator as this solver keeps it:
+        read-only arrays that are never edited (new values replace them), so a caller
+        may hold them, e.g. an autograd backward that must set the forward's operator
+        again after another solve replaced it (`set_operator` recognises them at no
+        cost).  None for a caller's PETSc Mat or `OwnedCSR` operator."""
+        return self._op.csr()
+
     def set_operator(
         self, A: sp.spmatrix | PETSc.Mat | OwnedCSR | tuple, *, symmetric: bool | None = None
     ) -> None:

@@ -132,7 +132,9 @@ class ParametricMatrix:
             return last[1]  # θ unchanged (a fixed operator): checked before, no product
         theta = self.check_theta(theta)
         if theta.ndim == 2:
-            return np.asarray(self.G @ theta.T).T + self.a0
+            values = np.asarray(self.G @ theta.T).T + self.a0
+            values.flags.writeable = False  # the library's own: a solver keeps it uncopied
+            return values
         values = self.G @ theta
         values += self.a0
         values.flags.writeable = False  # shared by later calls with the same θ
