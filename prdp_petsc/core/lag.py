@@ -99,14 +99,18 @@ class PCLag:
         """Set the PC of slot `name` up again at its next solve (a solve failed on it)."""
         self._slots[name].stale = True
 
-    def before_solve(self, name: str, pc: PETSc.PC, stats: SolverStats) -> int:
+    def before_solve(self, name: str, ksp: PETSc.KSP, stats: SolverStats) -> int:
         """Decide whether the PC of slot `name` is set up at this solve; return its age.
 
-        Sets PETSc's reuse flag on `pc` (only when ``lag > 1``) and counts a set-up
-        in `stats`.  The age is 0 when this solve uses a freshly set-up PC.
+        Sets PETSc's reuse flag on the PC of `ksp` (only when ``lag > 1``) and counts
+        a set-up in `stats`.  The age is 0 when this solve uses a freshly set-up PC.
         """
-        slot = self._slots.setdefault(name, _Slot())
+        slot = self._slots.get(name)
+        if slot is None:
+            slot = self._slots[name] = _Slot()
         age = self.changes - slot.built
+        if age == 0 and self.lag == 1 and not slot.stale:
+            return 0  # the PC is the operator's own: PETSc sets nothing up
         if slot.built < 0:
             why = "new operator"
         elif age == 0:
@@ -120,7 +124,7 @@ class PCLag:
         if self.lag > 1:
             # reuse only on purpose: with an unchanged operator PETSc decides (and sets
             # up again a caller's Mat edited in place, as without a lag)
-            pc.setReusePreconditioner(why is None and age > 0)
+            ksp.getPC().setReusePreconditioner(why is None and age > 0)
         if why is None:
             return age
         if why == "quality":
@@ -139,6 +143,8 @@ class PCLag:
         A fresh PC's rates become the reference of `kind`; a reused PC's call whose
         mean ``log rate_fresh / log rate`` exceeds `tol` marks the PC stale.
         """
+        if self.lag == 1:  # every PC is fresh: no age, no reference rate to keep
+            return infos
         slot = self._slots[name]
         logs = [_log(i.rate) for i in infos if i.rate is not None]
         if age == 0:

@@ -261,6 +261,11 @@ class OperatorMat:
         self.version += 1
         return "new"
 
+    @property
+    def owned(self) -> bool:
+        """Whether the Mat was made here (not a caller's, which the caller may edit)."""
+        return self._owned
+
     def csr(self) -> tuple | None:
         """``(indptr, indices, data, shape)`` of the operator held, as kept here: arrays
         nobody changes (new values replace `data`, never edit it), so a caller may hold

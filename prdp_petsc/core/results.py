@@ -176,9 +176,14 @@ class SolverStats:
 
     def record(self, kind: str, solves: int, iterations: int, seconds: float) -> None:
         """Add one call's work to the ``forward`` or ``adjoint`` counters."""
-        setattr(self, f"{kind}_solves", getattr(self, f"{kind}_solves") + solves)
-        setattr(self, f"{kind}_iterations", getattr(self, f"{kind}_iterations") + iterations)
-        setattr(self, f"{kind}_time", getattr(self, f"{kind}_time") + seconds)
+        if kind == "forward":
+            self.forward_solves += solves
+            self.forward_iterations += iterations
+            self.forward_time += seconds
+        else:
+            self.adjoint_solves += solves
+            self.adjoint_iterations += iterations
+            self.adjoint_time += seconds
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)

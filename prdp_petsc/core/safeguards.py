@@ -64,6 +64,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,6 +90,7 @@ __all__ = [
     "rescue",
     "rhs_exponent",
     "rhs_exponents",
+    "scan_rhs",
     "true_residual",
     "went_far",
 ]
@@ -136,11 +138,32 @@ def check_transpose_ksp(ksp) -> None:
 
 def rhs_exponents(batch: np.ndarray) -> np.ndarray:
     """`rhs_exponent` of every row of a ``(B, n)`` batch, vectorised."""
+    return np.array(scan_rhs(batch)[1], dtype=int)
+
+
+def scan_rhs(batch: np.ndarray) -> tuple[np.ndarray | None, list[int]]:
+    """``(bad, exponents)`` of a ``(B, n)`` batch from one max and one min per row.
+
+    `bad` is None when every entry is finite, else a (B,) bool array of the rows
+    holding NaN or Inf (max and min propagate NaN, and ±Inf is its own extreme);
+    `exponents` are the `rhs_exponent` of every row, a list of int (0 for a bad
+    row).  The finiteness test costs nothing besides the exponents' passes.
+    """
     if batch.shape[1] == 0:
-        return np.zeros(len(batch), dtype=int)
-    biggest = np.maximum(batch.max(axis=1), -batch.min(axis=1))  # no |batch| temporary
+        return None, [0] * len(batch)
+    if len(batch) == 1:  # the common call: Python floats, no small-array numpy calls
+        hi, lo = float(batch.max()), float(batch.min())
+        if not (math.isfinite(hi) and math.isfinite(lo)):
+            return np.ones(1, dtype=bool), [0]
+        big = max(hi, -lo)
+        safe = big == 0.0 or SAFE_RANGE[0] <= big <= SAFE_RANGE[1]
+        return None, [0 if safe else math.frexp(big)[1]]
+    hi, lo = batch.max(axis=1), batch.min(axis=1)
+    bad = ~(np.isfinite(hi) & np.isfinite(lo))
+    biggest = np.maximum(hi, -lo)  # no |batch| temporary
     safe = (biggest == 0.0) | ((SAFE_RANGE[0] <= biggest) & (biggest <= SAFE_RANGE[1]))
-    return np.where(safe, 0, np.frexp(biggest)[1])
+    exponents = np.where(safe | bad, 0, np.frexp(np.where(bad, 1.0, biggest))[1])
+    return (bad if bad.any() else None), exponents.tolist()
 
 
 def rhs_exponent(row: np.ndarray) -> int:
@@ -273,20 +296,24 @@ def backward_error(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: boo
     return true_residual(mat, b, x, transpose=transpose).backward
 
 
-def went_far(ksp: PETSc.KSP) -> bool:
+def went_far(ksp: PETSc.KSP, history: np.ndarray | None = None) -> bool:
     """True when the recorded residual fell below `FAR_BEYOND` times the initial one.
 
     Only then can an iterate have been corrupted by running past rounding level;
-    the check costs nothing otherwise (the history is recorded anyway).
+    the check costs nothing otherwise (the history is recorded anyway; pass it as
+    `history` if already fetched).
     """
-    h = ksp.getConvergenceHistory()
-    if h.size < 2 or not h[0] > 0:
+    h = ksp.getConvergenceHistory() if history is None else history
+    if h.size < 2:
         return False
-    low = h[1:].min()
-    if np.isnan(low):  # rare: a NaN residual; look at the finite ones
+    first = float(h[0])
+    if not first > 0:
+        return False
+    low = float(h.min())  # h[0] itself is far above FAR_BEYOND * h[0]
+    if math.isnan(low):  # rare: a NaN residual; look at the finite ones
         tail = h[1:][np.isfinite(h[1:])]
-        low = tail.min() if tail.size else np.inf
-    return bool(low <= FAR_BEYOND * h[0])
+        low = float(tail.min()) if tail.size else math.inf
+    return low <= FAR_BEYOND * first
 
 
 def _rerun_target(history: np.ndarray, iterations: int) -> int | None:

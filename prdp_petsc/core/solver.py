@@ -51,6 +51,8 @@ __all__ = ["KSPSolver", "UnusedOptionWarning"]
 
 logger = logging.getLogger(__name__)
 
+_NOTHING_PUSHED = PushedOptions([])  # a solve without a set-up reads no options
+
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
 
@@ -209,6 +211,7 @@ class KSPSolver:
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
         self._layout: RowLayout | None = None
+        self._steps: dict = {}  # kind -> (key, SolveStep) kept between calls (`_step`)
         self._ksp: PETSc.KSP | None = None
         self._adj: PETSc.KSP | None = None
         self._build(self.comm)
@@ -263,6 +266,7 @@ class KSPSolver:
         """Create and configure both KSPs on `comm`, fully or not at all."""
         self._items = self.config.option_items()
         self._setup_version = {"forward": -1, "adjoint": -1}
+        self._steps = {}  # they hold the KSPs
         self._lag.reset()  # new KSPs: every PC is set up at its first solve
         self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
         self._has_fields = {"forward": False, "adjoint": False}  # PCFieldSplitSetIS done
@@ -323,6 +327,7 @@ class KSPSolver:
         self._destroy_ksps()
 
     def _free_vecs(self) -> None:
+        self._steps = {}  # they hold the Vecs
         for obj in (self._x, self._b, self._layout):
             if obj is not None:
                 obj.destroy()
@@ -572,31 +577,32 @@ class KSPSolver:
             raise InputError(
                 f"right-hand side has {batch.shape[1]} entries, operator has {layout.size} {rows}"
             )
-        self._check_finite(batch, kind)
+        # one max and one min per row: NaN/Inf rows, and the exponents (0 unless |b|
+        # is extreme)
+        bad, exponents = safeguards.scan_rhs(batch)
+        self._check_finite(batch, kind, bad)
         ksp = self._adj if transpose else self._ksp
-        as_transpose = transpose and not self._adjoint_is_forward()
-        step = SolveStep(ksp, mat, self._b, self._x, layout, kind, as_transpose, self._op.norm)
+        step = self._step(kind, ksp, mat, transpose)
         out = np.empty_like(batch)
-        exponents = safeguards.rhs_exponents(batch)  # 0 unless |b| is extreme
         if layout.distributed and not layout.replicated:  # each rank holds a part of b
-            exponents = layout.agree_max(exponents)
+            exponents = layout.agree_max(np.array(exponents, dtype=np.int64)).tolist()
         check = self._unchecked[kind]
         slot = "forward" if self._shared_pc else kind  # a shared PC has one age
-        age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
+        age = self._lag.before_solve(slot, ksp, self.stats)
         t0 = time.perf_counter()
         iterations = 0
         # the options are in PETSc's database while it may read them: at the PC set-up
         # after a new operator (GAMG reads its level options there), and at the first
         # solve, to learn which were never read.  KSPSolve itself reads none.
         setup = check or self._setup_version[kind] != self._op.version
-        pushed = PushedOptions(self._items if setup else [], watch=check)
+        pushed = PushedOptions(self._items, watch=check) if setup else _NOTHING_PUSHED
         try:
             with pushed:
                 if setup and self.check_structure:
                     self._check_structure(ksp, kind)
                 try:
                     for i in range(len(batch)):
-                        iterations += step(batch[i], out[i], int(exponents[i]))
+                        iterations += step(batch[i], out[i], exponents[i])
                 except SolverError as err:
                     if age == 0:
                         raise
@@ -611,12 +617,12 @@ class KSPSolver:
                     if len(step.infos) > i:  # the failed row's own work counts too
                         iterations += step.infos[i].iterations
                     self._lag.mark_stale(slot)
-                    age = self._lag.before_solve(slot, ksp.getPC(), self.stats)
+                    age = self._lag.before_solve(slot, ksp, self.stats)
                     step = SolveStep(
-                        ksp, mat, self._b, self._x, layout, kind, as_transpose, self._op.norm
+                        ksp, mat, self._b, self._x, layout, kind, step.transpose, self._op.norm
                     )
                     for i in range(len(batch)):
-                        iterations += step(batch[i], out[i], int(exponents[i]))
+                        iterations += step(batch[i], out[i], exponents[i])
                 finally:
                     self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
         except SolverError as err:
@@ -627,7 +633,8 @@ class KSPSolver:
         self._setup_version[kind] = self._op.version
         if check and (unused := self._unused_after(kind, pushed)):
             warnings.warn(unused, UnusedOptionWarning, stacklevel=3)
-        finite = bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))  # sum: fast path
+        # the step saw a finite ‖x‖ of every row (so no NaN/Inf), or a sum: fast path
+        finite = step.finite or bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))
         if layout.distributed and not layout.replicated:
             finite = bool(layout.agree_max(np.array([not finite]))[0] == 0)
         if not finite:
@@ -636,10 +643,34 @@ class KSPSolver:
         self.stats.record(kind, len(batch), iterations, elapsed)
         return out.reshape(rhs.shape)
 
-    def _check_finite(self, batch: np.ndarray, kind: str) -> None:
-        """NaN or Inf in a right-hand side: `NonFiniteError`, never a solve (PETSc would
-        return x = 0 with ``DIVERGED_NANORINF``)."""
-        bad = not (np.isfinite(batch.sum()) or np.all(np.isfinite(batch)))  # sum: fast path
+    def _step(self, kind: str, ksp: PETSc.KSP, mat: PETSc.Mat, transpose: bool) -> SolveStep:
+        """The `SolveStep` of this call: kept per kind while the operator (a Mat made
+        here, whose null spaces only this solver sets) and the adjoint's maths (PC
+        type, ``symmetric_pc``) stay."""
+        if not self._op.owned:  # a caller's Mat may be edited: ask it every call
+            as_transpose = transpose and not self._adjoint_is_forward()
+            return SolveStep(
+                ksp, mat, self._b, self._x, self._layout, kind, as_transpose, self._op.norm
+            )
+        # what `_adjoint_is_forward` reads (the PC type: a caller may set it on `adjoint_ksp`)
+        pc_type = self._adj.getPC().getType() if transpose else None
+        key = (self._op.version, self.adjoint.symmetric_pc, pc_type)
+        kept = self._steps.get(kind)
+        if kept is not None and kept[0] == key:
+            kept[1].reset()
+            return kept[1]
+        as_transpose = transpose and not self._adjoint_is_forward()
+        step = SolveStep(
+            ksp, mat, self._b, self._x, self._layout, kind, as_transpose, self._op.norm
+        )
+        self._steps[kind] = (key, step)
+        return step
+
+    def _check_finite(self, batch: np.ndarray, kind: str, rows: np.ndarray | None) -> None:
+        """NaN or Inf in a right-hand side (`rows`: `safeguards.scan_rhs`'s bad rows):
+        `NonFiniteError`, never a solve (PETSc would return x = 0 with
+        ``DIVERGED_NANORINF``)."""
+        bad = rows is not None
         if self._layout.distributed and not self._layout.replicated:
             bad = bool(self._layout.agree_max(np.array([bad]))[0])
         if bad:

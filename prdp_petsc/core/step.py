@@ -11,6 +11,8 @@ norms (``‖x‖``, ``‖b‖``; ``‖A‖`` is kept per operator), a converged 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from petsc4py import PETSc
 
@@ -39,10 +41,13 @@ def reduction_rate(history: np.ndarray) -> float | None:
     the initial norm, then one per iteration).  None without an iteration or
     without a positive finite initial norm; 0.0 for an exact solve.
     """
-    if history.size < 2 or not (np.isfinite(history[0]) and history[0] > 0):
+    if history.size < 2:
         return None
-    ratio = float(history[-1] / history[0])
-    if not np.isfinite(ratio):
+    first, last = float(history[0]), float(history[-1])
+    if not (math.isfinite(first) and first > 0):
+        return None
+    ratio = last / first
+    if not math.isfinite(ratio):
         return None
     return ratio ** (1.0 / (history.size - 1))
 
@@ -80,6 +85,7 @@ class SolveStep:
         "infos",
         "norm",
         "kernel",
+        "finite",
     )
 
     def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool, norm):
@@ -87,6 +93,7 @@ class SolveStep:
         self.b_vec, self.x_vec, self.layout, self.norm = b_vec, x_vec, layout, norm
         self.run = ksp.solveTranspose if transpose else ksp.solve
         self.infos: list[SolveInfo] = []  # one per row solved (the failing one included)
+        self.finite = True  # every row's x had a finite norm (so no NaN/Inf entry) so far
         # the solutions of a singular system differ by its kernel: null(A), or null(Aᵀ)
         # for a transpose solve.  A right preconditioner (FGMRES, fieldsplit) can put a
         # kernel part into x, so it is removed: x is the minimum-norm solution A⁺b
@@ -110,26 +117,39 @@ class SolveStep:
             if atol > 0:
                 ksp.setTolerances(atol=atol)
         reason = ksp.getConvergedReason()
+        history = ksp.getConvergenceHistory()
         rescued = 0
-        if reason in safeguards.LATE_REASONS or safeguards.went_far(ksp):
+        if reason in safeguards.LATE_REASONS or safeguards.went_far(ksp, history):
+            self.finite = False
             rescued = self._verify(reason, exponent)
         elif reason < 0 and reason != _MAX_IT:
-            self.infos.append(self._info(exponent))
+            self.infos.append(self._info(exponent, history))
             raise self._diverged(self.infos[-1], self._diagnose())
         else:
-            self.infos.append(self._info(exponent))
-            self._check_iterate(reason)
+            self.infos.append(self._info(exponent, history))
+            size = self._check_iterate(reason)
+            if exponent or not math.isfinite(size):
+                self.finite = False  # the caller tests the entries
         if self.kernel is not None:
             self.kernel.remove(x_vec)
+            self.finite = False  # x changed after its norm was taken
         x = self.layout.gather(x_vec)
-        out[:] = np.ldexp(x, exponent) if exponent else x
+        if exponent:
+            np.ldexp(x, exponent, out=out)
+        else:
+            out[:] = x
         return ksp.getIterationNumber() + rescued
+
+    def reset(self) -> None:
+        """Forget the rows of the last call (the step is kept for the next one)."""
+        self.infos = []
+        self.finite = True
 
     def info(self) -> SolveInfo | None:
         """`SolveInfo` of the last row (PETSc's own outcome when a solve failed)."""
         return self.infos[-1] if self.infos else None
 
-    def _info(self, exponent: int) -> SolveInfo:
+    def _info(self, exponent: int, history: np.ndarray | None = None) -> SolveInfo:
         """PETSc's outcome of the solve just run; no residual where PETSc computed none.
 
         The KSPs record their residual history (reset at every solve), so norm type
@@ -137,24 +157,26 @@ class SolveStep:
         Richardson+SOR), and ``KSPGetResidualNorm``'s 0 means nothing.
         """
         ksp = self.ksp
-        history = ksp.getConvergenceHistory()
-        computed = ksp.getNormType() != _NO_NORM and history.size > 0
+        if history is None:
+            history = ksp.getConvergenceHistory()
+        computed = history.size > 0 and ksp.getNormType() != _NO_NORM
         return SolveInfo(
             ksp.getIterationNumber(),
             reason_name(ksp.getConvergedReason()),
-            float(np.ldexp(ksp.getResidualNorm(), exponent)) if computed else None,
+            math.ldexp(ksp.getResidualNorm(), exponent) if computed else None,
             reduction_rate(history) if computed else None,
         )
 
-    def _check_iterate(self, reason: int) -> None:
-        """Refuse a finished solve's x that did not solve the system (`safeguards.judge`).
+    def _check_iterate(self, reason: int) -> float:
+        """Refuse a finished solve's x that did not solve the system (`safeguards.judge`);
+        return ‖x‖.
 
         Converged: its true residual, one ``MatMult``.  Capped: only when
         ``‖A‖ ‖x‖ > ‖b‖ / NULL_TOLERANCE`` (two vector norms decide).
         """
         size = self.x_vec.norm()
-        if not np.isfinite(size):
-            return  # the caller's finiteness check raises (DIVERGED_NANORINF)
+        if not math.isfinite(size):
+            return size  # the caller's finiteness check raises (DIVERGED_NANORINF)
         if reason in _TOLERANCE_MET:
             outcome = "converged"
         elif reason > 0 and reason != _ITS:
@@ -165,7 +187,7 @@ class SolveStep:
         if outcome == "capped":
             norm = self.norm()
             if not norm * size > self.b_vec.norm() / safeguards.NULL_TOLERANCE:
-                return
+                return size
         residual = safeguards.true_residual(
             self.mat, self.b_vec, self.x_vec, transpose=self.transpose, norm=norm or self.norm()
         )
@@ -185,6 +207,7 @@ class SolveStep:
                 "-ksp_norm_type unpreconditioned tests the true residual",
                 reason="FALSE_CONVERGENCE",
             )
+        return size
 
     def _singular(self, info: SolveInfo, residual) -> SingularOperatorError:
         declared = self.mat.getNullSpace()
