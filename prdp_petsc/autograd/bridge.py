@@ -102,7 +102,7 @@ class _ImplicitSolve(torch.autograd.Function):
     def forward(ctx, b, theta, P, csr, solver, outcome):
         ctx.symmetric = P.is_symmetric if P is not None else None  # None: solver checks values
         x = _solve_each(solver, csr, b.detach().cpu().numpy(), ctx.symmetric, transpose=False)
-        x = torch.from_numpy(x).to(b.device)
+        x = torch.from_numpy(x) if b.is_cpu else torch.from_numpy(x).to(b.device)
         if csr[2].ndim == 1:  # one operator: the solver keeps it (read-only, never edited)
             ctx.csr, ctx.version = solver.operator_csr(), solver.operator_version
         else:  # a batch of operators: the ParametricMatrix's read-only values
@@ -126,7 +126,11 @@ class _ImplicitSolve(torch.autograd.Function):
         )
         if ctx.outcome is not None:
             ctx.outcome.adjoint = ctx.solver.last_adjoint
-        grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
+        grad_b = None
+        if need_b:
+            grad_b = torch.from_numpy(lam)
+            if not grad_x.is_cpu:
+                grad_b = grad_b.to(grad_x.device)
         grad_theta = None
         if need_theta:
             (x,) = ctx.saved_tensors

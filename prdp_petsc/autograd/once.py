@@ -48,10 +48,10 @@ def once_differentiable(backward):
 
     @functools.wraps(backward)
     def wrapper(ctx, *grads):
+        if not torch.is_grad_enabled():  # the usual backward (no create_graph)
+            return backward(ctx, *grads)
         with torch.no_grad():
             outputs = backward(ctx, *grads)
-        if not torch.is_grad_enabled():
-            return outputs
         tensors = [*grads, *ctx.saved_tensors]
         depends_on = [t for t in tensors if isinstance(t, torch.Tensor) and t.requires_grad]
         if not depends_on:

@@ -159,8 +159,11 @@ def scan_rhs(batch: np.ndarray) -> tuple[np.ndarray | None, list[int]]:
         safe = big == 0.0 or SAFE_RANGE[0] <= big <= SAFE_RANGE[1]
         return None, [0 if safe else math.frexp(big)[1]]
     hi, lo = batch.max(axis=1), batch.min(axis=1)
-    bad = ~(np.isfinite(hi) & np.isfinite(lo))
     biggest = np.maximum(hi, -lo)  # no |batch| temporary
+    least, most = float(biggest.min()), float(biggest.max())  # NaN fails both tests
+    if SAFE_RANGE[0] <= least and most <= SAFE_RANGE[1]:  # the common batch: all safe
+        return None, [0] * len(batch)
+    bad = ~(np.isfinite(hi) & np.isfinite(lo))
     safe = (biggest == 0.0) | ((SAFE_RANGE[0] <= biggest) & (biggest <= SAFE_RANGE[1]))
     exponents = np.where(safe | bad, 0, np.frexp(np.where(bad, 1.0, biggest))[1])
     return (bad if bad.any() else None), exponents.tolist()
