@@ -299,24 +299,21 @@ def backward_error(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: boo
     return true_residual(mat, b, x, transpose=transpose).backward
 
 
-def went_far(ksp: PETSc.KSP, history: np.ndarray | None = None) -> bool:
+def went_far(ksp: PETSc.KSP, history: list | np.ndarray | None = None) -> bool:
     """True when the recorded residual fell below `FAR_BEYOND` times the initial one.
 
     Only then can an iterate have been corrupted by running past rounding level;
     the check costs nothing otherwise (the history is recorded anyway; pass it as
-    `history` if already fetched).
+    `history`, best as a list, if already fetched).
     """
     h = ksp.getConvergenceHistory() if history is None else history
-    if h.size < 2:
+    if isinstance(h, np.ndarray):
+        h = h.tolist()
+    if len(h) < 2 or not h[0] > 0:
         return False
-    first = float(h[0])
-    if not first > 0:
-        return False
-    low = float(h.min())  # h[0] itself is far above FAR_BEYOND * h[0]
-    if math.isnan(low):  # rare: a NaN residual; look at the finite ones
-        tail = h[1:][np.isfinite(h[1:])]
-        low = float(tail.min()) if tail.size else math.inf
-    return low <= FAR_BEYOND * first
+    # min starts from h[0] > 0 and a comparison with NaN is False: NaN residuals are
+    # skipped; h[0] itself is far above FAR_BEYOND * h[0]
+    return min(h) <= FAR_BEYOND * h[0]
 
 
 def _rerun_target(history: np.ndarray, iterations: int) -> int | None:

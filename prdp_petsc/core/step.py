@@ -34,14 +34,14 @@ _ITS = _REASON.CONVERGED_ITS
 _NO_NORM = PETSc.KSP.NormType.NONE
 
 
-def reduction_rate(history: np.ndarray) -> float | None:
+def reduction_rate(history: list | np.ndarray) -> float | None:
     """Geometric mean residual reduction per iteration, ``(h[-1]/h[0])^(1/(len(h)-1))``.
 
     `history` is a KSP's residual history of one solve (``KSPGetResidualHistory``:
     the initial norm, then one per iteration).  None without an iteration or
     without a positive finite initial norm; 0.0 for an exact solve.
     """
-    if history.size < 2:
+    if len(history) < 2:
         return None
     first, last = float(history[0]), float(history[-1])
     if not (math.isfinite(first) and first > 0):
@@ -49,7 +49,7 @@ def reduction_rate(history: np.ndarray) -> float | None:
     ratio = last / first
     if not math.isfinite(ratio):
         return None
-    return ratio ** (1.0 / (history.size - 1))
+    return ratio ** (1.0 / (len(history) - 1))
 
 
 class SolveStep:
@@ -117,16 +117,16 @@ class SolveStep:
             if atol > 0:
                 ksp.setTolerances(atol=atol)
         reason = ksp.getConvergedReason()
-        history = ksp.getConvergenceHistory()
+        history = ksp.getConvergenceHistory().tolist()  # Python floats: a few, cheap
         rescued = 0
         if reason in safeguards.LATE_REASONS or safeguards.went_far(ksp, history):
             self.finite = False
             rescued = self._verify(reason, exponent)
         elif reason < 0 and reason != _MAX_IT:
-            self.infos.append(self._info(exponent, history))
+            self.infos.append(self._info(exponent, history, reason))
             raise self._diverged(self.infos[-1], self._diagnose())
         else:
-            self.infos.append(self._info(exponent, history))
+            self.infos.append(self._info(exponent, history, reason))
             size = self._check_iterate(reason)
             if exponent or not math.isfinite(size):
                 self.finite = False  # the caller tests the entries
@@ -149,7 +149,9 @@ class SolveStep:
         """`SolveInfo` of the last row (PETSc's own outcome when a solve failed)."""
         return self.infos[-1] if self.infos else None
 
-    def _info(self, exponent: int, history: np.ndarray | None = None) -> SolveInfo:
+    def _info(
+        self, exponent: int, history: list | None = None, reason: int | None = None
+    ) -> SolveInfo:
         """PETSc's outcome of the solve just run; no residual where PETSc computed none.
 
         The KSPs record their residual history (reset at every solve), so norm type
@@ -158,11 +160,13 @@ class SolveStep:
         """
         ksp = self.ksp
         if history is None:
-            history = ksp.getConvergenceHistory()
-        computed = history.size > 0 and ksp.getNormType() != _NO_NORM
+            history = ksp.getConvergenceHistory().tolist()
+        if reason is None:
+            reason = ksp.getConvergedReason()
+        computed = len(history) > 0 and ksp.getNormType() != _NO_NORM
         return SolveInfo(
             ksp.getIterationNumber(),
-            reason_name(ksp.getConvergedReason()),
+            reason_name(reason),
             math.ldexp(ksp.getResidualNorm(), exponent) if computed else None,
             reduction_rate(history) if computed else None,
         )
