@@ -52,7 +52,7 @@ def _operator(A, theta: torch.Tensor | None):
         raise InputError("theta= is only meaningful for a ParametricMatrix A")
     if not sp.issparse(A):
         raise TypeError(f"A must be a scipy sparse matrix or ParametricMatrix, got {type(A)}")
-    return None, as_csr(A)
+    return None, as_csr(A, finite=False)  # the solver tests values it has not seen
 
 
 def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) -> None:

@@ -48,8 +48,12 @@ from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 __all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr", "immutable"]
 
 
-def as_csr(A) -> tuple:
-    """``(indptr, indices, data, shape)`` of a scipy matrix or such a tuple (validated)."""
+def as_csr(A, *, finite: bool = True) -> tuple:
+    """``(indptr, indices, data, shape)`` of a scipy matrix or such a tuple (validated).
+
+    `finite`: also refuse NaN or Inf values (`NonFiniteError`); `OperatorMat.update`
+    tests only values it has not seen, so an unchanged operator costs no pass.
+    """
     if isinstance(A, tuple):
         indptr, indices, data, shape = A
     else:
@@ -62,9 +66,15 @@ def as_csr(A) -> tuple:
     if shape[0] != shape[1]:
         raise InputError(f"A must be square, got shape {shape}")
     data = np.asarray(data, dtype=np.float64)
-    if not (np.isfinite(data.sum()) or np.all(np.isfinite(data))):  # sum: no temporary
-        raise NonFiniteError("A has NaN or Inf entries")
+    if finite:
+        check_values(data)
     return indptr, indices, data, tuple(shape)
+
+
+def check_values(data: np.ndarray) -> None:
+    """`NonFiniteError` if the operator's values hold NaN or Inf (a sum first: no temporary)."""
+    if not (np.isfinite(data.sum()) or np.all(np.isfinite(data))):
+        raise NonFiniteError("A has NaN or Inf entries")
 
 
 def immutable(arr) -> bool:
@@ -95,7 +105,7 @@ def _kept(arr, dtype=None) -> np.ndarray:
     return out
 
 
-_CHUNK = 1 << 14
+_CHUNK = 1 << 16  # a 64 KiB temporary at most
 
 
 def equal(a: np.ndarray, b: np.ndarray) -> bool:
@@ -233,17 +243,19 @@ class OperatorMat:
             # the values kept (immutable): this operator's own `csr`, or the caller's
             # immutable values set last; nothing to compare
             return self._redeclare(symmetric)
-        indptr, indices, data, shape = as_csr(A)
+        indptr, indices, data, shape = as_csr(A, finite=False)
         if self._same_pattern(indptr, indices, shape):
             # compare with the kept values: the caller may have changed `data` in place
             if equal(data, self._values):
-                return self._redeclare(symmetric)
+                return self._redeclare(symmetric)  # kept values were tested finite
+            check_values(data)
             self._set_values(data)
             self._values = _kept(data)  # replaced, never edited: a backward may hold it
             self._source = (indptr, indices)
             self._mark_symmetry(symmetric)
             self.version += 1
             return "values"
+        check_values(data)
         if shape[0] % self.block_size:
             raise InputError(
                 f"the operator has {shape[0]} rows, not a multiple of block_size={self.block_size}"
