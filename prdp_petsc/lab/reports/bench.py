@@ -237,8 +237,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench", description=__doc__.split("\n")[0])
     p.add_argument(
         "which",
-        choices=["bridge", "mpi", "elasticity"],
-        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity)",
+        choices=["bridge", "mpi", "elasticity", "jax"],
+        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity, jax: bench_jax)",
     )
     p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
     add_size_preset(p, "tiny sizes (a smoke test)")
@@ -284,6 +284,10 @@ def main(argv: list[str]) -> int:
         from .bench_elasticity import main as bench_elasticity
 
         return bench_elasticity(argv[1:])
+    if argv and argv[0] == "jax":
+        from .bench_jax import main as bench_jax
+
+        return bench_jax(argv[1:])
     args = _parser().parse_args(argv)
     ksp_type = args.ksp_type or args.routes[0]  # the deprecated --ksp-type/--pc-type first
     pc_type = args.pc_type or args.routes[1]

@@ -1,0 +1,426 @@
+"""prdp_petsc against JAX's and lineax's CG: K capped iterations, gradient in b.
+
+``prdp-petsc bench jax --out DIR`` writes ``DIR/bench_jax.json``.  One problem, one
+loss, four implementations, each in a process of its own:
+
+Problem
+    The five-point ``−Δ`` on a side × side grid (`prdp_petsc.laplacian`, Dirichlet;
+    110 × 110 = 12 100 unknowns, 60 060 nonzeros by default), SPD.  Loss
+    ``L(b) = ⟨g, x_K(b)⟩`` with ``x_K`` K = 10 iterations of Jacobi-preconditioned
+    CG from x = 0 in fixed mode (no tolerance, exactly K iterations); what is timed
+    is one forward + backward, i.e. ``∂L/∂b`` (K CG iterations forward and K on the
+    adjoint ``A λ = g``, since A and the preconditioner are symmetric).  float64
+    everywhere, the same matrix, b and g.
+
+``prdp_petsc``
+    ``pp.solve(A, b, solver)`` with A the scipy CSR matrix and ``solver =
+    pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=K)``, then
+    ``x.backward(g)`` (b a leaf tensor with ``requires_grad``, its ``.grad`` reset
+    before each call); the implicit mode (PETSc ``KSPSolve`` forward, the adjoint
+    as a forward ``KSPSolve``), every safeguard on.
+``jax_cg``
+    ``jax.jit(jax.grad(f))`` with ``f(b) = vdot(g, jax.scipy.sparse.linalg.cg(
+    matvec, b, tol=0, atol=0, maxiter=K, M=lambda r: d⁻¹ * r)[0])``, ``matvec(x) =
+    A_bcoo @ x`` where ``A_bcoo = jax.experimental.sparse.BCOO.from_scipy_sparse(A)``
+    (the general sparse format; BCSR and a ``segment_sum`` closure were slower on
+    the machine this was written on), ``d`` the diagonal of A.  JAX differentiates
+    ``cg`` implicitly (``custom_linear_solve``: the adjoint is a second CG solve),
+    as prdp_petsc does.  Compiled and warmed up before timing; every call ends with
+    ``block_until_ready``.
+``lineax_cg``
+    ``jax.jit(jax.grad(f))`` with ``f(b) = vdot(g, lx.linear_solve(op, b,
+    lx.CG(rtol=0, atol=0, max_steps=K), options={"preconditioner": P},
+    throw=False).value)``, ``op = lx.FunctionLinearOperator(matvec, ...,
+    tags=[symmetric, positive_semidefinite])`` on the same BCOO product and ``P``
+    the diagonal operator ``d⁻¹`` tagged symmetric and positive semidefinite
+    (``throw=False``: reaching ``max_steps`` is the point, not an error).  lineax
+    differentiates the solve implicitly too.
+``raw_petsc``
+    The floor: petsc4py ``KSPSolve`` + ``KSPSolve`` (b, then g) on a Mat of A with
+    a bare CG + Jacobi KSP, no torch, no checks, result copied out.
+
+Protocol: every implementation runs in its own subprocess, single-threaded
+(``OMP_NUM_THREADS=1``, ``OPENBLAS_NUM_THREADS=1``, ``XLA_FLAGS=
+--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``) and, unless
+``--no-pin``, pinned to the same single CPU (``sched_setaffinity``), so JAX's
+runtime threads cannot run on a second core either.  Each builds its problem,
+checks its gradient against the others, warms up; then ``--rounds`` paired rounds:
+in each round the processes run one after the other (order rotating, never two at
+once), each timing ``--calls`` forward + backward calls and reporting their median.
+The ratios ``jax_cg / prdp_petsc`` etc. are taken within each round and their
+median over rounds is the figure; ``noise`` is their interquartile range over the
+median.  Target: prdp_petsc at least 1.5 times faster than each JAX implementation.
+Never asserted in tests; the numbers describe one machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["IMPLEMENTATIONS", "main"]
+
+logger = logging.getLogger(__name__)
+
+IMPLEMENTATIONS = ("prdp_petsc", "jax_cg", "lineax_cg", "raw_petsc")
+INSTALL_HINT = (
+    "bench jax needs jax (CPU) and lineax: pip install 'prdp-petsc[jaxbench]', or in this "
+    'repository\'s virtualenv: python -m pip install -c constraints.txt "jax[cpu]" lineax '
+    "(the constraints file keeps torch as it is)"
+)
+_THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+}
+
+
+def problem(side: int, seed: int = 0):
+    """(A, b, g): the SPD five-point ``−Δ`` (scipy CSR) and the loss's b and g."""
+    import prdp_petsc as pp
+
+    A = (-pp.laplacian((side, side))).tocsr()
+    A.sort_indices()
+    rng = np.random.default_rng(seed)
+    return A, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
+
+
+def jax_missing() -> str | None:
+    """None if jax and lineax import, else the install hint."""
+    try:
+        import jax  # noqa: F401
+        import lineax  # noqa: F401
+    except ImportError:
+        return INSTALL_HINT
+    return None
+
+
+# -- the implementations (each runs in a worker process) ---------------------------------
+def _prdp_petsc(A, b_np, g_np, k):
+    import torch
+
+    import prdp_petsc as pp
+
+    torch.set_num_threads(1)
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=k)
+    b = torch.tensor(b_np, requires_grad=True)
+    g = torch.tensor(g_np)
+
+    def call():
+        b.grad = None
+        pp.solve(A, b, solver).backward(g)
+        return b.grad.numpy()
+
+    def check():
+        if solver.last_forward[0].iterations != k or solver.last_adjoint[0].iterations != k:
+            raise RuntimeError("prdp_petsc did not run exactly K iterations")
+        return {"ksp": [solver.ksp.getType(), solver.ksp.getPC().getType()]}
+
+    return call, check
+
+
+def _raw_petsc(A, b_np, g_np, k):
+    from petsc4py import PETSc
+
+    mat = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr, A.indices, A.data))
+    mat.assemble()
+    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    ksp.setType("cg")
+    ksp.getPC().setType("jacobi")
+    ksp.setOperators(mat)
+    ksp.setTolerances(rtol=0.0, atol=0.0, max_it=k)
+    ksp.setUp()
+    x, rhs = mat.createVecs()
+
+    def solve(v):
+        rhs.setArray(v)
+        x.set(0.0)
+        ksp.solve(rhs, x)
+        return x.getArray(readonly=True).copy()
+
+    def call():
+        solve(b_np)  # the forward solution (the loss needs it; its gradient does not)
+        return solve(g_np)  # ∂L/∂b = λ, A λ = g
+
+    def check():
+        if ksp.getIterationNumber() != k:
+            raise RuntimeError("raw KSP did not run exactly K iterations")
+        return {"ksp": [ksp.getType(), ksp.getPC().getType()]}
+
+    return call, check
+
+
+def _jax_setup(A, b_np, g_np):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    from jax.experimental import sparse as jsparse
+
+    A_bcoo = jsparse.BCOO.from_scipy_sparse(A)
+    inv_diag = jnp.asarray(1.0 / A.diagonal())
+    return jax, jnp, (lambda x: A_bcoo @ x), inv_diag, jnp.asarray(b_np), jnp.asarray(g_np)
+
+
+def _jax_cg(A, b_np, g_np, k):
+    jax, jnp, matvec, inv_diag, b, g = _jax_setup(A, b_np, g_np)
+
+    def loss(b):
+        x, _ = jax.scipy.sparse.linalg.cg(
+            matvec, b, tol=0.0, atol=0.0, maxiter=k, M=lambda r: inv_diag * r
+        )
+        return jnp.vdot(g, x)
+
+    grad = jax.jit(jax.grad(loss))
+
+    def call():
+        return np.asarray(grad(b).block_until_ready())
+
+    return call, lambda: {"matvec": "BCOO @ x", "jax": jax.__version__}
+
+
+def _lineax_cg(A, b_np, g_np, k):
+    jax, jnp, matvec, inv_diag, b, g = _jax_setup(A, b_np, g_np)
+    import lineax as lx
+
+    tags = (lx.symmetric_tag, lx.positive_semidefinite_tag)
+    op = lx.FunctionLinearOperator(matvec, jax.ShapeDtypeStruct(b.shape, b.dtype), tags=tags)
+    precond = lx.TaggedLinearOperator(lx.DiagonalLinearOperator(inv_diag), tags)
+    solver = lx.CG(rtol=0.0, atol=0.0, max_steps=k)
+
+    def loss(b):
+        sol = lx.linear_solve(op, b, solver, options={"preconditioner": precond}, throw=False)
+        return jnp.vdot(g, sol.value)
+
+    grad = jax.jit(jax.grad(loss))
+
+    def call():
+        return np.asarray(grad(b).block_until_ready())
+
+    return call, lambda: {"matvec": "BCOO @ x", "lineax": lx.__version__}
+
+
+_BUILDERS = {
+    "prdp_petsc": _prdp_petsc,
+    "raw_petsc": _raw_petsc,
+    "jax_cg": _jax_cg,
+    "lineax_cg": _lineax_cg,
+}
+
+
+def _worker(spec_json: str) -> None:
+    """Worker process: build one implementation, then answer the parent's commands.
+
+    stdin lines: ``run N`` (time N forward + backward calls; reply their times) or
+    ``quit``.  The first reply reports the set-up (and the gradient, saved to
+    ``spec["grad_path"]``) after the warm-up.
+    """
+    spec = json.loads(spec_json)
+    if spec.get("cpu") is not None and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {int(spec["cpu"])})
+    A, b_np, g_np = problem(int(spec["side"]))
+    t0 = time.perf_counter()
+    call, check = _BUILDERS[spec["impl"]](A, b_np, g_np, int(spec["k"]))
+    grad = call()  # compiles (JAX) or sets up (PETSc)
+    setup_s = time.perf_counter() - t0
+    for _ in range(int(spec["warmup"])):
+        call()
+    np.save(spec["grad_path"], grad)
+    _reply({"ready": True, "setup_s": setup_s, "info": check(), "pid": os.getpid()})
+    while True:
+        command = sys.stdin.readline().split()
+        if not command or command[0] == "quit":
+            break
+        times = []
+        for _ in range(int(command[1])):
+            t = time.perf_counter()
+            call()
+            times.append(time.perf_counter() - t)
+        _reply({"times": times})
+
+
+def _reply(message: dict) -> None:
+    sys.stdout.write(json.dumps(message) + "\n")
+    sys.stdout.flush()
+
+
+class _Worker:
+    """The parent's handle on one worker process."""
+
+    def __init__(self, impl: str, spec: dict):
+        code = (
+            "import sys; from prdp_petsc.lab.reports.bench_jax import _worker; _worker(sys.argv[1])"
+        )
+        self.impl = impl
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", code, json.dumps({**spec, "impl": impl})],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, **_THREAD_ENV},
+        )
+
+    def read(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"{self.impl} worker failed:\n{self.proc.stderr.read()}")
+        return json.loads(line)
+
+    def run(self, calls: int) -> list[float]:
+        self.proc.stdin.write(f"run {calls}\n")
+        self.proc.stdin.flush()
+        return self.read()["times"]
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.write("quit\n")
+                self.proc.stdin.flush()
+                self.proc.wait(timeout=30)
+            except (OSError, subprocess.TimeoutExpired):
+                self.proc.kill()
+
+
+def bench_jax(
+    side: int, k: int, rounds: int, calls: int, warmup: int, impls=IMPLEMENTATIONS, pin=True
+) -> dict:
+    """Run the comparison; return a JSON-ready dict (see the module notes)."""
+    cpu = None
+    if pin and hasattr(os, "sched_getaffinity"):
+        cpu = min(os.sched_getaffinity(0))
+    with tempfile.TemporaryDirectory() as tmp:
+        spec = {"side": side, "k": k, "warmup": warmup, "cpu": cpu}
+        workers, setup = {}, {}
+        try:
+            for impl in impls:  # started one at a time: set-up and JIT do not overlap
+                workers[impl] = _Worker(impl, {**spec, "grad_path": f"{tmp}/{impl}.npy"})
+                setup[impl] = workers[impl].read()
+            grads = {impl: np.load(f"{tmp}/{impl}.npy") for impl in impls}
+            t = {impl: [] for impl in impls}
+            for r in range(rounds):
+                order = list(impls[r % len(impls) :] + impls[: r % len(impls)])
+                if r % 2:
+                    order.reverse()
+                for impl in order:
+                    t[impl].append(workers[impl].run(calls))
+        finally:
+            for w in workers.values():
+                w.close()
+    ref = grads[impls[0]]
+    scale = float(np.abs(ref).max())
+    med = {impl: np.array([statistics.median(times) for times in t[impl]]) for impl in impls}
+    ratios = {}
+    for impl in impls[1:]:
+        if impl != "raw_petsc":
+            ratios[f"{impl}/{impls[0]}"] = _summary(med[impl] / med[impls[0]])
+    if "raw_petsc" in impls and impls[0] != "raw_petsc":
+        ratios[f"{impls[0]}/raw_petsc"] = _summary(med[impls[0]] / med["raw_petsc"])
+    A, _, _ = problem(side)
+    return {
+        "problem": f"-laplacian({side}x{side}), 5-point FD, Dirichlet, SPD; "
+        "L(b) = <g, x_K(b)>, gradient wrt b",
+        "n": int(A.shape[0]),
+        "nnz": int(A.nnz),
+        "k": k,
+        "statistic": "per round: median of `calls` fwd+bwd calls per implementation; "
+        "ratio within each round; median (and IQR/median as noise) over rounds",
+        "ratios": ratios,
+        "median_s": {impl: float(np.median(med[impl])) for impl in impls},
+        "gradient_rel_diff": {
+            impl: float(np.abs(grads[impl] - ref).max() / scale) for impl in impls[1:]
+        },
+        "setup": setup,
+        "round_medians_s": {impl: med[impl].tolist() for impl in impls},
+        "timings_s": t,
+        "cpu_pinned": cpu,
+    }
+
+
+def _summary(r: np.ndarray) -> dict:
+    q1, q2, q3 = np.percentile(r, [25, 50, 75])
+    return {"median": float(q2), "q1": float(q1), "q3": float(q3), "noise": float((q3 - q1) / q2)}
+
+
+def _versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("prdp-petsc", "petsc4py", "petsc", "torch", "numpy", "scipy", "jax",
+                 "jaxlib", "lineax", "equinox"):  # fmt: skip
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="prdp-petsc bench jax", description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, required=True, help="folder for bench_jax.json")
+    p.add_argument("--side", type=int, default=110, help="grid side (110: 12 100 unknowns)")
+    p.add_argument("--k", type=int, default=10, help="CG iterations K (10)")
+    p.add_argument("--rounds", type=int, default=21, help="paired rounds (21)")
+    p.add_argument("--calls", type=int, default=20, help="timed calls per round and process")
+    p.add_argument("--warmup", type=int, default=20, help="untimed calls after set-up (20)")
+    p.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
+    p.add_argument("--no-pin", action="store_true", help="do not pin every process to one CPU")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """Run ``bench jax``; write ``<out>/bench_jax.json``; return an exit code."""
+    args = _parser().parse_args(argv)
+    if hint := jax_missing():
+        print(hint, file=sys.stderr)
+        return 2
+    side, rounds, calls, warmup = args.side, args.rounds, args.calls, args.warmup
+    if args.quick:
+        side, rounds, calls, warmup = min(side, 20), 3, 3, 2
+    load = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    t0 = time.perf_counter()
+    result = bench_jax(side, args.k, rounds, calls, warmup, pin=not args.no_pin)
+    result = {
+        "benchmark": "jax",
+        **result,
+        "target": "prdp_petsc at least 1.5x faster than jax_cg and than lineax_cg "
+        "(ratios jax_cg/prdp_petsc, lineax_cg/prdp_petsc >= 1.5)",
+        "settings": {
+            "rounds": rounds,
+            "calls": calls,
+            "warmup": warmup,
+            "quick": args.quick,
+            "threads": 1,
+            "thread_env": _THREAD_ENV,
+            "dtype": "float64 (jax_enable_x64)",
+            "ksp": "cg + jacobi, rtol = atol = 0 (exactly K iterations)",
+            "clock": "time.perf_counter; JAX calls end with block_until_ready",
+        },
+        "versions": _versions(),
+        "load_average": {"start": load, "end": list(os.getloadavg()) if load else None},
+        "cpu_count": os.cpu_count(),
+        "wall_s": time.perf_counter() - t0,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "bench_jax.json"
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    for name, r in result["ratios"].items():
+        print(f"{name}: {r['median']:.3f} (noise {r['noise']:.3f})")
+    logger.info("wrote %s", path)
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    sys.exit(main(sys.argv[1:]))
