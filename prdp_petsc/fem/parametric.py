@@ -163,17 +163,24 @@ class ParametricMatrix:
             (B, p)); the result (B, p) holds one gradient per sample, computed as
             one (B, nnz) product and one sparse product with Gᵀ.
         """
+        # dA = λ[rows] ⊙ x[cols], one entry per nonzero: built in place chunk by chunk,
+        # so its size is the only one of nnz the gradient allocates.  Indexing, not
+        # np.take: take copies a read-only index array (these are) before taking
         if per_sample:
             lam, x = np.atleast_2d(lam), np.atleast_2d(x)
-            dA = np.take(lam, self.rows, axis=1)
-            dA *= np.take(x, self.indices, axis=1)
+            dA = lam[:, self.rows]
+            for c in _chunks(self.nnz):
+                dA[:, c] *= x[:, self.indices[c]]
             return -np.asarray(self.G.T @ dA.T).T
         if lam.ndim == 1 and x.ndim == 1:
-            dA = np.take(lam, self.rows)
-            dA *= np.take(x, self.indices)
+            dA = lam[self.rows]
+            for c in _chunks(self.nnz):
+                dA[c] *= x[self.indices[c]]
         else:
             lam, x = np.atleast_2d(lam), np.atleast_2d(x)
-            dA = np.einsum("bk,bk->k", lam[:, self.rows], x[:, self.indices])
+            dA = np.empty(self.nnz)
+            for c in _chunks(self.nnz, len(lam)):
+                dA[c] = np.einsum("bk,bk->k", lam[:, self.rows[c]], x[:, self.indices[c]])
         grad = self.G.T @ dA  # Gᵀ as CSC: scatters into θ, faster than a CSR Gᵀ
         return np.negative(grad, out=grad)
 
@@ -213,7 +220,7 @@ class ParametricMatrix:
             src, dst, size = self.rows, self.indices, self.shape[1]
         else:
             src, dst, size = self.indices, self.rows, self.shape[0]
-        products = values * np.take(v, src, axis=1)
+        products = values * v[:, src]  # indexing: see theta_gradient
         gather = sp.csr_matrix(
             (np.ones(self.nnz), (dst, np.arange(self.nnz))), shape=(size, self.nnz)
         )
@@ -278,6 +285,15 @@ class ParametricMatrix:
         )
 
     __rmul__ = __mul__
+
+
+_CHUNK = 1 << 13  # entries of a temporary in `theta_gradient` (64 KiB of doubles)
+
+
+def _chunks(size: int, rows: int = 1):
+    """Slices covering ``range(size)`` with at most `_CHUNK` / `rows` entries each."""
+    step = max(1, _CHUNK // rows)
+    return [slice(start, start + step) for start in range(0, size, step)]
 
 
 def _frozen(arr, dtype=None) -> np.ndarray:
