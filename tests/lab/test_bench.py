@@ -212,3 +212,14 @@ def test_bench_elasticity_records_every_declaration(tmp_path):
     from prdp_petsc.lab.reports.bench_elasticity import format_report
 
     assert "| 4³ | 300 | block size 3, 6 modes |" in format_report(data)
+
+
+def test_implicit_gradient_allocates_a_few_vectors(data):
+    """tracemalloc, not a clock: the operator (a ParametricMatrix) is the library's own and
+    is never copied; a θ gradient adds one entry per nonzero (dA) and the p-sized result."""
+    traced = data["overhead_detail"]["traced_peak"]
+    peak = traced["vectors"]
+    assert peak["b"] < 4
+    assert peak["b_theta"] < traced["nnz_over_n"] + traced["n_params_over_n"] + 4
+    # a new θ: its values A(θ) are new (nnz) as well
+    assert peak["b_theta_new_theta"] < 2 * traced["nnz_over_n"] + 2 * traced["n_params_over_n"] + 4

@@ -13,6 +13,12 @@ one run on one machine:
     ``KSPSolve`` + ``KSPSolveTranspose`` (what a non-symmetric operator runs;
     PETSc's transposed products are slower), for b only (θ constant), of the
     minima, and the time the bridge spends outside KSPSolve.
+``implicit_traced_peak_vectors``
+    Peak memory of one forward + backward on that problem's `ParametricMatrix`,
+    traced (tracemalloc), in vectors of n doubles: gradient in b only (target: a
+    few vectors; the operator is the library's own and is not copied), in b and θ
+    (plus ``dA = λ[rows] ⊙ x[cols]``, one entry per nonzero, and the p-sized
+    gradient), and in b and θ with a new θ every call (plus the new values A(θ)).
 ``throughput``
     Small systems (n ≈ 5 000, K = 10), one and 32 right-hand sides: bridge over
     raw ``KSPSolve`` + ``KSPSolve`` loops, and the bridge's fixed cost per call and
@@ -173,6 +179,7 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
 
     if ksp_types(solver) != [raw.getType(), raw.getPC().getType()]:
         raise RuntimeError(f"bridge KSP is {ksp_types(solver)}, raw is {raw.getType()}")
+    traced = traced_peaks(A, b, theta, g, solver)
     med = {key: _median(v) for key, v in t.items()}
     low = {key: min(v) for key, v in t.items()}
     r = {key: np.asarray(v) for key, v in t.items()}  # one entry per repeat
@@ -209,6 +216,63 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         "min_s": low,
         "timings_s": t,
         "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": ksp_types(solver)},
+        "traced_peak": traced,
+    }
+
+
+TRACED_METHOD = (
+    "tracemalloc (numpy and torch-from-numpy allocations are traced; PETSc's own are "
+    "not, and the PETSc work vectors are made once per operator), in-process, after "
+    "a warm-up call of the same kind: peak over one forward + backward minus the traced "
+    "memory before it, in vectors of n doubles"
+)
+
+
+def traced_peaks(A, b, theta, g, solver) -> dict:
+    """Peak traced memory of one forward + backward on the library's own operator (a
+    `ParametricMatrix`), in vectors of n doubles: gradient in b only, in b and θ, and
+    in b and θ with a new θ every call (whose values A(θ), nnz of them, are new too)."""
+    import gc
+    import tracemalloc
+
+    import torch
+
+    from prdp_petsc import solve
+
+    vector = 8.0 * A.shape[0]
+    fresh = [theta.detach() * (1.0 + 1e-3 * i) for i in range(4)]
+
+    def call(th):
+        b.grad = None
+        if th.requires_grad:
+            th.grad = None
+        solve(A, b, solver, theta=th).backward(g)
+
+    cases = {
+        "b": lambda i: call(theta.detach()),
+        "b_theta": lambda i: call(theta),
+        "b_theta_new_theta": lambda i: call(fresh[i].requires_grad_(True)),
+    }
+    out = {}
+    for name, run in cases.items():
+        run(0)  # warm-up: the same kind of call
+        gc.collect()
+        tracemalloc.start()
+        try:
+            base = tracemalloc.get_traced_memory()[0]
+            run(1)
+            peak = tracemalloc.get_traced_memory()[1] - base
+        finally:
+            tracemalloc.stop()
+        out[name] = peak / vector
+    with torch.no_grad():
+        solve(A, b, solver, theta=theta)  # leave the solver on the benchmark's θ
+    return {
+        "vectors": out,
+        "n": int(A.shape[0]),
+        "nnz_over_n": A.nnz / A.shape[0],
+        "n_params_over_n": A.n_params / A.shape[0],
+        "method": TRACED_METHOD,
     }
 
 
@@ -337,6 +401,7 @@ def main(argv: list[str]) -> int:
         "unrolled_peak_rss_mb": peak["unrolled"][str(uk)],
         "handwritten_peak_rss_mb": peak.get("handwritten", {}).get(str(uk)),
         "peak_memory_method": unr["peak_memory_method"],
+        "implicit_traced_peak_vectors": over["traced_peak"]["vectors"],
         "timing_noise": over["timing_noise"],
         "targets": {
             "overhead": "<= 0.05 (like-for-like: raw KSPSolve + KSPSolve)",
