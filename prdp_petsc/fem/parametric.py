@@ -85,7 +85,10 @@ class ParametricMatrix:
             copy=False,
         )
         object.__setattr__(self, "G", G)
-        rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
+        counts = np.diff(self.indptr)  # entries per row
+        counts.flags.writeable = False
+        object.__setattr__(self, "_row_counts", counts)
+        rows = np.repeat(np.arange(self.shape[0]), counts)
         rows.flags.writeable = False
         object.__setattr__(self, "rows", rows)
         if self.G.shape[0] != self.nnz or self.a0.shape != (self.nnz,):
@@ -173,7 +176,7 @@ class ParametricMatrix:
                 dA[:, c] *= x[:, self.indices[c]]
             return -np.asarray(self.G.T @ dA.T).T
         if lam.ndim == 1 and x.ndim == 1:
-            dA = lam[self.rows]
+            dA = np.repeat(lam, self._row_counts)  # λ[rows], a sequential pass
             for c in _chunks(self.nnz):
                 dA[c] *= x[self.indices[c]]
         else:
