@@ -64,7 +64,6 @@
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,7 +89,6 @@ __all__ = [
     "rescue",
     "rhs_exponent",
     "rhs_exponents",
-    "scan_rhs",
     "true_residual",
     "went_far",
 ]
@@ -138,35 +136,11 @@ def check_transpose_ksp(ksp) -> None:
 
 def rhs_exponents(batch: np.ndarray) -> np.ndarray:
     """`rhs_exponent` of every row of a ``(B, n)`` batch, vectorised."""
-    return np.array(scan_rhs(batch)[1], dtype=int)
-
-
-def scan_rhs(batch: np.ndarray) -> tuple[np.ndarray | None, list[int]]:
-    """``(bad, exponents)`` of a ``(B, n)`` batch from one max and one min per row.
-
-    `bad` is None when every entry is finite, else a (B,) bool array of the rows
-    holding NaN or Inf (max and min propagate NaN, and ±Inf is its own extreme);
-    `exponents` are the `rhs_exponent` of every row, a list of int (0 for a bad
-    row).  The finiteness test costs nothing besides the exponents' passes.
-    """
     if batch.shape[1] == 0:
-        return None, [0] * len(batch)
-    if len(batch) == 1:  # the common call: Python floats, no small-array numpy calls
-        hi, lo = float(batch.max()), float(batch.min())
-        if not (math.isfinite(hi) and math.isfinite(lo)):
-            return np.ones(1, dtype=bool), [0]
-        big = max(hi, -lo)
-        safe = big == 0.0 or SAFE_RANGE[0] <= big <= SAFE_RANGE[1]
-        return None, [0 if safe else math.frexp(big)[1]]
-    hi, lo = batch.max(axis=1), batch.min(axis=1)
-    biggest = np.maximum(hi, -lo)  # no |batch| temporary
-    least, most = float(biggest.min()), float(biggest.max())  # NaN fails both tests
-    if SAFE_RANGE[0] <= least and most <= SAFE_RANGE[1]:  # the common batch: all safe
-        return None, [0] * len(batch)
-    bad = ~(np.isfinite(hi) & np.isfinite(lo))
+        return np.zeros(len(batch), dtype=int)
+    biggest = np.maximum(batch.max(axis=1), -batch.min(axis=1))  # no |batch| temporary
     safe = (biggest == 0.0) | ((SAFE_RANGE[0] <= biggest) & (biggest <= SAFE_RANGE[1]))
-    exponents = np.where(safe | bad, 0, np.frexp(np.where(bad, 1.0, biggest))[1])
-    return (bad if bad.any() else None), exponents.tolist()
+    return np.where(safe, 0, np.frexp(biggest)[1])
 
 
 def rhs_exponent(row: np.ndarray) -> int:

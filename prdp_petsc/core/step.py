@@ -86,6 +86,7 @@ class SolveStep:
         "norm",
         "kernel",
         "finite",
+        "safe_norms",
     )
 
     def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool, norm):
@@ -94,23 +95,42 @@ class SolveStep:
         self.run = ksp.solveTranspose if transpose else ksp.solve
         self.infos: list[SolveInfo] = []  # one per row solved (the failing one included)
         self.finite = True  # every row's x had a finite norm (so no NaN/Inf entry) so far
+        # ‖b‖ in this range: every entry's size is in SAFE_RANGE or 0, and b is not scaled
+        low, high = safeguards.SAFE_RANGE
+        self.safe_norms = (low * math.sqrt(b_vec.getSize()), high)
         # the solutions of a singular system differ by its kernel: null(A), or null(Aᵀ)
         # for a transpose solve.  A right preconditioner (FGMRES, fieldsplit) can put a
         # kernel part into x, so it is removed: x is the minimum-norm solution A⁺b
         kernel = mat.getTransposeNullSpace() if transpose else mat.getNullSpace()
         self.kernel = kernel if kernel is not None and bool(kernel) else None
 
-    def __call__(self, row: np.ndarray, out: np.ndarray, exponent: int) -> int:
-        """Solve for `row` into `out`; return the iterations run (rescue re-runs included)."""
-        ksp, x_vec = self.ksp, self.x_vec
-        row = self.layout.local(row)
-        self.b_vec.setArray(np.ldexp(row, -exponent) if exponent else row)
+    def __call__(self, row: np.ndarray, out: np.ndarray) -> int:
+        """Solve for `row` into `out`; return the iterations run (rescue re-runs included).
+
+        The scaling exponent of the right-hand side (`safeguards.rhs_exponent`) is
+        decided from ‖b‖, which the outcome check needs anyway (PETSc keeps it while
+        b is unchanged): only a norm outside ``[2⁻¹⁰⁰ √n, 2¹⁰⁰]`` (an underflowed or
+        overflowed one included) can come from an entry outside
+        `safeguards.SAFE_RANGE`, and only then are the entries read.  At the edges
+        of that range the two tests may disagree by a rounding; a power-of-two
+        scaling changes no bit of a capped solve there, so neither does that.
+        """
+        ksp, x_vec, b_vec = self.ksp, self.x_vec, self.b_vec
+        local = self.layout.local(row)
+        b_vec.setArray(local)
+        exponent = 0
+        if not self.safe_norms[0] <= b_vec.norm() <= self.safe_norms[1]:
+            exponent = self._exponent(row)
+            if exponent:  # new values (a power of two: exact), and no stale ‖b‖: PETSc's
+                # norm squares the entries, so that of the unscaled b may have
+                # underflowed or overflowed
+                b_vec.setArray(np.ldexp(local, -exponent))
         x_vec.set(0.0)
         atol = ksp.getTolerances()[1] if exponent else 0.0
         if atol > 0:  # atol is absolute: scale it along
-            ksp.setTolerances(atol=float(np.ldexp(atol, -exponent)))
+            ksp.setTolerances(atol=math.ldexp(atol, -exponent))
         try:
-            self.run(self.b_vec, x_vec)
+            self.run(b_vec, x_vec)
         except PETSc.Error as err:
             raise self._petsc_failure(err) from err
         finally:
@@ -139,6 +159,14 @@ class SolveStep:
         else:
             out[:] = x
         return ksp.getIterationNumber() + rescued
+
+    def _exponent(self, row: np.ndarray) -> int:
+        """`safeguards.rhs_exponent` of the whole right-hand side (agreed by the ranks
+        when each holds only its rows; they all get here together, ‖b‖ being global)."""
+        exponent = safeguards.rhs_exponent(row)
+        if self.layout.distributed and not self.layout.replicated:
+            exponent = int(self.layout.agree_max(np.array([exponent]))[0])
+        return exponent
 
     def reset(self) -> None:
         """Forget the rows of the last call (the step is kept for the next one)."""
