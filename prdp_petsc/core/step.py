@@ -125,12 +125,32 @@ class SolveStep:
                 # norm squares the entries, so that of the unscaled b may have
                 # underflowed or overflowed
                 b_vec.setArray(np.ldexp(local, -exponent))
+        # one process holds all of x: PETSc writes it straight into the caller's row
+        placed = not self.layout.distributed and out.flags.c_contiguous
+        if placed:
+            x_vec.placeArray(out)
+        try:
+            rescued = self._solve(exponent)
+            if not placed:
+                x = self.layout.gather(x_vec)
+                out[:] = x
+        finally:
+            if placed:
+                x_vec.resetArray()
+        if exponent:
+            np.ldexp(out, exponent, out=out)
+        return ksp.getIterationNumber() + rescued
+
+    def _solve(self, exponent: int) -> int:
+        """Solve for the b set in `b_vec` (scaled by 2^-exponent) into `x_vec`, check the
+        outcome; return the iterations of a discarded run (0 unless rescued)."""
+        ksp, x_vec = self.ksp, self.x_vec
         x_vec.set(0.0)
         atol = ksp.getTolerances()[1] if exponent else 0.0
         if atol > 0:  # atol is absolute: scale it along
             ksp.setTolerances(atol=math.ldexp(atol, -exponent))
         try:
-            self.run(b_vec, x_vec)
+            self.run(self.b_vec, x_vec)
         except PETSc.Error as err:
             raise self._petsc_failure(err) from err
         finally:
@@ -153,12 +173,7 @@ class SolveStep:
         if self.kernel is not None:
             self.kernel.remove(x_vec)
             self.finite = False  # x changed after its norm was taken
-        x = self.layout.gather(x_vec)
-        if exponent:
-            np.ldexp(x, exponent, out=out)
-        else:
-            out[:] = x
-        return ksp.getIterationNumber() + rescued
+        return rescued
 
     def _exponent(self, row: np.ndarray) -> int:
         """`safeguards.rhs_exponent` of the whole right-hand side (agreed by the ranks
