@@ -33,3 +33,18 @@ def test_bench_jax_without_jax_says_how_to_install(monkeypatch, tmp_path, capsys
     assert main(["jax", "--quick", "--out", str(tmp_path)]) == 2
     assert "jaxbench" in capsys.readouterr().err
     assert not (tmp_path / "bench_jax.json").exists()
+
+
+def test_bench_jax_page(tmp_path):
+    """A recorded bench_jax.json becomes a results page (title, headline, body)."""
+    pytest.importorskip("jax")
+    pytest.importorskip("lineax")
+    from prdp_petsc.lab.reports.kinds import body, headline, title
+    from prdp_petsc.lab.reports.pages import DataSet, _kind
+
+    assert main(["jax", "--quick", "--out", str(tmp_path)]) == 0
+    files = {"bench_jax.json": json.loads((tmp_path / "bench_jax.json").read_text())}
+    ds = DataSet("bench_jax", _kind(files), {}, files, [])
+    assert ds.kind == "bench-jax" and "JAX" in title(ds)
+    assert "jax_cg/prdp_petsc" in "\n".join(body(ds))
+    assert "lineax" in headline(ds)[0][0]

@@ -353,6 +353,26 @@ def _summary(r: np.ndarray) -> dict:
     return {"median": float(q2), "q1": float(q1), "q3": float(q3), "noise": float((q3 - q1) / q2)}
 
 
+def format_report(d: dict) -> str:
+    """The printed summary of a `bench_jax` result."""
+    lines = [
+        f"{d['problem']}; n = {d['n']}, nnz = {d['nnz']}, K = {d['k']}",
+        f"{d['settings']['rounds']} rounds x {d['settings']['calls']} calls per process; "
+        f"CPU pinned: {d['cpu_pinned']}; load average at start "
+        f"{', '.join(f'{x:.2f}' for x in d['load_average']['start'] or [])}",
+        "",
+        f"{'implementation':<12} {'fwd+bwd (median)':>18}  {'gradient vs prdp_petsc':>22}",
+    ]
+    for impl, t in d["median_s"].items():
+        diff = d["gradient_rel_diff"].get(impl)
+        lines.append(f"{impl:<12} {t * 1e3:>15.3f} ms  {'' if diff is None else f'{diff:.1e}':>22}")
+    lines += ["", "ratio (median over rounds of the ratio within a round; noise = IQR/median):"]
+    for name, r in d["ratios"].items():
+        lines.append(f"  {name:<22} {r['median']:.3f}  (noise {r['noise']:.3f})")
+    lines.append(f"target: {d['target']}")
+    return "\n".join(lines) + "\n"
+
+
 def _versions() -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -415,8 +435,7 @@ def main(argv: list[str]) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "bench_jax.json"
     path.write_text(json.dumps(result, indent=2) + "\n")
-    for name, r in result["ratios"].items():
-        print(f"{name}: {r['median']:.3f} (noise {r['noise']:.3f})")
+    print(format_report(result), end="")
     logger.info("wrote %s", path)
     return 0
 

@@ -50,6 +50,8 @@ def title(ds: DataSet) -> str:
         return f"Topology optimisation with capped solves: {d['scene']} {d['preset']}"
     if ds.kind == "bench-elasticity":
         return "GAMG on 3D elasticity: iterations against the mesh, with the rigid-body modes"
+    if ds.kind == "bench-jax":
+        return "Capped CG gradients: prdp_petsc against JAX and lineax"
     return f"Error against run time: {d['problem']}"
 
 
@@ -136,6 +138,16 @@ def _bench_rows(d: dict) -> list[tuple[str, str, str]]:
             "",
         )
     )
+    traced = d.get("implicit_traced_peak_vectors")
+    if traced:
+        rows.append(
+            (
+                f"traced peak of one forward + backward on the `ParametricMatrix` (n = "
+                f"{d['n']}), in vectors of n: gradient in b / in b and θ / new θ each call",
+                f"{traced['b']:.1f} / {traced['b_theta']:.1f} / {traced['b_theta_new_theta']:.1f}",
+                "b: a few vectors",
+            )
+        )
     return rows
 
 
@@ -367,6 +379,21 @@ def _bench_elasticity_body(ds: DataSet) -> list[str]:
     ]
 
 
+def _bench_jax_body(ds: DataSet) -> list[str]:
+    from .bench_jax import format_report
+
+    return [
+        "What `prdp-petsc bench jax` printed: the gradient in b of ⟨g, x_K(b)⟩, K capped "
+        "Jacobi-CG iterations forward and K on the adjoint, each implementation in its own "
+        "single-threaded process, paired rounds. Exactly what each implementation runs is "
+        "in the docstring of `prdp_petsc.lab.reports.bench_jax`.",
+        "",
+        "```text",
+        format_report(ds.main).rstrip("\n"),
+        "```",
+    ]
+
+
 def _topopt_body(ds: DataSet) -> list[str]:
     from .topopt import TARGET_RATIO, TARGET_SAVED, format_results, spread, target_met
 
@@ -401,6 +428,7 @@ _BODIES = {
     "unseen": _unseen_body,
     "ablation": _ablation_body,
     "bench-elasticity": _bench_elasticity_body,
+    "bench-jax": _bench_jax_body,
     "bench-mpi": _bench_mpi_body,
     "rollouts": _rollouts_body,
     "horizon": _horizon_body,
@@ -545,6 +573,16 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
         return _bench_mpi_headline(ds)
     if ds.kind == "bench-elasticity":
         return _bench_elasticity_headline(ds)
+    if ds.kind == "bench-jax":
+        r = d["ratios"]
+        return [
+            (
+                f"prdp_petsc against JAX's CG and lineax's CG, n = {d['n']}, K = {d['k']}, "
+                "gradient in b (target ≥ 1.5× faster than each)",
+                f"{r['jax_cg/prdp_petsc']['median']:.2f}× / "
+                f"{r['lineax_cg/prdp_petsc']['median']:.2f}× (their time over prdp_petsc's)",
+            )
+        ]
     from .workprecision import LEVELS, summarize
 
     summary = summarize(d)

@@ -97,6 +97,7 @@ class DataSet:
             "horizon": "horizon.json",
             "bench-mpi": "bench_mpi.json",
             "bench-elasticity": "bench_elasticity.json",
+            "bench-jax": "bench_jax.json",
             "ablation": "ablation.json",
             "unseen": "unseen.json",
             "defaults": "defaults.json",
@@ -137,6 +138,8 @@ def _kind(files: dict) -> str:
         return "bench-mpi"
     if "bench_elasticity.json" in files:
         return "bench-elasticity"
+    if "bench_jax.json" in files:
+        return "bench-jax"
     if any(k.startswith("work_precision_") for k in files):
         return "work-precision"
     raise ValueError(f"no known result file among {sorted(files)}")
