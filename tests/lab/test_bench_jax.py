@@ -11,7 +11,7 @@ from prdp_petsc.lab.reports.bench import main
 def test_bench_jax_quick(tmp_path):
     pytest.importorskip("jax")
     pytest.importorskip("lineax")
-    assert main(["jax", "--quick", "--out", str(tmp_path)]) == 0
+    assert main(["jax", "--preset", "quick", "--out", str(tmp_path)]) == 0
     data = json.loads((tmp_path / "bench_jax.json").read_text())
     assert data["k"] == 10 and data["n"] == 400
     assert set(data["ratios"]) == {
@@ -30,7 +30,7 @@ def test_bench_jax_without_jax_says_how_to_install(monkeypatch, tmp_path, capsys
     import prdp_petsc.lab.reports.bench_jax as bench_jax
 
     monkeypatch.setattr(bench_jax, "jax_missing", lambda: bench_jax.INSTALL_HINT)
-    assert main(["jax", "--quick", "--out", str(tmp_path)]) == 2
+    assert main(["jax", "--preset", "quick", "--out", str(tmp_path)]) == 2
     assert "jaxbench" in capsys.readouterr().err
     assert not (tmp_path / "bench_jax.json").exists()
 
@@ -42,7 +42,7 @@ def test_bench_jax_page(tmp_path):
     from prdp_petsc.lab.reports.kinds import body, headline, title
     from prdp_petsc.lab.reports.pages import DataSet, _kind
 
-    assert main(["jax", "--quick", "--out", str(tmp_path)]) == 0
+    assert main(["jax", "--preset", "quick", "--out", str(tmp_path)]) == 0
     files = {"bench_jax.json": json.loads((tmp_path / "bench_jax.json").read_text())}
     ds = DataSet("bench_jax", _kind(files), {}, files, [])
     assert ds.kind == "bench-jax" and "JAX" in title(ds)

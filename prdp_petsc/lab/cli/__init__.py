@@ -13,7 +13,7 @@ Sub-commands::
                    [--checkpoint-every N] [--resume]
                    --out DIR [PETSc options]
     prdp-petsc scene SCENE_FILE [NAME [ARGS ...]] [--debug] [PETSc options]
-    prdp-petsc bench bridge|elasticity [--preset quick|paper] --out DIR
+    prdp-petsc bench bridge|elasticity|jax [--preset quick|paper] --out DIR
     prdp-petsc bench mpi [SCENE_FILE] [--preset quick|paper] --out DIR
     prdp-petsc work-precision PROBLEM [--preset quick|paper] [--k-max K]
                    [--routes cg/gamg,...] --out DIR

@@ -387,15 +387,18 @@ def _versions() -> dict:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from ..cli.arguments import add_debug, add_size_preset, positive
+
     p = argparse.ArgumentParser(prog="prdp-petsc bench jax", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for bench_jax.json")
-    p.add_argument("--side", type=int, default=110, help="grid side (110: 12 100 unknowns)")
-    p.add_argument("--k", type=int, default=10, help="CG iterations K (10)")
-    p.add_argument("--rounds", type=int, default=21, help="paired rounds (21)")
-    p.add_argument("--calls", type=int, default=20, help="timed calls per round and process")
-    p.add_argument("--warmup", type=int, default=20, help="untimed calls after set-up (20)")
-    p.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
+    p.add_argument("--side", type=positive, default=110, help="grid side (110: 12 100 unknowns)")
+    p.add_argument("--k", type=positive, default=10, help="CG iterations K (10)")
+    p.add_argument("--rounds", type=positive, default=21, help="paired rounds (21)")
+    p.add_argument("--calls", type=positive, default=20, help="timed calls per round and process")
+    p.add_argument("--warmup", type=positive, default=20, help="untimed calls after set-up (20)")
     p.add_argument("--no-pin", action="store_true", help="do not pin every process to one CPU")
+    add_size_preset(p, "a 20 x 20 grid, 3 rounds of 3 calls (a smoke test)")
+    add_debug(p)
     return p
 
 
@@ -406,7 +409,8 @@ def main(argv: list[str]) -> int:
         print(hint, file=sys.stderr)
         return 2
     side, rounds, calls, warmup = args.side, args.rounds, args.calls, args.warmup
-    if args.quick:
+    quick = args.preset == "quick"
+    if quick:
         side, rounds, calls, warmup = min(side, 20), 3, 3, 2
     load = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     t0 = time.perf_counter()
@@ -420,7 +424,7 @@ def main(argv: list[str]) -> int:
             "rounds": rounds,
             "calls": calls,
             "warmup": warmup,
-            "quick": args.quick,
+            "quick": quick,
             "threads": 1,
             "thread_env": _THREAD_ENV,
             "dtype": "float64 (jax_enable_x64)",
