@@ -19,7 +19,12 @@ made once per new pattern.  An array is never edited in place once kept: new val
 replace it.  `OperatorMat.csr` hands out these arrays, so a backward that holds them
 can set its operator again after another solve replaced it, at no extra copy; an
 unchanged caller's matrix passed again costs one comparison of its values (by
-identity, without a pass, when they are immutable).
+identity, without a pass, when they are immutable).  The comparison is needed
+anyway (it decides whether the PC is set up again), so a snapshot per call would
+only add a copy, and a hash would cost the same pass as the comparison.  The
+caller's pattern arrays are recognised by identity (a structure edited in place,
+``A.indices[...] = ...``, is not detected; the kept copy, which a backward uses,
+is unaffected).
 
 A block size (the d unknowns of a node of a d-dimensional vector field) is given
 to every Mat made here (``MatSetBlockSize``), and the rows of the replicated
