@@ -127,8 +127,10 @@ class ParametricMatrix:
     def values(self, theta: np.ndarray) -> np.ndarray:
         """CSR values ``a0 + G @ theta``: shape (nnz,), or (B, nnz) for θ of shape (B, p).
 
-        The values of the last single θ are kept: calling again with an equal θ
-        returns the same read-only array without the sparse product.
+        The result is read-only (the library's own: a `KSPSolver` keeps it without a
+        copy; ``.copy()`` it to edit).  The values of the last single θ are kept:
+        calling again with an equal θ returns the same array without the sparse
+        product.
         """
         last = self.__dict__.get("_last")
         if last is not None and np.array_equal(last[0], theta):
