@@ -29,7 +29,7 @@ from ..fem.parametric import ParametricMatrix
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
 from .solution import LinearSolution
-from .tensors import as_numpy, check_vector
+from .tensors import as_numpy, check_vector, implicit_gradients
 
 __all__ = ["LinearSolution", "matvec", "solve"]
 
@@ -126,18 +126,8 @@ class _ImplicitSolve(torch.autograd.Function):
         )
         if ctx.outcome is not None:
             ctx.outcome.adjoint = ctx.solver.last_adjoint
-        grad_b = None
-        if need_b:
-            grad_b = torch.from_numpy(lam)
-            if not grad_x.is_cpu:
-                grad_b = grad_b.to(grad_x.device)
-        grad_theta = None
-        if need_theta:
-            (x,) = ctx.saved_tensors
-            per_sample = ctx.csr[2].ndim == 2
-            gt = ctx.P.theta_gradient(lam, x.detach().cpu().numpy(), per_sample=per_sample)
-            grad_theta = torch.from_numpy(gt).to(grad_x.device)
-        return grad_b, grad_theta, None, None, None, None
+        per_sample = ctx.csr[2].ndim == 2
+        return *implicit_gradients(ctx, lam, grad_x, per_sample=per_sample), None, None, None, None
 
 
 def solve(

@@ -28,7 +28,7 @@ from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
 from .once import once_differentiable
-from .tensors import as_numpy
+from .tensors import as_numpy, implicit_gradients
 
 __all__ = ["owned_matvec", "owned_solve", "sum_over_ranks"]
 
@@ -74,13 +74,7 @@ class _OwnedSolve(torch.autograd.Function):
         lam = solver.solve_transpose(grad_x.detach().cpu().numpy())
         if ctx.outcome is not None:
             ctx.outcome.adjoint = solver.last_adjoint
-        grad_b = torch.from_numpy(lam).to(grad_x.device) if need_b else None
-        grad_theta = None
-        if need_theta:
-            (x,) = ctx.saved_tensors
-            gt = ctx.P.theta_gradient(lam, x.detach().cpu().numpy())
-            grad_theta = torch.from_numpy(gt).to(grad_x.device)
-        return grad_b, grad_theta, None, None, None, None
+        return *implicit_gradients(ctx, lam, grad_x), None, None, None, None
 
 
 def owned_solve(

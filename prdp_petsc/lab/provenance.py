@@ -11,6 +11,8 @@ libraries that produced it.
 from __future__ import annotations
 
 import datetime
+import json
+import logging
 import os
 import platform
 import subprocess
@@ -19,6 +21,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 __all__ = [
+    "write_result",
     "DISTRIBUTIONS",
     "cpu",
     "git_commit",
@@ -61,10 +64,10 @@ def provenance(threads: int, ranks: int) -> dict:
     }
 
 
-def versions() -> dict:
-    """The installed version of each of `DISTRIBUTIONS` (None for one that is not
-    installed), ``petsc`` (``PETSc.Sys.getVersion()``) and ``python``."""
-    found = {name: _version(name) for name in DISTRIBUTIONS}
+def versions(*more: str) -> dict:
+    """The installed version of each of `DISTRIBUTIONS` and `more` (None for one that
+    is not installed), ``petsc`` (``PETSc.Sys.getVersion()``) and ``python``."""
+    found = {name: _version(name) for name in (*DISTRIBUTIONS, *more)}
     found["petsc"] = _petsc_version()
     found["python"] = platform.python_version()
     return found
@@ -143,3 +146,13 @@ def _petsc_version() -> str | None:
     except ImportError:  # pragma: no cover - a dependency
         return None
     return ".".join(str(part) for part in PETSc.Sys.getVersion())
+
+
+def write_result(folder: str | Path, name: str, result: dict) -> Path:
+    """Write a benchmark's `result` as ``folder/name`` (indented JSON) and log where."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    logging.getLogger(__name__).info("wrote %s", path)
+    return path

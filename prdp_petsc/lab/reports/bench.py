@@ -54,7 +54,6 @@ quick`` runs tiny sizes (a smoke test); the default is ``paper``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import statistics
 import sys
@@ -64,7 +63,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
-from ..provenance import load_average, machine, versions
+from ..provenance import load_average, machine, versions, write_result
 from .bench_throughput import bench_throughput
 from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
 
@@ -434,10 +433,7 @@ def main(argv: list[str]) -> int:
         "wall_s": wall,
     }
     result["machine"]["load_average_end"] = load_average()
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_bridge.json"
-    path.write_text(json.dumps(result, indent=2) + "\n")
-    logger.info("wrote %s", path)
+    write_result(args.out, "bench_bridge.json", result)
     return 0
 
 

@@ -29,7 +29,6 @@ are never asserted; one torch thread, PETSc's serial AIJ kernels.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -186,7 +185,7 @@ def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     import torch
 
-    from ..provenance import load_average
+    from ..provenance import load_average, write_result
     from .bench import machine_info
 
     quick = args.preset == "quick"
@@ -205,11 +204,8 @@ def main(argv: list[str]) -> int:
     machine["load_average_end"] = load_average()
     result["machine"] = machine
     result["settings"]["quick"] = quick
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_elasticity.json"
-    path.write_text(json.dumps(result, indent=2) + "\n")
+    write_result(args.out, "bench_elasticity.json", result)
     print(format_report(result), end="")
-    logger.info("wrote %s", path)
     return 0
 
 

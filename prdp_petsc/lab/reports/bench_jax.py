@@ -68,6 +68,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..provenance import load_average, versions, write_result
+
 __all__ = ["IMPLEMENTATIONS", "main"]
 
 logger = logging.getLogger(__name__)
@@ -373,19 +375,6 @@ def format_report(d: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for name in ("prdp-petsc", "petsc4py", "petsc", "torch", "numpy", "scipy", "jax",
-                 "jaxlib", "lineax", "equinox"):  # fmt: skip
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = None
-    return out
-
-
 def _parser() -> argparse.ArgumentParser:
     from ..cli.arguments import add_debug, add_size_preset, positive
 
@@ -412,7 +401,7 @@ def main(argv: list[str]) -> int:
     quick = args.preset == "quick"
     if quick:
         side, rounds, calls, warmup = min(side, 20), 3, 3, 2
-    load = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    load = load_average()
     t0 = time.perf_counter()
     result = bench_jax(side, args.k, rounds, calls, warmup, pin=not args.no_pin)
     result = {
@@ -431,16 +420,13 @@ def main(argv: list[str]) -> int:
             "ksp": "cg + jacobi, rtol = atol = 0 (exactly K iterations)",
             "clock": "time.perf_counter; JAX calls end with block_until_ready",
         },
-        "versions": _versions(),
-        "load_average": {"start": load, "end": list(os.getloadavg()) if load else None},
+        "versions": versions("jax", "jaxlib", "lineax", "equinox"),
+        "load_average": {"start": load, "end": load_average()},
         "cpu_count": os.cpu_count(),
         "wall_s": time.perf_counter() - t0,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_jax.json"
-    path.write_text(json.dumps(result, indent=2) + "\n")
+    write_result(args.out, "bench_jax.json", result)
     print(format_report(result), end="")
-    logger.info("wrote %s", path)
     return 0
 
 
