@@ -127,6 +127,7 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
     sets = pages.load_data(DOCS / "data", DOCS / "images")
     assert {ds.name: ds.kind for ds in sets} == {
         "bench_bridge": "bench",
+        "bench_jax": "bench-jax",
         "heat2d": "compare",
         "stability": "stability",
         "work_precision_heat3d": "work-precision",

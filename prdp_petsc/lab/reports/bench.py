@@ -389,6 +389,8 @@ def main(argv: list[str]) -> int:
             "k": small["k"],
             "overhead_1_rhs": small["batches"]["1"]["overhead"],
             "overhead_32_rhs": small["batches"]["32"]["overhead"],
+            "floor_1_rhs": small["batches"]["1"]["floor"],
+            "floor_32_rhs": small["batches"]["32"]["floor"],
             "extra_per_call_s": small["extra_per_call_s"],
             "extra_per_rhs_s": small["extra_per_rhs_s"],
         },

@@ -12,9 +12,15 @@ Jacobi in fixed mode, K iterations) it times
 ``bridge``
     ``solve(A, b, solver, theta=θ)`` with b of shape (B, n), then
     ``x.backward(g)``; the gradient is taken in b only (θ constant), the usual
-    case of an emulator whose operator does not change.
+    case of an emulator whose operator does not change;
+``wrapper``
+    the floor of any torch bridge: the raw loops inside a bare
+    ``torch.autograd.Function`` (forward solves b, backward solves g; no input
+    check, no outcome check, no record), called as the bridge is.
 
-``overhead = bridge / raw − 1`` is the median over repeats of the paired ratio.
+``overhead = bridge / raw − 1`` is the median over repeats of the paired ratio,
+``floor = wrapper / raw − 1`` likewise: what is left of the overhead above the floor
+is the bridge's own work (input and outcome checks, the per-call record).
 From B = 1 and B = B_max the difference ``bridge − raw = c₀ + c₁ B`` gives the
 fixed cost per call c₀ and the cost per right-hand side c₁ of the bridge.
 """
@@ -66,6 +72,31 @@ def bench_throughput(
                 x_vec.getArray(readonly=True).copy()
         return time.perf_counter() - t0
 
+    def raw_rows(rows: np.ndarray) -> np.ndarray:
+        out = np.empty_like(rows)
+        for row, x in zip(rows, out, strict=True):
+            b_vec.setArray(row)
+            x_vec.set(0.0)
+            raw.solve(b_vec, x_vec)
+            x[:] = x_vec.getArray(readonly=True)
+        return out
+
+    class Bare(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, b):
+            return torch.from_numpy(raw_rows(b.detach().numpy()))
+
+        @staticmethod
+        def backward(ctx, g):
+            return torch.from_numpy(raw_rows(g.detach().numpy()))
+
+    def wrapper_step(B: int) -> float:
+        b = torch.tensor(rhs[:B], requires_grad=True)
+        g = torch.tensor(cot[:B])
+        t0 = time.perf_counter()
+        Bare.apply(b).backward(g)
+        return time.perf_counter() - t0
+
     def bridge_step(B: int) -> float:
         b = torch.tensor(rhs[:B], requires_grad=True)
         g = torch.tensor(cot[:B])
@@ -79,19 +110,22 @@ def bench_throughput(
         "k": k,
         "gradient": "b (theta constant)",
         "raw": "B x (KSPSolve + KSPSolve), petsc4py loop, same Mat, same KSP/PC",
+        "wrapper": "the raw loops in a bare torch.autograd.Function (no checks)",
         "batches": {},
     }
     for B in batches:
-        t = {"raw": [], "bridge": []}
+        t = {"raw": [], "bridge": [], "wrapper": []}
         for i in range(warmup + repeats):
-            steps = (("raw", raw_step), ("bridge", bridge_step))
+            steps = (("raw", raw_step), ("bridge", bridge_step), ("wrapper", wrapper_step))
             for name, step in steps if i % 2 == 0 else steps[::-1]:
                 dt = step(B)
                 if i >= warmup:
                     t[name].append(dt)
         ratio = np.asarray(t["bridge"]) / np.asarray(t["raw"])
+        floor = np.asarray(t["wrapper"]) / np.asarray(t["raw"])
         out["batches"][str(B)] = {
             "overhead": float(np.median(ratio) - 1.0),
+            "floor": float(np.median(floor) - 1.0),
             "raw_s": statistics.median(t["raw"]),
             "bridge_s": statistics.median(t["bridge"]),
             "timings_s": t,

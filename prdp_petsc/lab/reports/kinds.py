@@ -111,6 +111,17 @@ def _bench_rows(d: dict) -> list[tuple[str, str, str]]:
             _signed(t["overhead_32_rhs"]),
             targets.get("throughput.overhead_32_rhs", ""),
         ),
+    ]
+    if "floor_1_rhs" in t:  # recorded since the bare-wrapper variant exists
+        rows.append(
+            (
+                "floor of any torch bridge: the raw loops in a bare `torch.autograd.Function` "
+                "(no checks), 1 / 32 right-hand sides",
+                f"{_signed(t['floor_1_rhs'])} / {_signed(t['floor_32_rhs'])}",
+                "",
+            )
+        )
+    rows += [
         (
             "bridge's extra cost per call / per right-hand side",
             f"{t['extra_per_call_s'] * 1e6:.0f} µs / {t['extra_per_rhs_s'] * 1e6:.0f} µs",
