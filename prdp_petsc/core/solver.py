@@ -113,6 +113,10 @@ class KSPSolver:
         collective: each rank passes the same full operator and right-hand sides,
         keeps its own rows in an MPIAIJ matrix, and gets the full solution back
         (the *replicated* layout of `prdp_petsc.core.parallel`).
+    **declared
+        ``symmetric``, ``nullspace``, ``transpose_nullspace``, ``near_nullspace``,
+        ``block_size``, ``fields`` one by one: the spelling of earlier releases,
+        still accepted with a ``FutureWarning``; use ``structure=``.
 
     Notes
     -----
