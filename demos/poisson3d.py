@@ -41,7 +41,6 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
-from prdp_petsc.core.parallel import default_comm
 
 _BASE = {
     "steps": 5,
@@ -90,7 +89,7 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
 
 
 def build(config: dict, seed: int) -> lab.Scene:
-    comm = default_comm()  # COMM_WORLD under --parallel domain, else COMM_SELF
+    comm = pp.default_comm()  # COMM_WORLD under --parallel domain, else COMM_SELF
     root = comm.getRank() == 0
     n = config["n"]
     mesh = noise = None

@@ -60,6 +60,7 @@ _EXPORTS = {
     "split_petsc_options": ".core.options",
     "Structure": ".core.structure",
     "use_comm": ".core.parallel",
+    "default_comm": ".core.parallel",
     "SolveInfo": ".core.results",
     "SolverError": ".errors",
     "SingularOperatorError": ".errors",
@@ -73,12 +74,24 @@ _EXPORTS = {
 
 __all__ = sorted([*_EXPORTS, "__version__"])
 
+# names that moved to the lab (prdp_petsc.lab, the ``lab`` extra): the library cannot
+# import the lab, so these raise, naming where they are now
+_MOVED = {
+    "Scene": "prdp_petsc.lab.Scene",
+    "NonlinearHeat": "prdp_petsc.lab.NonlinearHeat",
+    "equal_accuracy_k": "prdp_petsc.lab.training.accuracy.equal_accuracy_k",
+}
+
 
 def __getattr__(name: str):
     if name in _EXPORTS:
         value = getattr(import_module(_EXPORTS[name], __name__), name)
         globals()[name] = value  # later look-ups skip this function
         return value
+    if name in _MOVED:
+        raise AttributeError(
+            f"prdp_petsc.{name} moved to the lab: {_MOVED[name]} (pip install 'prdp-petsc[lab]')"
+        )
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -207,7 +207,8 @@ def rtol_from_level(
     """Krylov rtol for refinement level ``level``: max(rtol_init * factor**level, rtol_min).
 
     The defaults (`RTOL_INIT`, `RTOL_FACTOR`: 0.1, then a decade per refinement) are
-    the ones the lab's ``rtol`` schedule uses.
+    the ones the lab's ``rtol`` schedule uses.  Earlier revisions defaulted to a factor
+    of 0.5: pass ``factor=0.5`` for their values.
     """
     if operator.index(level) < 0:
         raise ValueError(f"level must be >= 0, got {level}")

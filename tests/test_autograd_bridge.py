@@ -121,3 +121,24 @@ def test_return_solution_with_a_guess_and_parameters(mode):
         sol.value.sum().backward()
     assert sol.iterations == 3 and theta.grad is not None
     assert (sol.adjoint is None) == (mode == "unrolled")
+
+
+def test_return_solution_holds_no_reference_cycle():
+    """The graph holds the adjoint's slot, not the result (which holds the graph): the
+    result, its graph and the operator it keeps go as soon as the caller drops them."""
+    import gc
+    import weakref
+
+    A = fd_poisson(6)
+    b = randn(36, seed=3, requires_grad=True)
+    gc.disable()
+    try:
+        with pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=4) as solver:
+            sol = pp.solve(A, b, solver, return_solution=True)
+            gone = weakref.ref(sol)
+            sol.value.sum().backward(retain_graph=True)
+            assert sol.adjoint is solver.last_adjoint
+            del sol
+            assert gone() is None
+    finally:
+        gc.enable()

@@ -62,9 +62,11 @@ def test_the_library_depends_on_the_numerical_stack_only():
 
 
 def test_the_lab_uses_only_the_librarys_public_names():
+    """The lab's modules, the shipped scenes and the documented examples."""
     public = set(prdp_petsc.__all__)
     offending = []
-    for path in sorted(LAB.rglob("*.py")):
+    users = [*LAB.rglob("*.py"), *(ROOT / "demos").glob("*.py"), *(ROOT / "docs").rglob("*.py")]
+    for path in sorted(users):
         for module, names, line in imported_modules(path):
             where = f"{path.relative_to(ROOT)}:{line}"
             if module == "prdp_petsc":
@@ -116,3 +118,11 @@ def test_the_library_works_without_the_lab_packages():
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip() == "ok"
+
+
+def test_names_that_moved_to_the_lab_say_where():
+    import pytest
+
+    for name, where in (("Scene", "prdp_petsc.lab.Scene"), ("equal_accuracy_k", "accuracy")):
+        with pytest.raises(AttributeError, match=f"moved to the lab: .*{where}"):
+            getattr(prdp_petsc, name)

@@ -527,3 +527,23 @@ def test_structure_is_declared_once_and_the_old_keywords_still_work():
         pp.KSPSolver(max_it=5, nulspace="constant")
     with pytest.raises(TypeError, match="pp.Structure"):
         pp.KSPSolver(max_it=5, structure={"nullspace": "constant"})
+
+
+def test_clone_with_a_new_null_space_moves_its_transpose_along():
+    v = np.ones(8) / np.sqrt(8.0)
+    with pp.KSPSolver(max_it=5, structure=pp.Structure(nullspace="constant")) as s:
+        with pytest.warns(FutureWarning) as caught:
+            copy = s.clone(nullspace=v[None, :])
+        assert "transpose_nullspace" not in str(caught[0].message)
+        assert caught[0].filename == __file__  # the warning names the caller's line
+        assert copy.transpose_nullspace is copy.nullspace and copy.nullspace.shape == (1, 8)
+        copy.destroy()
+        with pytest.raises(pp.InputError, match="declare the structure once"):
+            s.clone(structure=pp.Structure(), nullspace="constant")
+    with pytest.warns(FutureWarning) as caught:
+        pp.KSPSolver(max_it=5, symmetric=True).destroy()
+    assert caught[0].filename == __file__
+    with pytest.raises(pp.InputError, match="symmetric must be"):
+        pp.Structure(symmetric=1)
+    with pytest.raises(pp.InputError, match="transpose_nullspace without nullspace"):
+        pp.Structure(transpose_nullspace="constant")

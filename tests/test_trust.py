@@ -278,3 +278,31 @@ def test_input_errors_are_value_errors_with_their_own_class():
         solver.set_operator(spd())
         with pytest.raises(InputError, match="right-hand side has 3 entries"):
             solver.solve(np.ones(3))
+
+
+def test_a_read_only_array_with_a_writeable_view_is_still_copied():
+    """A caller's read-only values are not taken at their word: a view made before the
+    flag was cleared can still edit them.  The backward uses the forward's values, and
+    the next forward sees the edit."""
+    rng = np.random.default_rng(5)
+    A = (
+        sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(20, 20))
+        + sp.random(20, 20, density=0.1, random_state=1)
+    ).tocsr()
+    A.sort_indices()
+    A0 = A.copy()
+    values = A.data.copy()
+    view = values[:]
+    values.flags.writeable = False
+    A.data = values
+    g = rng.standard_normal(20)
+    with pp.KSPSolver({"ksp_type": "gmres", "pc_type": "jacobi"}, max_it=200, rtol=1e-13) as s:
+        b = torch.ones(20, dtype=torch.float64, requires_grad=True)
+        x = pp.solve(A, b, s)
+        view *= 3  # edits A's values through the writeable view
+        pp.solve(A0 * 2, torch.ones(20, dtype=torch.float64), s)  # another operator
+        x.backward(torch.from_numpy(g))
+        expected = spla.spsolve(A0.T.tocsc(), g)
+        assert np.abs(b.grad.numpy() - expected).max() <= 1e-10 * np.abs(expected).max()
+        x3 = pp.solve(A, torch.ones(20, dtype=torch.float64), s).numpy()
+        assert np.abs(A @ x3 - 1.0).max() <= 1e-10  # the edited values, not the kept ones

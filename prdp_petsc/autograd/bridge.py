@@ -28,7 +28,7 @@ from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
-from .solution import LinearSolution
+from .solution import AdjointSlot, LinearSolution
 from .tensors import as_numpy, check_vector, implicit_gradients
 
 __all__ = ["LinearSolution", "matvec", "solve"]
@@ -125,7 +125,7 @@ class _ImplicitSolve(torch.autograd.Function):
             ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True, version=ctx.version
         )
         if ctx.outcome is not None:
-            ctx.outcome.adjoint = ctx.solver.last_adjoint
+            ctx.outcome.info = ctx.solver.last_adjoint
         per_sample = ctx.csr[2].ndim == 2
         return *implicit_gradients(ctx, lam, grad_x, per_sample=per_sample), None, None, None, None
 
@@ -232,14 +232,14 @@ def solve(
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
     if not return_solution:
         return _solve(A, b, solver, theta, mode, x0, None)
-    outcome = LinearSolution(value=None, forward=None)
-    outcome.value = _solve(A, b, solver, theta, mode, x0, outcome)
-    outcome.forward = solver.last_forward
-    return outcome
+    slot = AdjointSlot()  # what the backward fills: the graph holds it, not the result
+    value = _solve(A, b, solver, theta, mode, x0, slot)
+    return LinearSolution(value=value, forward=solver.last_forward, slot=slot)
 
 
 def _solve(A, b, solver, theta, mode, x0, outcome):
-    """`solve` after its argument checks; `outcome` gets the adjoint's `CallInfo`."""
+    """`solve` after its argument checks; `outcome` (an `AdjointSlot`) gets the adjoint's
+    `CallInfo`."""
     if isinstance(A, DistributedParametricMatrix):
         if x0 is None:
             return owned_solve(A, b, solver, theta, mode, outcome)

@@ -73,7 +73,7 @@ class _OwnedSolve(torch.autograd.Function):
             solver.set_operator(ctx.csr)
         lam = solver.solve_transpose(grad_x.detach().cpu().numpy())
         if ctx.outcome is not None:
-            ctx.outcome.adjoint = solver.last_adjoint
+            ctx.outcome.info = solver.last_adjoint
         return *implicit_gradients(ctx, lam, grad_x), None, None, None, None
 
 
@@ -89,8 +89,8 @@ def owned_solve(
 
     `b` holds this rank's rows, ``(m,)`` or ``(B, m)`` (a batch sharing θ), `theta`
     this rank's parameters ``(p,)``; x holds this rank's rows of the solution.
-    Implicit mode only.  `outcome`: the `LinearSolution` of a ``return_solution=True``
-    call, whose ``adjoint`` the backward fills (None: no such call).
+    Implicit mode only.  `outcome`: the `AdjointSlot` of a ``return_solution=True``
+    call, which the backward fills (None: no such call).
     """
     if mode != "implicit":
         raise InputError("the owned layout runs implicit (adjoint) gradients only")

@@ -10,14 +10,27 @@ the same for the latest call only, and its ``stats`` the running totals.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from ..core.results import CallInfo
 
-__all__ = ["LinearSolution"]
+__all__ = ["AdjointSlot", "LinearSolution"]
+
+
+class AdjointSlot:
+    """Where a backward leaves the `CallInfo` of its transpose solve.
+
+    The autograd graph holds this, not the `LinearSolution` (which holds the graph
+    through its ``value``): no reference cycle keeps the graph alive after use.
+    """
+
+    __slots__ = ("info",)
+
+    def __init__(self) -> None:
+        self.info: CallInfo | None = None
 
 
 @dataclass(eq=False)
@@ -34,7 +47,7 @@ class LinearSolution:
     adjoint : CallInfo or None
         The transpose solve of every sample, filled in by the backward through
         `value` (None before it, and in ``mode="unrolled"``, which runs no adjoint
-        solve).
+        solve; the latest one after a second backward with ``retain_graph``).
 
     For b of shape (n,) `iterations`, `reason` and `residual_norm` are one
     sample's values; for (B, n) an array (a list for `reason`) over the batch.
@@ -42,7 +55,12 @@ class LinearSolution:
 
     value: torch.Tensor
     forward: CallInfo
-    adjoint: CallInfo | None = None
+    slot: AdjointSlot = field(default_factory=AdjointSlot, repr=False)
+
+    @property
+    def adjoint(self) -> CallInfo | None:
+        """The transpose solve of every sample, once a backward ran through `value`."""
+        return self.slot.info
 
     @property
     def iterations(self) -> int | np.ndarray:

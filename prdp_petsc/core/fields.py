@@ -3,7 +3,7 @@
 A Stokes system ``[[A, Bᵀ], [B, 0]]`` or any coupled problem is solved well by a
 preconditioner that treats each field on its own (``-pc_type fieldsplit``, with a
 Schur complement for a saddle point).  PETSc has to be told which rows belong to
-which field; `KSPSolver(fields={"u": u_dofs, "p": p_dofs})` says it once, and
+which field; `Structure(fields={"u": u_dofs, "p": p_dofs})` says it once, and
 `attach_fields` gives every PC that needs them the index sets
 (``PCFieldSplitSetIS``) in the order the mapping lists them.
 

@@ -11,15 +11,15 @@ where known, otherwise tested entry against mirror whenever the values change.
 
 What is kept, and what is copied (the operator contract: an autograd backward uses
 exactly the operator its forward used, whatever the caller does in between).  The
-values are kept as an array nobody can change: the caller's own when it is
-`immutable` (read-only, and so is every array it views: the values a
-`~prdp_petsc.fem.parametric.ParametricMatrix` computes for θ), otherwise a copy made
-when the values change, never per call.  The pattern is kept the same way, a copy
+values are kept as an array nobody can change: the library's own when it made them
+(`own`: the values a `~prdp_petsc.fem.parametric.ParametricMatrix` computes for θ),
+otherwise a copy made when the values change, never per call (a caller's read-only
+array may have writeable views, so it is copied too).  The pattern is kept the same way, a copy
 made once per new pattern.  An array is never edited in place once kept: new values
 replace it.  `OperatorMat.csr` hands out these arrays, so a backward that holds them
 can set its operator again after another solve replaced it, at no extra copy; an
 unchanged caller's matrix passed again costs one comparison of its values (by
-identity, without a pass, when they are immutable).  The comparison is needed
+identity, without a pass, when the library owns them).  The comparison is needed
 anyway (it decides whether the PC is set up again), so a snapshot per call would
 only add a copy, and a hash would cost the same pass as the comparison.  The
 caller's pattern arrays are recognised by identity (a structure edited in place,
@@ -46,11 +46,12 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
+from .ownership import immutable, own
 from .parallel import ownership_range
 from .safeguards import operator_norm
 from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 
-__all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr", "immutable"]
+__all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr"]
 
 
 def as_csr(A, *, finite: bool = True) -> tuple:
@@ -82,32 +83,14 @@ def check_values(data: np.ndarray) -> None:
         raise NonFiniteError("A has NaN or Inf entries")
 
 
-def immutable(arr) -> bool:
-    """True when nobody can write to `arr` through numpy without first setting a flag:
-    it and every array it views are read-only (``flags.writeable`` False).
-
-    Such an array is taken at its word and kept without a copy (a caller that sets
-    its flag back and edits it breaks the promise it made).  A read-only view of a
-    writeable buffer is not immutable: its owner can still change it.
-    """
-    while isinstance(arr, np.ndarray):
-        if arr.flags.writeable:
-            return False
-        if arr.base is None:
-            return True
-        arr = arr.base
-    return False
-
-
 def _kept(arr, dtype=None) -> np.ndarray:
-    """`arr` itself if `immutable` (and of `dtype`), else a read-only copy of it."""
+    """`arr` itself if the library owns it (and it is of `dtype`), else a copy it owns."""
     out = np.asarray(arr, dtype=dtype)
     if out is arr and immutable(out):
         return out
     if out is arr or out.base is not None:  # not a fresh conversion of our own
         out = np.array(out, copy=True)
-    out.flags.writeable = False
-    return out
+    return own(out)
 
 
 _CHUNK = 1 << 16  # a 64 KiB temporary at most
@@ -130,8 +113,9 @@ def equal(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def frozen_csr(A) -> tuple:
-    """`as_csr` of `A` as arrays the caller cannot change afterwards: its own where
-    they are `immutable`, read-only copies of the others.
+    """`as_csr` of `A` as arrays the caller cannot change afterwards: the arrays
+    themselves where the library owns them (`prdp_petsc.core.ownership`), copies of
+    the others.
 
     The implicit solve does not need this (the solver keeps the forward's operator,
     `OperatorMat.csr`); a constant matrix product whose backward needs the forward's
@@ -221,7 +205,7 @@ class OperatorMat:
         self._declared: bool | None = None  # the caller's word on a Mat of its own
         self._pattern: tuple | None = None  # (indptr, indices, shape) as PETSc ints
         self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
-        self._values: np.ndarray | None = None  # immutable: the caller's, or a copy
+        self._values: np.ndarray | None = None  # the library's own, or a copy it owns
         self._tperm: np.ndarray | None = None
         self._norm: tuple[int, float] | None = None  # (version, ‖A‖) of `norm`
 
@@ -245,8 +229,8 @@ class OperatorMat:
             self.version += 1
             return "new"
         if isinstance(A, tuple) and A[2] is self._values and self._known(A[0], A[1]):
-            # the values kept (immutable): this operator's own `csr`, or the caller's
-            # immutable values set last; nothing to compare
+            # the values kept (the library's own): this operator's `csr`, or values the
+            # library made and set last; nothing to compare
             return self._redeclare(symmetric)
         indptr, indices, data, shape = as_csr(A, finite=False)
         if self._same_pattern(indptr, indices, shape):

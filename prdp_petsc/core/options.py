@@ -60,7 +60,9 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
         petsc4py.init([sys.argv[0], *petsc])  # then every KSPSolver reads them
         args = parser.parse_args(ours)
 
-    A negative number (``--seed -10``) is a value, not an option name.  Plain
+    A negative number (``--seed -10``) is a value, not an option name.  A token after a
+    PETSc option that does not start with ``-`` is taken as its value, so a flag such as
+    ``-log_view`` goes after the script's positional arguments.  Plain
     Python: it imports neither PETSc nor torch.
     """
     ours, petsc = [], []

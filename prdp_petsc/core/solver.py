@@ -443,10 +443,14 @@ class KSPSolver:
         keyword arguments (any of `KSPSolver`'s) replace them.
         """
         declared = {k: changes.pop(k) for k in STRUCTURE_FIELDS if k in changes}
+        if declared and "structure" in changes:
+            merged_structure(changes["structure"], declared)  # raises: declared twice
         structure = changes.pop("structure", self.structure)
         if declared:  # the old spelling: what it names replaces the copied declaration
-            structure = merged_structure(replace(structure, **declared), {})
             warn_structure_keywords(declared)
+            if "nullspace" in declared and structure.transpose_nullspace is structure.nullspace:
+                declared.setdefault("transpose_nullspace", None)  # follows the new one
+            structure = merged_structure(replace(structure, **declared), {})
         kwargs = {
             **self.config.arguments(),
             "structure": structure,

@@ -95,8 +95,15 @@ class Structure:
     fields: Any = None
 
     def __post_init__(self):
-        if self.symmetric not in (None, True, False):
-            raise InputError(f"symmetric must be True, False or None, got {self.symmetric!r}")
+        if self.symmetric is not None:
+            if not isinstance(self.symmetric, bool | np.bool_):
+                raise InputError(f"symmetric must be True, False or None, got {self.symmetric!r}")
+            object.__setattr__(self, "symmetric", bool(self.symmetric))
+        if self.transpose_nullspace is not None and self.nullspace is None:
+            raise InputError(
+                "transpose_nullspace without nullspace: a square operator's kernel and its "
+                "transpose's have the same dimension; declare both"
+            )
         size = self.block_size
         if isinstance(size, bool) or not isinstance(size, int | np.integer) or size < 1:
             raise InputError(f"block_size must be an integer >= 1, got {plain(size)!r}")
@@ -128,14 +135,15 @@ STRUCTURE_FIELDS = (
 )
 
 
-def warn_structure_keywords(declared: dict) -> None:
-    """The deprecation warning of ``KSPSolver(nullspace=..., ...)``."""
+def warn_structure_keywords(declared: dict, stacklevel: int = 3) -> None:
+    """The deprecation warning of ``KSPSolver(nullspace=..., ...)``; `stacklevel` points
+    it at the caller's line."""
     names = ", ".join(f"{k}=" for k in declared)
     warnings.warn(
         f"KSPSolver({names}) is deprecated: declare the structure once, "
         f"KSPSolver(structure=pp.Structure({names.replace('=', '=...')}))",
         FutureWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
 
 
@@ -152,7 +160,7 @@ def merged_structure(structure: Structure | None, declared: dict) -> Structure:
         raise InputError(
             f"declare the structure once: structure= and {sorted(declared)} were both given"
         )
-    warn_structure_keywords(declared)
+    warn_structure_keywords(declared, stacklevel=4)  # the caller of KSPSolver(...)
     return Structure(**declared)
 
 

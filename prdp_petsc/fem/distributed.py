@@ -32,6 +32,7 @@ import numpy as np
 
 from ..core.ghosts import GhostedSpace, exclusive_offset
 from ..core.operator import OwnedCSR
+from ..core.ownership import own
 from ..errors import InputError, NonFiniteError
 from .parametric import ParametricMatrix
 
@@ -214,8 +215,7 @@ class DistributedParametricMatrix:
 
     def csr_from_values(self, values: np.ndarray) -> OwnedCSR:
         """`OwnedCSR` of owned-row values given in the local CSR order."""
-        data = values[self._order]
-        data.flags.writeable = False
+        data = own(values[self._order])
         return OwnedCSR(
             self.local.indptr,
             self._petsc_indices,

@@ -224,7 +224,7 @@ def elasticity_operator(
     basis : skfem.CellBasis
         A vector basis, ``Basis(mesh, ElementVector(ElementTriP1()))`` (any Lagrange
         element on triangles, tetrahedra, quadrilaterals or hexahedra).  Its dofs
-        are numbered node by node, so ``KSPSolver(block_size=mesh.dim())`` fits;
+        are numbered node by node, so ``Structure(block_size=mesh.dim())`` fits;
         `prdp_petsc.fem.vector.rigid_body_modes` gives the near-null space.
     coefficient : {"P0", "P1"}
         Where E lives: θ per element or per mesh vertex, as in `diffusion_operator`.

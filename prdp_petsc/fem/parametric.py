@@ -19,6 +19,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from ..core.ownership import immutable, own
 from ..core.sparsity import (
     DIAGONAL_RTOL,
     SYMMETRY_RTOL,
@@ -138,11 +139,10 @@ class ParametricMatrix:
         theta = self.check_theta(theta)
         if theta.ndim == 2:
             values = np.asarray(self.G @ theta.T).T + self.a0
-            values.flags.writeable = False  # the library's own: a solver keeps it uncopied
-            return values
+            return own(values)  # the library's own: a solver keeps it uncopied
         values = self.G @ theta
         values += self.a0
-        values.flags.writeable = False  # shared by later calls with the same θ
+        own(values)  # read-only, shared by later calls with the same θ
         object.__setattr__(self, "_last", (theta.copy(), values))
         return values
 
@@ -302,12 +302,11 @@ def _chunks(size: int, rows: int = 1):
 
 
 def _frozen(arr, dtype=None) -> np.ndarray:
-    """`arr` as a read-only array that owns its memory (copied unless it already is)."""
-    arr = np.asarray(arr, dtype=dtype)
-    if arr.flags.writeable or arr.base is not None:
-        arr = np.array(arr, copy=True)
-        arr.flags.writeable = False
-    return arr
+    """`arr` as a read-only array the library owns (copied unless it already is)."""
+    out = np.asarray(arr, dtype=dtype)
+    if immutable(out):
+        return out
+    return own(np.array(out, copy=True))
 
 
 def csr_pattern(rows: np.ndarray, cols: np.ndarray, shape) -> tuple:
