@@ -142,3 +142,18 @@ def test_return_solution_holds_no_reference_cycle():
             assert gone() is None
     finally:
         gc.enable()
+
+
+def test_dirichlet_solve_returns_its_solution_too():
+    basis = unit_square(2)
+    A = pp.diffusion_operator(basis)
+    bc = pp.Dirichlet(A, basis.get_dofs())
+    theta = random_theta(A.n_params, requires_grad=True)
+    f = torch.ones(basis.N, dtype=torch.float64)
+    g = torch.zeros(len(bc.boundary), dtype=torch.float64)
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=3) as solver:
+        sol = bc.solve(f, g, solver, theta=theta, return_solution=True)
+        plain = bc.solve(f, g, solver, theta=theta.detach())
+        sol.value.square().sum().backward()
+    assert sol.value.shape == (basis.N,) and torch.equal(sol.value.detach(), plain)
+    assert sol.iterations == 3 and sol.adjoint.iterations.tolist() == [3]

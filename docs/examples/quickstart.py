@@ -18,11 +18,13 @@ theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
 f = torch.from_numpy(pp.mass_matrix(basis) @ np.ones(basis.N))  # load vector of f = 1
 g = torch.zeros(len(bc.boundary), dtype=torch.float64, requires_grad=True)
 
-u = bc.solve(f, g, solver, theta=theta)  # KSPSolve
+sol = bc.solve(f, g, solver, theta=theta, return_solution=True)  # KSPSolve
+u = sol.value  # the full vector, u = g on the boundary
 loss = u.square().sum()
 loss.backward()  # one KSPSolveTranspose: ∂L/∂θ and ∂L/∂g
 
-print(solver.last)  # iterations, PETSc's reason, residual norm
+print(sol.iterations, sol.reason, sol.residual_norm)  # this call's outcome, kept with u
+print(sol.adjoint.iterations)  # and its transpose solve's, once backward has run
 print(solver.stats)  # solves, iterations and seconds, forward and adjoint
 print(f"|dL/dθ| = {theta.grad.norm():.3e}, |dL/dg| = {g.grad.norm():.3e}")
 

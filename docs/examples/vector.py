@@ -1,7 +1,7 @@
 """Vector and mixed problems: elasticity with its rigid-body modes, Stokes with fields.
 
 The guide page `docs/guide/vector.md` shows the sections of this file, and
-`tests/test_docs.py` runs each function and checks its numbers.
+`tests/lab/test_docs.py` runs each function and checks its numbers.
 
 * `elasticity(dim, n)`: linear elasticity on the unit square or cube (P1 triangles,
   Q1 hexahedra), clamped at x = 0 and loaded by its weight; CG + GAMG to 1e-8 with and

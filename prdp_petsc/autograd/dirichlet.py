@@ -19,6 +19,8 @@ rank (`DistributedParametricMatrix.dirichlet_blocks`).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -28,6 +30,7 @@ from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .bridge import ConstMatVec, matvec, solve
+from .solution import LinearSolution
 from .tensors import as_numpy, check_vector
 
 __all__ = ["Dirichlet"]
@@ -122,15 +125,21 @@ class Dirichlet:
         *,
         theta: torch.Tensor | None = None,
         mode: str = "implicit",
-    ) -> torch.Tensor:
+        return_solution: bool = False,
+    ) -> torch.Tensor | LinearSolution:
         """Solve with ``u_B = g``; returns the full vector, differentiable in f, g, θ.
 
         θ of shape (B, p) solves a batch of operators, one per sample (see
         `prdp_petsc.autograd.bridge.solve`); f and g may then be shared or per
         sample, as in `rhs`.  θ with a scipy matrix raises ValueError, as in `solve`.
+        ``return_solution=True`` returns the interior solve's `LinearSolution` with the
+        full vector as its ``value``.
         """
-        u_i = solve(self.A_II, self.rhs(f, g, theta), solver, theta=theta, mode=mode)
-        return self.expand(u_i, g)
+        rhs = self.rhs(f, g, theta)
+        if not return_solution:
+            return self.expand(solve(self.A_II, rhs, solver, theta=theta, mode=mode), g)
+        sol = solve(self.A_II, rhs, solver, theta=theta, mode=mode, return_solution=True)
+        return replace(sol, value=self.expand(sol.value, g))
 
 
 def _scatter(u: torch.Tensor, idx: np.ndarray, values: torch.Tensor) -> torch.Tensor:

@@ -220,7 +220,8 @@ def _stability_body(ds: DataSet) -> list[str]:
         "`J(θ) = ⟨w, x(θ)⟩` (2 when the gradient is right) with the ε range of the fit, "
         "whether anything became NaN/Inf, and the outcome; a case that must fail reports "
         "the error and the PETSc reason. The cases are described in the docstring of "
-        "`prdp_petsc.lab.reports.stability`; `tests/test_stability.py` runs them at small sizes.",
+        "`prdp_petsc.lab.reports.stability`; `tests/lab/test_stability.py` runs them at "
+        "small sizes.",
         "",
         summary,
         "",

@@ -2,7 +2,7 @@
 
 Every measured number in the documentation and in the README's headline table is
 written by this module from a JSON file under ``docs/data/``, never typed, so a
-page cannot drift from the data it cites (``tests/test_docs.py`` regenerates the
+page cannot drift from the data it cites (``tests/lab/test_docs.py`` regenerates the
 pages and the README fragments and compares them with the committed ones).
 
 Two sub-commands:
@@ -298,7 +298,7 @@ def index(sets: list, earlier: dict | None) -> str:
         "",
         "Every number on these pages is written by `prdp-petsc pages` from a JSON file "
         "under `docs/data/` that a command wrote (`prdp-petsc pages record`), together "
-        "with the command, the machine and the versions; `tests/test_docs.py` checks that "
+        "with the command, the machine and the versions; `tests/lab/test_docs.py` checks that "
         "the pages and the README's headline table equal what the data gives.",
         "",
         _machines(sets),
