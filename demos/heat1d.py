@@ -39,6 +39,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.lab.components.networks import mlp
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.scene import shuffled_batches
 from prdp_petsc.lab.training.unroll import windows
@@ -86,13 +87,9 @@ def initial_conditions(count: int, n: int, modes: int, rng: np.random.Generator)
     return amplitudes @ np.sin(np.pi * np.outer(k, x))
 
 
-def mlp(n: int, width: int = 64, depth: int = 3) -> torch.nn.Sequential:
-    layers, size = [], n
-    for _ in range(depth):
-        layers += [torch.nn.Linear(size, width), torch.nn.GELU()]
-        size = width
-    layers.append(torch.nn.Linear(size, n))
-    return torch.nn.Sequential(*layers).double()
+def network(n: int) -> torch.nn.Sequential:
+    """The scene's network: an MLP on the n nodal values, three GELU layers of 64."""
+    return mlp(n, n, width=64, depth=3)
 
 
 def build(config: dict, seed: int) -> lab.Scene:
@@ -118,7 +115,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         prefix="heat_",
         max_it=1,
     )
-    net = mlp(n)
+    net = network(n)
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
 
     def loss(idx):

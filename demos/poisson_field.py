@@ -43,6 +43,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.lab.components.emulators import torch_sparse
 from prdp_petsc.lab.reports import poisson_field as field_reports
 
 PRESETS = {
@@ -93,14 +94,6 @@ def element_adjacency_laplacian(mesh) -> sp.csr_matrix:
     return (D.T @ D).tocsr()
 
 
-def _torch_csr(M: sp.spmatrix) -> torch.Tensor:
-    M = M.tocoo()
-    index = torch.from_numpy(np.vstack([M.row, M.col]).astype(np.int64))
-    return torch.sparse_coo_tensor(
-        index, torch.from_numpy(M.data), M.shape, check_invariants=True
-    ).coalesce()
-
-
 @skfem.LinearForm
 def _unit_load(v, w):
     return v
@@ -130,7 +123,7 @@ def build(config: dict, seed: int) -> lab.Scene:
     u_obs = torch.from_numpy(u_true + noise)
     obs_scale = float(u_obs.square().sum())
 
-    L = _torch_csr(element_adjacency_laplacian(mesh))
+    L = torch_sparse(element_adjacency_laplacian(mesh))
     theta = torch.zeros(A.n_params, dtype=torch.float64, requires_grad=True)
     solver = pp.KSPSolver(
         {"ksp_type": "cg", "pc_type": "jacobi"}, prefix=PREFIX, max_it=config["k_init"]

@@ -202,12 +202,6 @@ class KSPSolver:
         #: the declared structure of every operator (`prdp_petsc.core.structure.Structure`)
         self.structure = merged_structure(structure, declared)
         self.check_structure = bool(check_structure)
-        self.declared_symmetric = self.structure.symmetric
-        self.nullspace = self.structure.nullspace
-        self.transpose_nullspace = self.structure.transpose_nullspace
-        self.block_size = self.structure.block_size
-        self.near_nullspace = self.structure.near_nullspace
-        self.fields = self.structure.fields
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
         self.last_forward: CallInfo | None = None
@@ -220,6 +214,37 @@ class KSPSolver:
         self._ksp: PETSc.KSP | None = None
         self._adj: PETSc.KSP | None = None
         self._build(self.comm)
+
+    # -- the declared structure (read from `structure`, never set apart from it) ----
+    @property
+    def declared_symmetric(self) -> bool | None:
+        """``structure.symmetric``."""
+        return self.structure.symmetric
+
+    @property
+    def nullspace(self):
+        """``structure.nullspace``."""
+        return self.structure.nullspace
+
+    @property
+    def transpose_nullspace(self):
+        """``structure.transpose_nullspace``."""
+        return self.structure.transpose_nullspace
+
+    @property
+    def near_nullspace(self):
+        """``structure.near_nullspace``."""
+        return self.structure.near_nullspace
+
+    @property
+    def block_size(self) -> int:
+        """``structure.block_size``."""
+        return self.structure.block_size
+
+    @property
+    def fields(self):
+        """``structure.fields``."""
+        return self.structure.fields
 
     # -- PETSc objects ------------------------------------------------------------
     @property

@@ -382,7 +382,7 @@ def _heat1d_scene_and_net(preset: str, seed: int = 0):
     """heat1d's scene, and a copy of its MLP (the loss closes over the scene's own)."""
     module = load_scene(DEMOS / "heat1d.py")
     scene = build_scene(module, preset, seed)
-    net = module.mlp(module.PRESETS["quick"]["n"])
+    net = module.network(module.PRESETS["quick"]["n"])
     for mine, theirs in zip(net.parameters(), scene.optimizer.param_groups[0]["params"]):
         mine.data.copy_(theirs.detach())
     return module, scene, net

@@ -216,6 +216,19 @@ class ConvResNet(torch.nn.Module):
         return self.project(h).to(x.dtype)
 
 
+def mlp(
+    n_in: int, n_out: int, width: int, depth: int, activation=torch.nn.GELU
+) -> torch.nn.Sequential:
+    """A float64 multilayer perceptron: `depth` hidden layers ``Linear → activation`` of
+    `width`, then a linear layer to `n_out` (torch's default initialisation)."""
+    layers, size = [], n_in
+    for _ in range(depth):
+        layers += [torch.nn.Linear(size, width), activation()]
+        size = width
+    layers.append(torch.nn.Linear(size, n_out))
+    return torch.nn.Sequential(*layers).double()
+
+
 class ResidualMLP(torch.nn.Module):
     """``N(u) = u + MLP(u)`` over a field's n nodal values (float64, GELU).
 
@@ -236,14 +249,9 @@ class ResidualMLP(torch.nn.Module):
 
     def __init__(self, n: int, width: int, depth: int):
         super().__init__()
-        layers, size = [], n
-        for _ in range(depth):
-            layers += [torch.nn.Linear(size, width), torch.nn.GELU()]
-            size = width
-        layers.append(torch.nn.Linear(size, n))
-        torch.nn.init.zeros_(layers[-1].weight)
-        torch.nn.init.zeros_(layers[-1].bias)
-        self.mlp = torch.nn.Sequential(*layers).double()
+        self.mlp = mlp(n, n, width, depth)
+        torch.nn.init.zeros_(self.mlp[-1].weight)
+        torch.nn.init.zeros_(self.mlp[-1].bias)
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
         return u + self.mlp(u)

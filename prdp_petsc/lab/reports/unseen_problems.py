@@ -59,6 +59,7 @@ from prdp_petsc import Dirichlet, KSPSolver, diffusion_operator, load_mesh, solv
 from prdp_petsc import mass_matrix as fem_mass
 
 from ..components.emulators import torch_sparse
+from ..components.networks import mlp
 
 __all__ = ["PROBLEMS", "RTOL_FULL", "Problem", "build"]
 
@@ -121,15 +122,6 @@ def _modes(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarr
         for d in range(x.shape[0]):
             out[:, j] *= np.cos(np.pi * freq[j, d] * x[d] + phase[j, d])
     return out
-
-
-def _mlp(n_in: int, n_out: int, width: int, depth: int = 2) -> torch.nn.Module:
-    layers, size = [], n_in
-    for _ in range(depth):
-        layers += [torch.nn.Linear(size, width), torch.nn.Tanh()]
-        size = width
-    layers.append(torch.nn.Linear(size, n_out))
-    return torch.nn.Sequential(*layers).double()
 
 
 class NetworkInverse(Problem):
@@ -230,7 +222,7 @@ class LShapeMLP(LogCoefficient):
         u, coef = self.coefficient_data(load_mesh("lshape"), ElementTriP1(), 6, n, 0.005, rng)
         self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, prefix="u1_",
                                 max_it=1)  # fmt: skip
-        net = _mlp(u.shape[1], 6, 64)
+        net = mlp(u.shape[1], 6, 64, 2, torch.nn.Tanh)
         opt = torch.optim.Adam(net.parameters(), lr=3e-3)
         self.epochs = 20 if quick else 60
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=self.epochs)
@@ -284,7 +276,7 @@ class AdvectionSource(NetworkInverse):
         self.solver = KSPSolver({"ksp_type": "gmres", "pc_type": "jacobi"}, prefix="u4_",
                                 max_it=1)  # fmt: skip
         self.probe = (A, (coef @ psi.T)[0])
-        net = _mlp(48, 8, 64)
+        net = mlp(48, 8, 64, 2, torch.nn.Tanh)
         opt = torch.optim.SGD(net.parameters(), lr=0.05, momentum=0.9)
         self.epochs = 20 if quick else 60
         sched = torch.optim.lr_scheduler.StepLR(opt, step_size=self.epochs // 3, gamma=0.3)
@@ -322,7 +314,7 @@ class PlateBackwardHeat(NetworkInverse):
         self.Mphi = torch.from_numpy(M @ phi)
         self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "icc"}, prefix="u5_", max_it=1)
         self.probe = (A, M @ phi @ coef[0])
-        net = _mlp(u1.shape[1], 10, 64)
+        net = mlp(u1.shape[1], 10, 64, 2, torch.nn.Tanh)
         opt = torch.optim.RMSprop(net.parameters(), lr=1e-3)
         self.epochs = 20 if quick else 60
         steps = self.epochs * -(-(n - n // 4) // self.batch)
@@ -347,7 +339,7 @@ class Box3DRegions(LogCoefficient):
         n = 48 if quick else 128
         u, coef = self.coefficient_data(load_mesh("box3d"), ElementTetP1(), 4, n, 0.002, rng)
         self.solver = KSPSolver({"ksp_type": "cg", "pc_type": "gamg"}, prefix="u6_", max_it=1)
-        net = _mlp(u.shape[1], 4, 32)
+        net = mlp(u.shape[1], 4, 32, 2, torch.nn.Tanh)
         opt = torch.optim.SGD(net.parameters(), lr=0.02, momentum=0.9)
         self.epochs = 15 if quick else 40
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.3, patience=3)
