@@ -24,35 +24,35 @@ def _pct(value: float) -> str:
     return f"{100 * value:.1f} %"
 
 
+# the title of each kind's page, from its main record and its data set
+_TITLES = {
+    "compare": lambda d, ds: f"PRDP against full fidelity: {d['scene']}",
+    "seeds": lambda d, ds: f"PRDP against full fidelity over seeds: {d['scene']}",
+    "bench": lambda d, ds: "Bridge benchmark",
+    "stability": lambda d, ds: "Stability on stiff and extreme cases",
+    "rollouts": lambda d, ds: f"Long rollouts against the uncorrected solver: {ds.name}",
+    "horizon": lambda d, ds: (
+        f"Memory and time against the unroll length: {d['scene']} {d['preset']}"
+    ),
+    "ablation": lambda d, ds: f"Which lever buys what: {d['scene']} {d['preset']}",
+    "unseen": lambda d, ds: "PRDP's default construction on problems it was never tuned on",
+    "defaults": lambda d, ds: (
+        f"Default construction against tuned settings: {d['scene']} {d['preset']}"
+    ),
+    "bench-mpi": lambda d, ds: (
+        f"One rank against several: {d['mesh']}, {d.get('layout', 'replicated')} layout"
+    ),
+    "topopt": lambda d, ds: f"Topology optimisation with capped solves: {d['scene']} {d['preset']}",
+    "bench-elasticity": lambda d, ds: (
+        "GAMG on 3D elasticity: iterations against the mesh, with the rigid-body modes"
+    ),
+    "bench-jax": lambda d, ds: "Capped CG gradients: prdp_petsc against JAX and lineax",
+    "work-precision": lambda d, ds: f"Error against run time: {d['problem']}",
+}
+
+
 def title(ds: DataSet) -> str:
-    d = ds.main
-    if ds.kind == "compare":
-        return f"PRDP against full fidelity: {d['scene']}"
-    if ds.kind == "seeds":
-        return f"PRDP against full fidelity over seeds: {d['scene']}"
-    if ds.kind == "bench":
-        return "Bridge benchmark"
-    if ds.kind == "stability":
-        return "Stability on stiff and extreme cases"
-    if ds.kind == "rollouts":
-        return f"Long rollouts against the uncorrected solver: {ds.name}"
-    if ds.kind == "horizon":
-        return f"Memory and time against the unroll length: {d['scene']} {d['preset']}"
-    if ds.kind == "ablation":
-        return f"Which lever buys what: {d['scene']} {d['preset']}"
-    if ds.kind == "unseen":
-        return "PRDP's default construction on problems it was never tuned on"
-    if ds.kind == "defaults":
-        return f"Default construction against tuned settings: {d['scene']} {d['preset']}"
-    if ds.kind == "bench-mpi":
-        return f"One rank against several: {d['mesh']}, {d.get('layout', 'replicated')} layout"
-    if ds.kind == "topopt":
-        return f"Topology optimisation with capped solves: {d['scene']} {d['preset']}"
-    if ds.kind == "bench-elasticity":
-        return "GAMG on 3D elasticity: iterations against the mesh, with the rigid-body modes"
-    if ds.kind == "bench-jax":
-        return "Capped CG gradients: prdp_petsc against JAX and lineax"
-    return f"Error against run time: {d['problem']}"
+    return _TITLES[ds.kind](ds.main, ds)
 
 
 def _images(ds: DataSet, depth: str = "../") -> list[str]:
