@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .pages import DataSet
 
-__all__ = ["TAYLOR_RIGHT", "body", "headline", "title"]
+__all__ = ["body", "headline", "title"]
 
 
 def _pct(value: float) -> str:
@@ -183,37 +183,12 @@ def _bench_body(ds: DataSet) -> list[str]:
     return lines
 
 
-#: a Taylor rate at or above this says the gradient is right (2 in exact arithmetic)
-TAYLOR_RIGHT = 1.85
-
-
-def _stability_counts(rows: list[dict]) -> dict:
-    ok = [r for r in rows if r["outcome"] == "ok"]
-    rates = [r.get("taylor_rate") for r in ok]
-    return {
-        "rows": len(rows),
-        "ok": len(ok),
-        "right": sum(x is not None and x >= TAYLOR_RIGHT for x in rates),  # NaN: False
-        "errors": sorted({r["outcome"] for r in rows if r["outcome"] != "ok"}),
-        "nan_or_inf": sum(bool(r["nan_or_inf"]) for r in rows),
-        "cases": len(dict.fromkeys(r["case"] for r in rows)),
-    }
-
-
-def _stability_line(c: dict) -> str:
-    return (
-        f"{c['ok']} solved, {c['right']} of them with a Taylor rate ≥ {TAYLOR_RIGHT} "
-        f"(2: the gradient is right); {c['rows'] - c['ok']} raised the error they must "
-        f"({', '.join(c['errors'])}); NaN or Inf in {c['nan_or_inf']}"
-    )
-
-
 def _stability_body(ds: DataSet) -> list[str]:
-    from .stability import to_markdown
+    from .stability import summary_counts, summary_line, to_markdown
 
     rows = ds.main["rows"]
-    c = _stability_counts(rows)
-    summary = f"{c['rows']} rows in {c['cases']} cases: {_stability_line(c)}."
+    c = summary_counts(rows)
+    summary = f"{c['rows']} rows in {c['cases']} cases: {summary_line(c)}."
     return [
         "Each row solves `A(θ) x = b` through the torch bridge and reports the forward "
         "residual, the iterations (forward/adjoint), the Taylor rate of the gradient of "
@@ -594,8 +569,10 @@ def headline(ds: DataSet) -> list[tuple[str, str]]:
             ),
         ]
     if ds.kind == "stability":
-        c = _stability_counts(d["rows"])
-        return [(f"stability suite: {c['rows']} stiff and extreme solves", _stability_line(c))]
+        from .stability import summary_counts, summary_line
+
+        c = summary_counts(d["rows"])
+        return [(f"stability suite: {c['rows']} stiff and extreme solves", summary_line(c))]
     if ds.kind == "rollouts":
         return _rollouts_headline(ds)
     if ds.kind == "horizon":

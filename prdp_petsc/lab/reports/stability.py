@@ -38,7 +38,16 @@ import scipy.sparse as sp
 
 from .stability_rows import centroids, evaluate, poisson_problem, taylor_rate, to_markdown
 
-__all__ = ["CASES", "main", "run_cases", "taylor_rate", "to_markdown"]
+__all__ = [
+    "CASES",
+    "TAYLOR_RIGHT",
+    "main",
+    "run_cases",
+    "summary_counts",
+    "summary_line",
+    "taylor_rate",
+    "to_markdown",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -347,6 +356,33 @@ def run_cases(quick: bool = False, only: list[str] | None = None) -> list[dict]:
         rows.extend(case(quick))
         logger.info("case %s: %.1f s", name, time.perf_counter() - t0)
     return rows
+
+
+#: a Taylor rate at or above this says the gradient is right (2 in exact arithmetic)
+TAYLOR_RIGHT = 1.85
+
+
+def summary_counts(rows: list[dict]) -> dict:
+    """What the suite's rows say: how many solved, with a right gradient, raised, NaN."""
+    ok = [r for r in rows if r["outcome"] == "ok"]
+    rates = [r.get("taylor_rate") for r in ok]
+    return {
+        "rows": len(rows),
+        "ok": len(ok),
+        "right": sum(x is not None and x >= TAYLOR_RIGHT for x in rates),  # NaN: False
+        "errors": sorted({r["outcome"] for r in rows if r["outcome"] != "ok"}),
+        "nan_or_inf": sum(bool(r["nan_or_inf"]) for r in rows),
+        "cases": len(dict.fromkeys(r["case"] for r in rows)),
+    }
+
+
+def summary_line(c: dict) -> str:
+    """`summary_counts` as one sentence (results pages, headline table)."""
+    return (
+        f"{c['ok']} solved, {c['right']} of them with a Taylor rate ≥ {TAYLOR_RIGHT} "
+        f"(2: the gradient is right); {c['rows'] - c['ok']} raised the error they must "
+        f"({', '.join(c['errors'])}); NaN or Inf in {c['nan_or_inf']}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
