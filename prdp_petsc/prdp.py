@@ -5,12 +5,15 @@ Progressively Refined Differentiable Physics (reference: tum-pbs/PRDP,
 
 Two constructions:
 
-* ``PRDP.for_problem(k_full)``, the default for a new problem: start, step and cap
-  come from K_full (the iterations a converged solve needs, `prdp_petsc.find_k_full`),
-  and, given a ``check`` (the validation gradient through the solve at a cap k, on
-  the current weights), every stop is certified by one validation at K_full.
-* ``PRDP(k_init=..., k_step=..., ...)``: every setting by hand; its defaults are the
-  reference's constants, for reproducing the paper.
+* ``PRDP.for_problem(k_full, check=check)``, the default for a new problem: start,
+  step and cap come from K_full (the iterations a converged solve needs,
+  `prdp_petsc.find_k_full`), and the ``check`` (the validation gradient through the
+  solve at a cap k, on the current weights: `prdp_petsc.gradient_check`) certifies
+  every stop against K_full.
+* ``PRDP.paper()``: the reference's constants, for reproducing the paper;
+  ``PRDP(k_init=..., ...)`` sets every setting by hand.
+
+The check is given once, at construction; `PRDP.update` takes the metric only.
 """
 
 from __future__ import annotations
@@ -25,14 +28,14 @@ import numpy as np
 
 __all__ = [
     "ACCURACY_BAND",
-    "RTOL_FACTOR",
-    "RTOL_INIT",
     "Certificate",
     "PRDP",
     "PRDPStep",
-    "rtol_from_level",
     "savings",
 ]
+
+#: the reference's constants (tum-pbs/PRDP, heat 1D): `PRDP.paper` builds a controller with them
+PAPER = {"k_init": 1, "k_step": 1, "tau_step": 0.98, "tau_stop": 0.9, "ema_window": 6, "window": 3}
 
 logger = logging.getLogger(__name__)
 
@@ -114,17 +117,30 @@ class Certificate:
 
 
 def fidelity_gap(at_k, at_full) -> float:
-    """``‖at_k − at_full‖ / ‖at_full‖`` of two numbers or two arrays (any shape, flattened);
-    0 for two zeros, inf for a zero `at_full` only, NaN when either is not finite."""
+    """``‖at_k − at_full‖ / ‖at_full‖`` of two numbers or two arrays (any shape, flattened).
+
+    Raises
+    ------
+    ValueError
+        If either contains NaN or Inf, or `at_full` is all zeros: such a check cannot
+        tell whether K is enough (a zero gradient at K_full would certify any K).
+    """
     k, full = _flat(at_k), _flat(at_full)
     if k.shape != full.shape:
         raise ValueError(f"a check returned {k.size} values at K and {full.size} at K_full")
-    diff, ref = float(np.linalg.norm(k - full)), _norm(at_full)
-    if not (math.isfinite(diff) and math.isfinite(ref)):
-        return math.nan
+    for name, value in (("K", k), ("K_full", full)):
+        if not np.all(np.isfinite(value)):
+            raise ValueError(
+                f"the check returned NaN or Inf at {name}: a diverged solve or network; "
+                "a fidelity gap cannot be measured"
+            )
+    ref = float(np.linalg.norm(full))
     if ref == 0:
-        return 0.0 if diff == 0 else math.inf
-    return diff / ref
+        raise ValueError(
+            "the check returned all zeros at K_full: it does not see the solve (is the "
+            "validation loss computed through the solver, with gradients enabled?)"
+        )
+    return float(np.linalg.norm(k - full)) / ref
 
 
 def _flat(value) -> np.ndarray:
@@ -195,30 +211,6 @@ def savings(ks=None, k_full=None, *, costs=None, cost_full=None) -> dict[str, fl
     return {"total": total, "pr": total - ic, "ic": ic}
 
 
-#: Relative tolerance of refinement level 0 when PRDP moves a Krylov rtol instead of K ...
-RTOL_INIT = 1e-1
-#: ... and its factor per refinement: a decade per level.
-RTOL_FACTOR = 1e-1
-
-
-def rtol_from_level(
-    level: int, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR, rtol_min: float = 1e-10
-) -> float:
-    """Krylov rtol for refinement level ``level``: max(rtol_init * factor**level, rtol_min).
-
-    The defaults (`RTOL_INIT`, `RTOL_FACTOR`: 0.1, then a decade per refinement) are
-    the ones the lab's ``rtol`` schedule uses.  Earlier revisions defaulted to a factor
-    of 0.5: pass ``factor=0.5`` for their values.
-    """
-    if operator.index(level) < 0:
-        raise ValueError(f"level must be >= 0, got {level}")
-    if not 0 < rtol_min <= rtol_init:
-        raise ValueError(f"need 0 < rtol_min <= rtol_init, got {rtol_min}, {rtol_init}")
-    if not 0 < factor < 1:
-        raise ValueError(f"factor must lie in (0, 1), got {factor}")
-    return max(rtol_init * factor**level, rtol_min)
-
-
 class PRDP:
     """Per-epoch controller of the inner-solver iteration cap K (docs/maths.md §7).
 
@@ -228,9 +220,9 @@ class PRDP:
        (``use_ema=False`` or ``ema_window=1``: E = H).
     2. While len(E) <= window keep K.
     3. r = E[-1] / E[-window]. If r <= tau_step the metric still improves: keep K.
-    4. Plateau.  With a ``check`` and `k_full` (the certified test): evaluate it once
-       at K and once at K_full on the same weights; if the two agree within `tol`, K
-       is enough (certified: stop refining), else refine.  Without a check (the
+    4. Plateau.  With a `check` (the certified test): evaluate it once at K and once
+       at K_full on the same weights; if the two agree within `tol`, K is enough
+       (certified: stop refining), else refine.  Without a check (the
        reference's test): r_c = E[-1] / checkpoint (checkpoint starts at +inf); if
        r_c < tau_stop or r_c > tau_worse refine, otherwise the last refinement bought
        less than 1 - tau_stop and ``refining`` becomes False.
@@ -249,7 +241,7 @@ class PRDP:
         EMA span and plateau window (>= 1).
     k_min : int
         Smallest K the caller considers meaningful (1 <= k_min <= k_init); origin of
-        :attr:`level`, so ``to_rtol()`` gives ``rtol_init`` at K = k_min.
+        :attr:`level`.
     use_ema : bool
         Smooth the metric (reference: yes, except Poisson).
     restart_window : bool
@@ -263,6 +255,10 @@ class PRDP:
     k_full : int, optional
         The converged cap (`prdp_petsc.find_k_full`): what a check compares with, and
         the default `k_max`.  Without it there is nothing to certify against.
+    check : callable ``k -> array or float``, optional
+        The certified test's check (see the Notes; `prdp_petsc.gradient_check` builds
+        one): given, every plateau and every due check is decided by it, and
+        `certify` uses it.  Needs `k_full`.
     growth : float
         Geometric refinement factor (>= 1; 1: the reference's additive steps).
     tol : float
@@ -283,8 +279,8 @@ class PRDP:
     error against ground truth, or the validation loss).  The ``check`` callable
     ``check(k)`` must depend on K: the gradient of the validation loss with respect
     to what is trained (weights, or the design in an optimisation loop), *through the
-    solve capped at k*, on the current weights, without a training step (set
-    ``solver.max_it = k``, ``torch.autograd.grad``, restore).  It may return a
+    solve capped at k*, on the current weights, without a training step
+    (`prdp_petsc.gradient_check` does exactly this).  It may return a
     number instead (the validation loss itself), but a loss is a weak check: a solve
     error orthogonal to the misfit changes a squared loss only to second order,
     while it biases what training learns to first order.  Give a check whenever you can:
@@ -310,22 +306,21 @@ class PRDP:
       checkpoint to 100 instead of +inf, and also feed the untrained model's metric as
       H_0 (call ``update`` once before training to match; drop that record from savings).
 
-    A non-finite metric is "worse": K is raised at once (even within the first window),
-    the checkpoint becomes the last finite E, and the metric stays out of the EMA and
-    out of the window count (it is kept in :attr:`history`).
+    A NaN or Inf metric raises ``ValueError`` (a diverged network or solve is not a
+    plateau to refine on), as does a check that returns NaN, Inf or all zeros.
 
     The caller owns how K reaches the solver: ``solver.max_it = controller.k`` before
     each epoch (the adjoint follows unless ``solver.adjoint_max_it`` or
     ``AdjointSettings(max_it=...)`` sets it apart; one GMRES restart cycle per K is
-    ``max_it = 8 * K``).  For Krylov methods whose count varies, read K as a level and
-    control the tolerance instead: ``solver.rtol = controller.to_rtol()``
-    with a generous ``max_it`` (see :func:`rtol_from_level`).
+    ``max_it = 8 * K``).  For Krylov methods whose count varies, K may be read as a
+    level (:attr:`level`) that sets PETSc's rtol instead, under a generous
+    ``max_it``: the lab's ``rtol`` schedule does this.
     """
 
     def __init__(
         self, k_init=1, k_step=1, k_max=None, tau_step=0.98, tau_stop=0.9, ema_window=6,
         window=3, k_min=1, use_ema=True, *, restart_window=False, tau_worse=1.0,
-        k_full=None, growth=1.0, tol=ACCURACY_BAND, recheck=0.5,
+        k_full=None, growth=1.0, tol=ACCURACY_BAND, recheck=0.5, check=None,
     ):  # fmt: skip
         def _int(name, value, low):
             value = operator.index(value)
@@ -357,6 +352,11 @@ class PRDP:
         self.tau_step, self.tau_stop = float(tau_step), float(tau_stop)
         self.tau_worse, self.growth = float(tau_worse), float(growth)
         self.tol, self.recheck = float(tol), float(recheck)
+        if check is not None and not callable(check):
+            raise ValueError(f"check must be a callable k -> array or float, got {check!r}")
+        if check is not None and self.k_full is None:
+            raise ValueError("a check needs k_full (PRDP.for_problem(k_full, check=...) sets it)")
+        self.check = check
         self.use_ema, self.restart_window = bool(use_ema), bool(restart_window)
         self.alpha = 2.0 / (self.ema_window + 1.0) if self.use_ema else 1.0
         self._k, self._refining, self._checkpoint = self.k_init, True, math.inf
@@ -372,7 +372,10 @@ class PRDP:
         self._last_check = -self.window  # epoch of the last check
 
     @classmethod
-    def for_problem(cls, k_full: int, *, tol: float = ACCURACY_BAND, **settings) -> PRDP:
+    def for_problem(
+        cls, k_full: int, *, check: Callable[[int], object] | None = None,
+        tol: float = ACCURACY_BAND, **settings,
+    ) -> PRDP:  # fmt: skip
         """The controller for a new problem, from its K_full alone.
 
         K starts at ``ceil(k_full / 8)`` (`START_FRACTION`) and doubles at every
@@ -380,13 +383,16 @@ class PRDP:
         start for a solve that needs eight to converge, and at most four levels
         (1/8, 1/4, 1/2, 1 of K_full) whatever the size of K_full, so that the
         refinement tests run often enough at every scale.  The plateau test restarts
-        after every refinement (``restart_window``).  Pass ``check=`` to `update` so
-        that each plateau is decided by a certified check against `k_full`.
+        after every refinement (``restart_window``).  With a `check`, each plateau is
+        decided by a certified check against `k_full`.
 
         Parameters
         ----------
         k_full : int
             Iterations a converged solve needs (`prdp_petsc.find_k_full`).
+        check : callable ``k -> array or float``, optional
+            The validation gradient through the solve capped at k
+            (`prdp_petsc.gradient_check`); without it nothing is certified.
         tol : float
             Accuracy band of the checks.
         **settings
@@ -401,7 +407,15 @@ class PRDP:
             "growth": GROWTH,
             "restart_window": True,
         }
-        return cls(**{**defaults, **settings, "k_full": k_full, "tol": tol})
+        return cls(**{**defaults, **settings, "k_full": k_full, "tol": tol, "check": check})
+
+    @classmethod
+    def paper(cls, **overrides) -> PRDP:
+        """The reference's controller (tum-pbs/PRDP, `PAPER`): K from 1 in steps of 1,
+        EMA span 6, plateau window 3, ``tau_step`` 0.98, ``tau_stop`` 0.9; any `PRDP`
+        argument in `overrides` replaces its value (the paper's Poisson runs:
+        ``k_init=25, k_step=10, k_max=600, use_ema=False, window=2, tau_step=0.92``)."""
+        return cls(**{**PAPER, **overrides})
 
     @property
     def k(self) -> int:
@@ -410,7 +424,7 @@ class PRDP:
 
     @property
     def level(self) -> int:
-        """Refinement level ``k - k_min`` (for :func:`rtol_from_level`)."""
+        """Refinement level ``k - k_min`` (a level read as a tolerance, say)."""
         return self._k - self.k_min
 
     @property
@@ -442,37 +456,32 @@ class PRDP:
         following = max(k + self.k_step, math.ceil(k * self.growth - 1e-9))
         return following if self.k_max is None else min(following, self.k_max)
 
-    def update(self, metric, check: Callable[[int], object] | None = None) -> int:
+    def update(self, metric) -> int:
         """Record the metric of the epoch just trained with :attr:`k`; return K for the next.
 
         Parameters
         ----------
         metric : float
-            Validation metric of that epoch (lower is better, >= 0).
-        check : callable ``k -> array or float``, optional
-            The validation gradient (or loss) through the solve capped at ``k`` on the
-            current weights (see the Notes); called twice (at K and at `k_full`), and
-            only when a check is due.  Needs `k_full`.
+            Validation metric of that epoch (lower is better, finite, >= 0).  With a
+            `check`, the check runs (at K and at `k_full`) when one is due.
         """
         value, k = float(metric), self._k
-        if check is not None and self.k_full is None:
-            raise ValueError("a check needs k_full (PRDP.for_problem(k_full) sets it)")
-        gap = None
         if not math.isfinite(value):
-            reason = f"non-finite metric {value}"
-            ema = self._ema[-1] if self._ema else math.nan
-            refine = True
+            raise ValueError(
+                f"metric is {value} at epoch {len(self._history)}: a diverged network or "
+                "solve; PRDP cannot refine on it (lower the learning rate, or check the "
+                "solver's outcome)"
+            )
+        if value < 0:
+            raise ValueError(f"metric must be >= 0 (PRDP compares ratios), got {value}")
+        if not self._ema or self._fresh:
+            ema, self._fresh = value, False
         else:
-            if value < 0:
-                raise ValueError(f"metric must be >= 0 (PRDP compares ratios), got {value}")
-            if not self._ema or self._fresh:
-                ema, self._fresh = value, False
-            else:
-                ema = self.alpha * value + (1 - self.alpha) * self._ema[-1]
-            self._ema.append(ema)
-            if self._checked_at is None:
-                self._checked_at = ema
-            refine, reason, gap = self._test(check)
+            ema = self.alpha * value + (1 - self.alpha) * self._ema[-1]
+        self._ema.append(ema)
+        if self._checked_at is None:
+            self._checked_at = ema
+        refine, reason, gap = self._test(self.check)
         if refine:
             self._refine()
         step = PRDPStep(k=k, metric=value, ema=ema, refined=self._k > k, k_next=self._k, gap=gap)
@@ -553,50 +562,95 @@ class PRDP:
         self._checks.append(cert)
         return cert
 
-    def certify(self, check: Callable[[int], object]) -> Certificate:
+    def certify(self) -> Certificate:
         """Check the current K against `k_full` now (at the end of training).
 
-        One validation at K and one at K_full on the same weights (see `update`);
-        the result is kept in :attr:`checks`, read by :meth:`savings`.  A failed
-        certificate does not raise: K is not enough for the accuracy band, and the
-        savings of the run are reported as not certified.
+        One validation at K and one at K_full on the same weights with the `check`
+        given at construction; the result is kept in :attr:`checks`, read by
+        :meth:`savings`.  A failed certificate does not raise: K is not enough for the
+        accuracy band, and the savings of the run are reported as not certified.
+        A check that the last `update` made at the current K (on these weights: no
+        epoch was trained since) is the answer, and costs nothing again.
         """
-        if self.k_full is None:
-            raise ValueError("certify needs k_full (PRDP.for_problem(k_full) sets it)")
-        cert = self._check(check)
+        if self.check is None:
+            raise ValueError(
+                "certify needs a check: PRDP.for_problem(k_full, check=pp.gradient_check(...))"
+            )
+        last = self._checks[-1] if self._checks else None
+        if last is not None and last.k == self._k and last.epoch == len(self._history) - 1:
+            logger.info("PRDP end (the last epoch's check): %s", last.describe())
+            return last
+        cert = self._check(self.check)
         logger.info("PRDP end: %s", cert.describe())
         return cert
 
-    def to_rtol(
-        self, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR, rtol_min: float = 1e-10
-    ):
-        """``rtol_from_level(self.level, ...)``: the Krylov rtol for the current K."""
-        return rtol_from_level(self.level, rtol_init, factor, rtol_min)
+    def savings(
+        self, k_full=None, *, costs=None, cost_full=None, check_weight: float = 1.0
+    ) -> dict:
+        """What the run saved against a constant-`k_full` run of the same length,
+        every solve it caused counted, with the accuracy status.
 
-    def savings(self, k_full=None, *, costs=None, cost_full=None) -> dict:
-        """:func:`savings` over the K's of :attr:`history`, with the accuracy status.
+        Without `costs`, an epoch at K costs K, and the checks are counted too: a
+        check at cap k costs ``check_weight * k``, as an epoch at k does when the
+        check's gradient is as large a computation as one epoch's (exact in an
+        optimisation loop, one gradient per epoch; an over-count when the check's
+        batch is smaller than an epoch's data: then pass ``check_weight`` = its share,
+        or measured `costs`).  ``total = 1 − (Σ K_t + checks) / (T K_full)``,
+        ``ic = 1 − K_final / K_full``, ``pr = total − ic``.
 
-        Besides ``total``, ``pr`` and ``ic``: ``certified`` (True / False from the
-        last check if it was made at the final K, see :meth:`certify`; None: not
-        checked, so the savings say nothing about accuracy), ``gap`` (that check's
-        fidelity gap or None) and ``checks`` (how many fidelity checks ran; each
-        cost one validation at K and one at K_full, which `costs` should include).
+        Parameters
+        ----------
+        k_full : int, optional
+            Baseline K (default: the controller's `k_full`).
+        costs, cost_full : sequence of float, float, optional
+            Measured per-epoch costs (inner iterations or seconds) **with the checks'
+            solves included**, and the baseline's (see :func:`savings`); replaces the
+            count by K.
+        check_weight : float
+            A check's cost relative to one epoch at the same cap (>= 0).
+
+        Returns
+        -------
+        dict
+            ``total``, ``pr``, ``ic`` (fractions; negative: cost more), ``check_share``
+            (the share of this run's cost spent on checks; None with `costs`),
+            ``certified`` (True / False from the last check if it was made at the
+            final K; True at K_full itself; None: not checked, so the savings say
+            nothing about accuracy), ``gap`` (that check's fidelity gap or None) and
+            ``checks`` (how many checks ran).
         """
-        out = savings(
-            [s.k for s in self._history],
-            self.k_full if k_full is None else k_full,
-            costs=costs,
-            cost_full=cost_full,
-        )
+        if not (math.isfinite(check_weight) and check_weight >= 0):
+            raise ValueError(f"check_weight must be finite and >= 0, got {check_weight}")
+        if not self._history:
+            raise ValueError("no epochs recorded yet: call update(metric) after each epoch")
+        ks = [s.k for s in self._history]
+        base = self.k_full if k_full is None else k_full
+        share = None
+        if costs is None:
+            if base is None:
+                raise ValueError("give k_full (no k_full was set at construction)")
+            spent = [float(k) for k in ks]
+            for c in self._checks:  # a check at the end counts in the last epoch
+                spent[min(c.epoch, len(spent) - 1)] += check_weight * (c.k + c.k_full)
+            checked = sum(spent) - sum(ks)
+            out = savings(costs=spent, cost_full=base)
+            out["ic"] = 1.0 - ks[-1] / float(base)
+            out["pr"] = out["total"] - out["ic"]
+            share = checked / sum(spent) if sum(spent) > 0 else 0.0
+        else:
+            out = savings(ks, base, costs=costs, cost_full=cost_full)
         cert = self._checks[-1] if self._checks else None
-        final = self._history[-1].k if self._history else self._k
+        final = ks[-1]
         if self.k_full is not None and final >= self.k_full:  # full fidelity itself
             certified, gap = True, 0.0
         elif cert is not None and cert.k == final:
             certified, gap = cert.certified, cert.gap
         else:
             certified, gap = None, None
-        return {**out, "certified": certified, "gap": gap, "checks": len(self._checks)}
+        return {
+            **out, "check_share": share, "certified": certified, "gap": gap,
+            "checks": len(self._checks),
+        }  # fmt: skip
 
     def state_dict(self) -> dict:
         """Mutable state as plain (JSON-serialisable) Python objects; settings excluded."""

@@ -36,8 +36,8 @@ def test_for_problem_takes_start_step_and_cap_from_k_full():
         pp.PRDP.for_problem(0)
 
 
-def test_the_reference_constants_stay_the_plain_constructor():
-    ctrl = pp.PRDP()
+def test_the_reference_constants_are_one_named_preset():
+    ctrl = pp.PRDP.paper()
     assert (ctrl.k_init, ctrl.k_step, ctrl.growth, ctrl.k_max, ctrl.k_full) == (
         1,
         1,
@@ -45,35 +45,69 @@ def test_the_reference_constants_stay_the_plain_constructor():
         None,
         None,
     )
+    assert (ctrl.tau_step, ctrl.tau_stop, ctrl.ema_window, ctrl.window) == (0.98, 0.9, 6, 3)
     assert ctrl.next_k() == 2
+    assert pp.PRDP.paper(k_init=25, k_step=10).next_k() == 35  # the paper's Poisson runs
 
 
 def test_fidelity_gap_of_numbers_and_arrays():
     assert fidelity_gap(1.1, 1.0) == pytest.approx(0.1)
-    assert fidelity_gap([3.0, 4.0], [0.0, 0.0]) == math.inf
-    assert fidelity_gap(np.zeros(3), np.zeros(3)) == 0.0
-    assert math.isnan(fidelity_gap(np.array([np.nan]), np.array([1.0])))
     assert fidelity_gap(np.array([[1.0, 2.0]]), np.array([[1.0, 1.0]])) == pytest.approx(1 / 2**0.5)
+
+
+@pytest.mark.parametrize(
+    ("at_k", "at_full", "match"),
+    [
+        ([3.0, 4.0], [0.0, 0.0], "all zeros"),  # would certify nothing / anything
+        (np.zeros(3), np.zeros(3), "all zeros"),  # 0/0 used to certify any K
+        (np.array([np.nan]), np.array([1.0]), "NaN or Inf at K"),
+        (np.array([1.0]), np.array([math.inf]), "NaN or Inf at K_full"),
+    ],
+)
+def test_a_check_that_cannot_decide_raises(at_k, at_full, match):
+    with pytest.raises(ValueError, match=match):
+        fidelity_gap(at_k, at_full)
+
+
+def test_a_zero_check_raises_in_the_loop():
+    ctrl = pp.PRDP.for_problem(64, check=lambda k: np.zeros(4))
+    with pytest.raises(ValueError, match="all zeros"):
+        for _ in range(10):
+            ctrl.update(1.0)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_a_non_finite_metric_raises_and_leaves_k(bad):
+    ctrl = pp.PRDP.for_problem(64, check=gap_check())
+    ctrl.update(1.0)
+    with pytest.raises(ValueError, match="diverged"):
+        ctrl.update(bad)
+    assert ctrl.k == 8 and len(ctrl.history) == 1
 
 
 def test_refines_until_the_check_certifies_then_stays():
     # gap at k: 0.7^k / sqrt(2) -> within 5 % from k = 8; K_full 64: 8, 16, 32, 64
-    ctrl = pp.PRDP.for_problem(64)
-    check = gap_check()
+    ctrl = pp.PRDP.for_problem(64, check=gap_check())
     for _ in range(40):
-        ctrl.update(1.0, check=check)  # a flat metric: every window is a plateau
+        ctrl.update(1.0)  # a flat metric: every window is a plateau
     assert ctrl.k == 8 and not ctrl.refining
     s = ctrl.savings()
-    assert s["certified"] is True and s["gap"] < 0.05 and s["total"] == pytest.approx(1 - 8 / 64)
+    assert s["certified"] is True and s["gap"] < 0.05 and s["ic"] == pytest.approx(1 - 8 / 64)
     assert 2 <= s["checks"] <= 10  # checks at doubling intervals, not every epoch
+    # every check (one evaluation at K, one at K_full) is counted, as an epoch at its cap
+    spent = 40 * 8 + sum(c.k + c.k_full for c in ctrl.checks)
+    assert s["total"] == pytest.approx(1 - spent / (40 * 64))
+    assert s["check_share"] == pytest.approx(1 - 40 * 8 / spent)
+    half = ctrl.savings(check_weight=0.5)  # a check half as large as an epoch
+    assert half["total"] == pytest.approx(1 - (40 * 8 + (spent - 320) / 2) / (40 * 64))
+    assert ctrl.savings(check_weight=0)["total"] == pytest.approx(1 - 8 / 64)
 
 
 def test_too_small_k_is_refined_even_while_the_metric_keeps_falling():
     # a steadily improving metric never plateaus; the due check still finds K too small
-    ctrl = pp.PRDP.for_problem(64, k_init=2)
-    check = gap_check(rho=0.9)
+    ctrl = pp.PRDP.for_problem(64, k_init=2, check=gap_check(rho=0.9))
     for epoch in range(60):
-        ctrl.update(0.97**epoch, check=check)
+        ctrl.update(0.97**epoch)
     assert ctrl.k >= 32  # 0.9^k / sqrt(2) < 0.05 needs k >= 32
     assert ctrl.checks[-1].certified
 
@@ -81,13 +115,12 @@ def test_too_small_k_is_refined_even_while_the_metric_keeps_falling():
 def test_a_learning_rate_decay_plateau_cannot_stop_refinement():
     # the metric flattens (a decayed learning rate) while K is still too small:
     # the reference's test stops ("the refinement bought < 10 %"), the certified one refines
-    check = gap_check(rho=0.9)
     metric = [1.0 / (1 + e) for e in range(8)] + [0.125] * 52
     ref = pp.PRDP(k_init=8, k_step=8, k_max=64)
-    cert = pp.PRDP.for_problem(64)
+    cert = pp.PRDP.for_problem(64, check=gap_check(rho=0.9))
     for m in metric:
         ref.update(m)
-        cert.update(m, check=check)
+        cert.update(m)
     assert ref.k < 32 and not ref.refining
     assert cert.k >= 32 and cert.savings()["certified"] is True
 
@@ -99,10 +132,10 @@ def test_a_metric_that_rises_with_k_does_not_ratchet_k():
         return 15.4 - 2.0 * 0.8**k
 
     check = gap_check(rho=0.6)  # K = 8 is enough: 0.6^8 / sqrt(2) < 0.05
-    ref, cert = pp.PRDP(k_init=1, k_max=64), pp.PRDP.for_problem(64)
+    ref, cert = pp.PRDP(k_init=1, k_max=64), pp.PRDP.for_problem(64, check=check)
     for _ in range(60):
         ref.update(metric_at(ref.k))
-        cert.update(metric_at(cert.k), check=check)
+        cert.update(metric_at(cert.k))
     assert ref.k > 20
     assert cert.k == 8 and cert.savings()["certified"] is True
 
@@ -112,29 +145,36 @@ def test_certify_at_the_end_reports_a_failure_and_savings_say_so():
     for _ in range(5):
         ctrl.update(1.0)  # no check given: nothing certified
     assert ctrl.savings()["certified"] is None
-    cert = ctrl.certify(gap_check(rho=0.99))
+    with pytest.raises(ValueError, match="needs a check"):
+        ctrl.certify()
+    ctrl = pp.PRDP.for_problem(64, check=gap_check(rho=0.99), window=10)
+    for _ in range(5):
+        ctrl.update(1.0)  # within the first window: no check yet
+    assert ctrl.savings()["certified"] is None and not ctrl.checks
+    cert = ctrl.certify()
     assert not cert.certified and "NOT certified" in cert.describe()
     assert ctrl.savings()["certified"] is False
     with pytest.raises(ValueError, match="k_full"):
-        pp.PRDP().update(1.0, check=gap_check())
+        pp.PRDP(check=gap_check())
+    with pytest.raises(ValueError, match="callable"):
+        pp.PRDP.for_problem(64, check=3.0)
 
 
 def test_full_fidelity_counts_as_certified():
-    ctrl = pp.PRDP.for_problem(4, k_init=4)
-    ctrl.update(1.0, check=gap_check())
+    ctrl = pp.PRDP.for_problem(4, k_init=4, check=gap_check())
+    ctrl.update(1.0)
     assert ctrl.savings()["certified"] is True and ctrl.savings()["gap"] == 0.0
 
 
 def test_state_round_trip_keeps_checks_and_schedule():
-    ctrl = pp.PRDP.for_problem(64)
-    check = gap_check()
+    ctrl = pp.PRDP.for_problem(64, check=gap_check())
     for _ in range(12):
-        ctrl.update(1.0, check=check)
-    clone = pp.PRDP.for_problem(64)
+        ctrl.update(1.0)
+    clone = pp.PRDP.for_problem(64, check=gap_check())
     clone.load_state_dict(ctrl.state_dict())
     assert clone.checks == ctrl.checks and clone.k == ctrl.k
     for _ in range(20):
-        assert clone.update(1.0, check=check) == ctrl.update(1.0, check=check)
+        assert clone.update(1.0) == ctrl.update(1.0)
     assert clone.checks == ctrl.checks
 
 
@@ -144,3 +184,20 @@ def test_fidelity_gap_of_per_parameter_lists_and_mismatched_checks():
     assert fidelity_gap(grads_k, grads_full) == pytest.approx(1 / 2**0.5)
     with pytest.raises(ValueError, match="values at K"):
         fidelity_gap(np.ones(3), np.ones(4))
+
+
+def test_certify_after_the_last_epochs_own_check_reuses_it():
+    calls = []
+
+    def check(k):
+        calls.append(k)
+        return gap_check()(k)
+
+    ctrl = pp.PRDP.for_problem(64, check=check, window=2)
+    while not ctrl.checks:
+        ctrl.update(1.0)  # until the first due check (K = 8 is certified)
+    assert ctrl.checks[-1].epoch == len(ctrl.history) - 1 and len(calls) == 2
+    assert ctrl.certify() is ctrl.checks[-1] and len(calls) == 2  # same weights, same K
+    ctrl.update(1.0)  # an epoch trained since: a new check
+    ctrl.certify()
+    assert len(calls) == 4 and len(ctrl.checks) == 2

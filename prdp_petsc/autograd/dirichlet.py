@@ -44,29 +44,43 @@ class Dirichlet:
     A : ParametricMatrix, DistributedParametricMatrix or scipy.sparse matrix
         The full operator (all degrees of freedom).
     boundary : array of int
-        Indices of the Dirichlet degrees of freedom (e.g. ``basis.get_dofs()``); for
-        a `DistributedParametricMatrix` global indices, of which each rank uses
-        those it owns (``part.boundary_vertices()``).
+        Indices of the Dirichlet degrees of freedom (e.g. ``basis.get_dofs()``), each
+        once.  The boundary values ``g`` are read **in this order**: ``g[j]`` is the
+        value at ``boundary[j]``.  For a `DistributedParametricMatrix` global indices,
+        increasing, of which each rank uses those it owns
+        (``part.boundary_vertices()``); ``g`` then holds this rank's values in that
+        order.
 
     Attributes
     ----------
     interior, boundary : ndarray
-        Indices of the unknowns and of the Dirichlet dofs: in the owned layout
-        their positions among this rank's rows, so ``g`` has ``len(boundary)``
-        entries on each rank.
+        Indices of the unknowns (increasing) and of the Dirichlet dofs (the caller's
+        order): in the owned layout their positions among this rank's rows, so ``g``
+        has ``len(boundary)`` entries on each rank.
+
+    Raises
+    ------
+    InputError
+        For an index outside the operator, a repeated index, or (owned layout)
+        indices that are not increasing.
     """
 
     def __init__(
         self, A: ParametricMatrix | DistributedParametricMatrix | sp.spmatrix, boundary: np.ndarray
     ) -> None:
+        boundary = _indices(boundary, A.shape[0])
         if isinstance(A, DistributedParametricMatrix):  # collective
+            if np.any(np.diff(boundary) < 0):
+                raise InputError(
+                    "boundary indices of a DistributedParametricMatrix must be increasing "
+                    "(g holds this rank's values in that order): pass np.sort(boundary) "
+                    "and g in the same order"
+                )
             self.A_II, self.A_IB, self.interior, self.boundary = A.dirichlet_blocks(boundary)
             self.n = A.local_shape[0]
             return
         n = A.shape[0]
-        self.boundary = np.unique(np.asarray(boundary, dtype=np.int64).ravel())
-        if self.boundary.size and (self.boundary[0] < 0 or self.boundary[-1] >= n):
-            raise InputError(f"boundary indices must lie in [0, {n})")
+        self.boundary = boundary  # the caller's order: g[j] is the value at boundary[j]
         self.interior = np.setdiff1d(np.arange(n), self.boundary)
         self.n = n
         if isinstance(A, ParametricMatrix):
@@ -140,6 +154,25 @@ class Dirichlet:
             return self.expand(solve(self.A_II, rhs, solver, theta=theta, mode=mode), g)
         sol = solve(self.A_II, rhs, solver, theta=theta, mode=mode, return_solution=True)
         return replace(sol, value=self.expand(sol.value, g))
+
+
+def _indices(boundary, n: int) -> np.ndarray:
+    """`boundary` as int64 indices in the caller's order; out-of-range or repeated
+    indices raise `InputError` (a repeat would leave g's entries ambiguous)."""
+    raw = np.asarray(boundary).ravel()
+    if raw.size and not np.issubdtype(raw.dtype, np.integer):
+        raise InputError(f"boundary must hold integer indices, got dtype {raw.dtype}")
+    idx = raw.astype(np.int64)
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        raise InputError(f"boundary indices must lie in [0, {n})")
+    unique, counts = np.unique(idx, return_counts=True)
+    if len(unique) != len(idx):
+        repeated = unique[counts > 1][:5].tolist()
+        raise InputError(
+            f"boundary repeats indices {repeated}: give each Dirichlet dof once (g[j] is "
+            "the value at boundary[j])"
+        )
+    return idx
 
 
 def _scatter(u: torch.Tensor, idx: np.ndarray, values: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,6 @@ import pytest
 
 import prdp_petsc.lab.training.compare as compare_module
 import prdp_petsc.lab.training.seeds as seeds_module
-from prdp_petsc import rtol_from_level
 from prdp_petsc.errors import SolverError
 from prdp_petsc.lab.cli.training import make_parser
 from prdp_petsc.lab.training.compare import compare, scene_routes
@@ -20,6 +19,7 @@ from prdp_petsc.lab.training.schedules import (
     RTOL_FACTOR,
     RTOL_INIT,
     RTOL_MAX_IT_FACTOR,
+    rtol_from_level,
     rtol_levels,
 )
 from prdp_petsc.lab.training.seeds import _aggregate, compare_seeds, format_seeds
@@ -366,3 +366,12 @@ def test_lever_ratios_divide_each_reference_time_by_the_levers_seed_by_seed():
         math.sqrt(0.5 * 3.0)
     )
     assert lever_ratios([{"seed": 0, "k_full": 3}]) == {}  # rows of an older comparison
+
+
+def test_rtol_from_level():
+    assert rtol_from_level(0) == pytest.approx(0.1)
+    assert rtol_from_level(3) == pytest.approx(1e-4)
+    assert rtol_from_level(2, factor=0.5) == pytest.approx(0.025)
+    assert rtol_from_level(100) == 1e-10
+    with pytest.raises(ValueError, match="factor"):
+        rtol_from_level(1, factor=1.5)

@@ -19,7 +19,7 @@ from prdp_petsc.lab.reports import unseen, unseen_problems
 @pytest.mark.parametrize("seed", [1, 2])
 def test_default_prdp_matches_full_fidelity_for_fewer_iterations(name, seed):
     problem = unseen_problems.build(name, seed, quick=True)
-    k_full = pp.find_k_full(problem.solver, *problem.probe, rtol=unseen_problems.RTOL_FULL)
+    k_full = pp.find_k_full(*problem.probe, problem.solver, rtol=unseen_problems.RTOL_FULL)
     full = unseen.train(problem, "full", k_full)
     prdp = unseen.train(unseen_problems.build(name, seed, quick=True), "prdp", k_full)
     assert prdp["final_error"] <= 1.10 * full["final_error"]
@@ -30,7 +30,7 @@ def test_default_prdp_matches_full_fidelity_for_fewer_iterations(name, seed):
 
 def test_the_check_is_the_validation_gradient_through_the_capped_solve():
     problem = unseen_problems.build("lshape_mlp", 0, quick=True)
-    k_full = pp.find_k_full(problem.solver, *problem.probe)
+    k_full = pp.find_k_full(*problem.probe, problem.solver)
     g_full, g_coarse = problem.check(k_full), problem.check(max(1, k_full // 8))
     n_weights = sum(p.numel() for p in problem.net.parameters())
     assert g_full.shape == (n_weights,) and np.all(np.isfinite(g_full))

@@ -23,7 +23,7 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
     """Run `problem` with ``"full"`` (constant K_full), ``"prdp"`` (the default
     construction, `PRDP.for_problem`, with checks) or ``"fixed:K"``; return its record."""
     solver = problem.solver
-    controller = PRDP.for_problem(k_full) if schedule == "prdp" else None
+    controller = PRDP.for_problem(k_full, check=problem.check) if schedule == "prdp" else None
     constant = k_full if schedule == "full" else None
     if schedule.startswith("fixed:"):
         constant = int(schedule.split(":", 1)[1])
@@ -38,12 +38,12 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
         problem.train_epoch(epoch)
         metric = problem.metric()
         if controller is not None:
-            controller.update(metric, check=problem.check)
+            controller.update(metric)
         ks.append(k)
         metrics.append(metric)
     record = {"schedule": schedule, "k_full": k_full, "ks": ks, "metrics": metrics}
     if controller is not None:
-        controller.certify(problem.check)
+        controller.certify()
         record["savings_k"] = controller.savings()
         record["checks"] = [
             {"epoch": c.epoch, "k": c.k, "gap": c.gap, "certified": c.certified}
@@ -67,7 +67,7 @@ def compare(names, seeds, *, quick: bool = False) -> dict:
         runs = []
         for seed in seeds:
             problem = build(name, seed, quick)
-            k_full = find_k_full(problem.solver, *problem.probe, rtol=RTOL_FULL)
+            k_full = find_k_full(*problem.probe, problem.solver, rtol=RTOL_FULL)
             full = train(problem, "full", k_full)
             prdp = train(build(name, seed, quick), "prdp", k_full)
             runs.append({"seed": seed, "k_full": k_full, "full": full, "prdp": prdp,

@@ -55,7 +55,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from prdp_petsc import Dirichlet, KSPSolver, diffusion_operator, load_mesh, solve
+from prdp_petsc import Dirichlet, KSPSolver, diffusion_operator, gradient_check, load_mesh, solve
 from prdp_petsc import mass_matrix as fem_mass
 
 from ..components.emulators import torch_sparse
@@ -100,15 +100,8 @@ class Problem:
 
     def check(self, k: int) -> np.ndarray:
         """The gradient of `validation_loss` with the solver capped at `k` (the
-        controller's check): no training step, the optimiser's state untouched."""
-        saved = self.solver.max_it
-        self.solver.max_it = k
-        try:
-            params = self.trained()
-            grads = torch.autograd.grad(self.validation_loss(), params)
-            return torch.cat([g.reshape(-1) for g in grads]).numpy()
-        finally:
-            self.solver.max_it = saved
+        controller's check, `prdp_petsc.gradient_check`): no training step."""
+        return gradient_check(self.validation_loss, self.trained(), self.solver)(k)
 
 
 def _modes(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:

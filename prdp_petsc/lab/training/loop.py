@@ -16,12 +16,12 @@ from dataclasses import asdict
 import numpy as np
 import torch
 
-from prdp_petsc import PRDP, InputError, NonFiniteError, SolverError, rtol_from_level
+from prdp_petsc import PRDP, InputError, NonFiniteError, SolverError
 
 from .checkpoint import CHECKPOINT, restore, save_checkpoint
 from .parallel import Parallel
 from .records import RESULTS, to_json, write_json
-from .schedules import Schedule, gradient_check
+from .schedules import Schedule, gradient_check, rtol_from_level
 
 __all__ = ["interrupted", "stop_reason", "stopped", "totals", "train"]
 
@@ -61,7 +61,7 @@ def train(
     generator = torch.Generator().manual_seed(torch_seed)
     check = gradient_check(scene) if plan.kind == "auto" else None
     if plan.kind == "auto":
-        controller = PRDP.for_problem(scene.prdp["k_full"])
+        controller = PRDP.for_problem(scene.prdp["k_full"], check=check)
     else:
         controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
     levels = result.get("rtol") if plan.kind == "rtol" else None
@@ -101,9 +101,9 @@ def train(
                 metric = ranks.validate(scene)
                 _check_finite(metric, "the validation metric")
                 if controller is not None:  # its checks' solves count in this epoch's costs
-                    following = ranks.agree(controller.update(metric, check=check))
+                    following = ranks.agree(controller.update(metric))
                 if check is not None and epoch == epochs - 1:  # the certified end
-                    _certify(controller, check, result)
+                    _certify(controller, result)
             except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
                 logger.error("epoch %d: %s", epoch, err)
                 result["stopped"] = stopped(epoch, stop_reason(err), str(err))
@@ -157,9 +157,9 @@ def train(
         bar.close()
 
 
-def _certify(controller: PRDP, check, result: dict) -> None:
+def _certify(controller: PRDP, result: dict) -> None:
     """The last epoch's certificate into ``result["certificate"]``."""
-    cert = controller.certify(check)
+    cert = controller.certify()
     result["certificate"] = {**asdict(cert), "certified": cert.certified}
     logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
 

@@ -28,7 +28,7 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
         )
     A, b, x0 = system
     try:
-        return probe_k_full(scene.solvers[0], A, b, rtol=scene.rtol_full, x0=x0, max_it=max_it)
+        return probe_k_full(A, b, scene.solvers[0], rtol=scene.rtol_full, x0=x0, max_it=max_it)
     except SolverError as err:
         raise SolverError(f"the scene's solver: {err}", reason=err.reason) from err
 

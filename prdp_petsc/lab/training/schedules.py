@@ -5,7 +5,7 @@
 default construction, ``PRDP.for_problem(K_full)`` and a gradient check (the scene's
 settings ignored); ``fixed:K`` keeps K; ``rtol`` is the same controller moving
 PETSc's own relative tolerance instead, one refinement level at a time
-(`prdp_petsc.rtol_from_level`), under a generous cap.  The harness
+(`rtol_from_level`), under a generous cap.  The harness
 (`prdp_petsc.lab.training.harness.run`) applies them; `gradient_check` is the ``auto``
 schedule's check.
 """
@@ -13,13 +13,13 @@ schedule's check.
 from __future__ import annotations
 
 import copy
+import operator
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-# the rtol schedule's first tolerance and factor per refinement: the library's defaults
-from prdp_petsc import RTOL_FACTOR, RTOL_INIT, rtol_from_level
+from prdp_petsc import gradient_check as library_gradient_check
 
 __all__ = [
     "CHECK_SEED",
@@ -29,6 +29,7 @@ __all__ = [
     "Schedule",
     "gradient_check",
     "parse_schedule",
+    "rtol_from_level",
     "rtol_levels",
 ]
 
@@ -37,6 +38,29 @@ __all__ = [
 RTOL_MAX_IT_FACTOR = 10
 #: Seed of the generator that draws the ``auto`` schedule's fixed check batch
 CHECK_SEED = 20_261_125
+
+#: Relative tolerance of refinement level 0 when PRDP moves a Krylov rtol instead of K ...
+RTOL_INIT = 1e-1
+#: ... and its factor per refinement: a decade per level.
+RTOL_FACTOR = 1e-1
+
+
+def rtol_from_level(
+    level: int, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR, rtol_min: float = 1e-10
+) -> float:
+    """Krylov rtol for refinement level ``level``: max(rtol_init * factor**level, rtol_min).
+
+    The defaults (`RTOL_INIT`, `RTOL_FACTOR`: 0.1, then a decade per refinement) are
+    the ``rtol`` schedule's: the `prdp_petsc.PRDP` controller's level
+    (``controller.level``) read as PETSc's rtol.
+    """
+    if operator.index(level) < 0:
+        raise ValueError(f"level must be >= 0, got {level}")
+    if not 0 < rtol_min <= rtol_init:
+        raise ValueError(f"need 0 < rtol_min <= rtol_init, got {rtol_min}, {rtol_init}")
+    if not 0 < factor < 1:
+        raise ValueError(f"factor must lie in (0, 1), got {factor}")
+    return max(rtol_init * factor**level, rtol_min)
 
 
 class Schedule(NamedTuple):
@@ -87,8 +111,8 @@ def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = 
 
 
 def gradient_check(scene):
-    """The ``auto`` schedule's check: ``k -> ∂L/∂w`` of the training loss on one fixed
-    batch, every scene solver capped at k, no optimiser step (see `prdp_petsc.PRDP`).
+    """The ``auto`` schedule's check: `prdp_petsc.gradient_check` of the training loss
+    on one fixed batch, through every scene solver (see `prdp_petsc.PRDP`).
 
     The batch is the first of ``scene.batches(0, ...)`` under a generator seeded
     `CHECK_SEED`, the same for every check of the run; parameters the loss does not
@@ -98,28 +122,18 @@ def gradient_check(scene):
     """
     batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
     params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]
+    gradient = library_gradient_check(lambda: scene.loss(batch), params, scene.solvers)
 
     def check(k: int) -> np.ndarray:
-        saved = [s.max_it for s in scene.solvers]
         values = [p.detach().clone() for p in params]
         state = copy.deepcopy(scene.optimizer.state_dict())
-        for s in scene.solvers:
-            s.max_it = k
         try:
-            grads = torch.autograd.grad(scene.loss(batch), params, allow_unused=True)
+            return gradient(k)
         finally:
-            for s, k_saved in zip(scene.solvers, saved, strict=True):
-                s.max_it = k_saved
             with torch.no_grad():
                 for p, value in zip(params, values, strict=True):
                     p.copy_(value)
             scene.optimizer.load_state_dict(state)
             scene.optimizer.zero_grad()
-        return np.concatenate(
-            [
-                (torch.zeros_like(p) if g is None else g).detach().reshape(-1).double().numpy()
-                for p, g in zip(params, grads, strict=True)
-            ]
-        )
 
     return check

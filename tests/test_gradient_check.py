@@ -1,0 +1,108 @@
+"""`gradient_check` and `find_k_full` take what a training loop has: the check a PRDP
+controller certifies with, and K_full of the operator `solve` gets."""
+
+import numpy as np
+import pytest
+import torch
+from _core import interior_operator, unit_square
+
+import prdp_petsc as pp
+from prdp_petsc.errors import InputError
+
+
+@pytest.fixture
+def problem():
+    basis = unit_square(3)
+    A = interior_operator(basis, "P0").A_II
+    b = torch.ones(A.shape[0], dtype=torch.float64)
+    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=3)
+    yield A, b, solver
+    solver.destroy()
+
+
+def test_find_k_full_takes_what_solve_takes(problem):
+    A, b, solver = problem
+    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
+    k_full = pp.find_k_full(A, b, solver, theta=theta)  # a ParametricMatrix and tensors
+    assert k_full == pp.find_k_full(A.matrix(np.ones(A.n_params)), b.numpy(), solver)
+    assert 5 < k_full < 100 and solver.max_it == 3  # the probe ran on a clone
+    solver.max_it = k_full
+    solver.rtol = 1e-8
+    pp.solve(A, b, solver, theta=theta)
+    assert solver.last.converged and solver.last.iterations == k_full
+    thetas = torch.stack([theta.detach(), 4 * theta.detach()])  # a batch of operators
+    assert pp.find_k_full(A, b.expand(2, -1), solver, theta=thetas) == k_full  # scaled: same count
+    with pytest.raises(InputError, match="theta="):
+        pp.find_k_full(A, b, solver)
+    with pytest.raises(InputError, match="find_k_full\\(A, b, solver"):
+        pp.find_k_full(solver, A, b)
+
+
+def test_gradient_check_is_the_gradient_through_the_capped_solve(problem):
+    A, b, solver = problem
+    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
+    target = torch.linspace(0, 1, A.shape[0], dtype=torch.float64)
+
+    def loss():
+        return (pp.solve(A, b, solver, theta=torch.exp(theta)) - target).square().sum()
+
+    check = pp.gradient_check(loss, [theta], solver)
+    with torch.no_grad():  # works where an update loop usually sits
+        g2, g40 = check(2), check(40)
+    assert solver.max_it == 3 and theta.grad is None  # cap restored, nothing accumulated
+    solver.max_it = 40
+    (expected,) = torch.autograd.grad(loss(), [theta])
+    np.testing.assert_allclose(g40, expected.numpy(), rtol=1e-12)
+    assert np.linalg.norm(g2 - g40) > 1e-3 * np.linalg.norm(g40)  # the cap matters
+    unused = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    g = pp.gradient_check(loss, [theta, unused], [solver])(40)
+    assert g.shape == (A.n_params + 3,) and np.all(g[-3:] == 0)
+
+
+def test_gradient_check_refuses_what_cannot_be_a_check(problem):
+    A, b, solver = problem
+    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
+    with pytest.raises(InputError, match="requires gradients"):
+        pp.gradient_check(lambda: theta.sum(), [theta.detach()], solver)
+    with pytest.raises(InputError, match="KSPSolver"):
+        pp.gradient_check(lambda: theta.sum(), [theta], [])
+    detached = pp.gradient_check(
+        lambda: pp.solve(A, b, solver, theta=theta.detach()).sum(), [theta], solver
+    )
+    with pytest.raises(InputError, match="does not depend"):
+        detached(3)
+    assert solver.max_it == 3
+
+
+def test_a_prdp_loop_with_the_shipped_check_counts_every_solve(problem):
+    """An optimisation loop (one gradient per epoch): the savings `PRDP.savings` reports
+    equal the solver's own count of every forward and adjoint iteration."""
+    A, b, solver = problem
+    theta = torch.zeros(A.n_params, dtype=torch.float64, requires_grad=True)
+    with torch.no_grad():
+        target = pp.solve(
+            A, b, solver.clone(max_it=200, rtol=1e-12), theta=torch.exp(0.3 + 0 * theta)
+        )
+
+    def loss():
+        return (pp.solve(A, b, solver, theta=torch.exp(theta)) - target).square().sum()
+
+    k_full = pp.find_k_full(A, b, solver, theta=torch.ones(A.n_params))
+    prdp = pp.PRDP.for_problem(k_full, check=pp.gradient_check(loss, [theta], solver))
+    opt = torch.optim.Adam([theta], lr=0.05)
+    solver.reset_stats()
+    epochs = 30
+    for _ in range(epochs):
+        solver.max_it = prdp.k
+        opt.zero_grad()
+        loss().backward()
+        opt.step()
+        with torch.no_grad():
+            prdp.update(float(loss()))  # the metric's forward solve is not a training cost
+    stats = solver.stats
+    spent = stats.forward_iterations + stats.adjoint_iterations
+    metric_solves = sum(s.k for s in prdp.history)  # forward only, one per update
+    per_epoch_full = 2 * k_full  # one forward and one adjoint solve at K_full
+    measured = 1 - (spent - metric_solves) / (epochs * per_epoch_full)
+    assert prdp.checks  # checks ran and are in `spent`
+    assert prdp.savings()["total"] == pytest.approx(measured, abs=1e-12)
