@@ -39,6 +39,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.fem.fd import grid_points, laplacian
 from prdp_petsc.lab.components.networks import mlp
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.scene import shuffled_batches
@@ -81,7 +82,7 @@ JACOBI_SCALE = 0.8
 
 def initial_conditions(count: int, n: int, modes: int, rng: np.random.Generator) -> np.ndarray:
     """Truncated sine series sum_k a_k sin(k pi x), a_k ~ U(-1, 1)/k, on the interior grid."""
-    x = pp.grid_points(n)[0]
+    x = grid_points(n)[0]
     k = np.arange(1, modes + 1)
     amplitudes = rng.uniform(-1, 1, size=(count, modes)) / k
     return amplitudes @ np.sin(np.pi * np.outer(k, x))
@@ -96,7 +97,7 @@ def build(config: dict, seed: int) -> lab.Scene:
     n, m = config["n"], config["unroll"]
     if m < 1:
         raise ValueError(f"unroll must be >= 1, got {m}")
-    A = (sp.identity(n, format="csr") - NU_DT * pp.laplacian(n)).tocsr()
+    A = (sp.identity(n, format="csr") - NU_DT * laplacian(n)).tocsr()
     rng = np.random.default_rng(seed)
     dense = A.toarray()
     step = lambda u: scipy.linalg.solve(dense, u.T, assume_a="pos").T  # noqa: E731

@@ -57,6 +57,7 @@ from petsc4py import PETSc
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.autograd.warm_starts import WarmStarts
 from prdp_petsc.lab.components.networks import MeshNet
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.routes import parse_routes
@@ -190,7 +191,7 @@ def build(config: dict, seed: int) -> lab.Scene:
     optimizer = torch.optim.Adam(net.parameters(), lr=config["lr"])
     interior_t = torch.from_numpy(interior)
     newton = {"solves": 0, "steps": 0}  # running totals, written with the results
-    starts = pp.WarmStarts() if config["warm_start_epochs"] else None
+    starts = WarmStarts() if config["warm_start_epochs"] else None
 
     def newton_step(u_hat: torch.Tensor, sample: int) -> torch.Tensor:
         """Newton_K(û): the capped step from û, differentiable in û; the Newton loop starts

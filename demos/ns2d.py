@@ -85,6 +85,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.autograd.warm_starts import WarmStarts
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.networks import ConvResNet
 from prdp_petsc.lab.reports import ns2d as ns2d_reports
@@ -269,9 +270,7 @@ class Corrector:
     from the solutions stored under them and stores its own.
     """
 
-    def __init__(
-        self, config: dict, net: torch.nn.Module, warm_starts: pp.WarmStarts | None = None
-    ):
+    def __init__(self, config: dict, net: torch.nn.Module, warm_starts: WarmStarts | None = None):
         self.n, self.dt = config["n"], config["dt"]
         self.A = mac.ns_operator(self.n, self.dt, config["nu"])
         W = mac.wind_matrix(self.n).tocoo()
@@ -381,7 +380,7 @@ def setup(config: dict, seed: int) -> dict:
         full = solver.clone(max_it=100_000, rtol=config["rtol_full"], pc_lag=1)
     out = 3 if config["correction"] == "direct" else 2  # indirect: a momentum forcing
     net = ConvResNet(3, out, hidden=config["hidden"], blocks=config["blocks"])
-    hybrid = Corrector(config, net, pp.WarmStarts() if config["warm_start_epochs"] else None)
+    hybrid = Corrector(config, net, WarmStarts() if config["warm_start_epochs"] else None)
     return {"train": train, "val": val, "solver": solver, "full": full, "hybrid": hybrid}
 
 

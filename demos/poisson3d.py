@@ -41,6 +41,10 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.autograd.owned import sum_over_ranks
+from prdp_petsc.core.parallel import default_comm
+from prdp_petsc.fem.distributed import DistributedParametricMatrix
+from prdp_petsc.fem.partition import PartitionedMesh
 
 _BASE = {
     "steps": 5,
@@ -89,7 +93,7 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
 
 
 def build(config: dict, seed: int) -> lab.Scene:
-    comm = pp.default_comm()  # COMM_WORLD under --parallel domain, else COMM_SELF
+    comm = default_comm()  # COMM_WORLD under --parallel domain, else COMM_SELF
     root = comm.getRank() == 0
     n = config["n"]
     mesh = noise = None
@@ -97,10 +101,10 @@ def build(config: dict, seed: int) -> lab.Scene:
         axis = np.linspace(0.0, 1.0, n)
         mesh = skfem.MeshTet.init_tensor(axis, axis, axis)
         noise = np.random.default_rng(1234).standard_normal(mesh.nvertices)
-    part = pp.PartitionedMesh.distribute(mesh, comm, vertex_data={"noise": noise} if root else None)
+    part = PartitionedMesh.distribute(mesh, comm, vertex_data={"noise": noise} if root else None)
     del mesh
     basis = skfem.Basis(part.mesh, skfem.ElementTetP1())
-    A = pp.DistributedParametricMatrix.from_local(
+    A = DistributedParametricMatrix.from_local(
         pp.diffusion_operator(basis, "P0"), part, symmetric=True
     )
     bc = pp.Dirichlet(A, part.boundary_vertices())
@@ -113,7 +117,7 @@ def build(config: dict, seed: int) -> lab.Scene:
     volume = _volumes(part.mesh)[:owned]
 
     def total(*values) -> np.ndarray:  # sums over the ranks, one collective
-        return pp.sum_over_ranks(torch.tensor(values, dtype=torch.float64), comm).numpy()
+        return sum_over_ranks(torch.tensor(values, dtype=torch.float64), comm).numpy()
 
     kappa_norm = float(np.sqrt(total(np.sum(volume * kappa_true**2))[0]))
     options = {"ksp_type": "cg", "pc_type": config["pc"]}
@@ -142,7 +146,7 @@ def build(config: dict, seed: int) -> lab.Scene:
             u = bc.solve(f, g, solver, theta=torch.exp(theta))
             local = 0.5 * (u - u_obs).square().sum() / obs_scale
             local = local + 0.5 * beta * (weights * theta.square()).sum()
-            value = pp.sum_over_ranks(local, comm)
+            value = sum_over_ranks(local, comm)
             if step < config["steps"] - 1:
                 value.backward()
                 optimizer.step()

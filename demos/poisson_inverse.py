@@ -24,6 +24,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.fem.fd import grid_points, laplacian
 
 PRESETS = {
     "quick": {"n": 30, "steps": 60, "lr": 275.0},
@@ -36,8 +37,8 @@ THETA_INIT = 5.0
 
 def build(config: dict, seed: int) -> lab.Scene:
     n = config["n"]
-    A = (-pp.laplacian(n)).tocsr()  # SPD: −u'' = θ sin(2πx)
-    shape = np.sin(2 * np.pi * pp.grid_points(n)[0])
+    A = (-laplacian(n)).tocsr()  # SPD: −u'' = θ sin(2πx)
+    shape = np.sin(2 * np.pi * grid_points(n)[0])
     u_ref = torch.from_numpy(spla.spsolve(A.tocsc(), THETA_REF * shape))
     source = torch.from_numpy(shape)
     theta = torch.tensor([THETA_INIT], dtype=torch.float64, requires_grad=True)

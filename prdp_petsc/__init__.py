@@ -19,55 +19,38 @@ try:
 except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
-# public name -> module that defines it
+# public name -> module that defines it: what a training loop needs.  The rest is public
+# in the module that defines it (listed in its ``__all__`` and in the API reference):
+# prdp_petsc.errors (every error and warning), prdp_petsc.prdp (Certificate, PRDPStep,
+# savings, ACCURACY_BAND), prdp_petsc.fem.* (finite differences, meshes, the owned
+# layout's DistributedParametricMatrix and PartitionedMesh), prdp_petsc.autograd.*
+# (matvec, WarmStarts, sum_over_ranks), prdp_petsc.core.* (use_comm, SolverStats, ...).
 _EXPORTS = {
-    "matvec": ".autograd.bridge",
+    # configure and run a differentiable solve; read its outcome
+    "KSPSolver": ".core.solver",
+    "Structure": ".core.structure",
+    "AdjointSettings": ".core.settings",
     "solve": ".autograd.bridge",
-    "LinearSolution": ".autograd.solution",
-    "WarmStarts": ".autograd.warm_starts",
     "Dirichlet": ".autograd.dirichlet",
-    "once_differentiable": ".autograd.once",
-    "gradient_check": ".autograd.check",
-    "sum_over_ranks": ".autograd.owned",
+    "LinearSolution": ".autograd.solution",
+    "newton_solve": ".autograd.nonlinear",
     "NonlinearProblem": ".autograd.nonlinear",
     "NonlinearSolution": ".autograd.nonlinear",
-    "newton_solve": ".autograd.nonlinear",
-    "grid_points": ".fem.fd",
-    "laplacian": ".fem.fd",
-    "available_meshes": ".fem.meshes",
-    "load_mesh": ".fem.meshes",
-    "min_angle_degrees": ".fem.meshes",
+    # operators and meshes
     "ParametricMatrix": ".fem.parametric",
-    "csr_pattern": ".fem.parametric",
-    "DistributedParametricMatrix": ".fem.distributed",
-    "PartitionedMesh": ".fem.partition",
     "diffusion_operator": ".fem.forms",
     "elasticity_operator": ".fem.forms",
-    "from_form": ".fem.forms",
     "mass_matrix": ".fem.forms",
-    "block_size": ".fem.vector",
+    "from_form": ".fem.forms",
     "rigid_body_modes": ".fem.vector",
-    "ACCURACY_BAND": ".prdp",
-    "Certificate": ".prdp",
+    "load_mesh": ".fem.meshes",
+    # PRDP in a training loop
     "PRDP": ".prdp",
-    "PRDPStep": ".prdp",
+    "gradient_check": ".autograd.check",
     "find_k_full": ".core.probe",
-    "savings": ".prdp",
-    "AdjointSettings": ".core.settings",
-    "KSPSolver": ".core.solver",
-    "split_petsc_options": ".core.options",
-    "Structure": ".core.structure",
-    "use_comm": ".core.parallel",
-    "default_comm": ".core.parallel",
-    "SolveInfo": ".core.results",
+    # the errors a training loop catches (the rest: prdp_petsc.errors)
     "SolverError": ".errors",
-    "SingularOperatorError": ".errors",
     "InputError": ".errors",
-    "NonFiniteError": ".errors",
-    "StructureError": ".errors",
-    "MeshError": ".errors",
-    "UnusedOptionWarning": ".errors",
-    "SolverStats": ".core.results",
 }
 
 __all__ = sorted([*_EXPORTS, "__version__"])

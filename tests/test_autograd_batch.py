@@ -14,6 +14,8 @@ from petsc4py import PETSc
 from torch.autograd import gradcheck
 
 import prdp_petsc as pp
+from prdp_petsc.autograd.bridge import matvec
+from prdp_petsc.core.results import SolverStats
 
 CG_JACOBI = {"ksp_type": "cg", "pc_type": "jacobi"}
 BATCH = 3
@@ -119,10 +121,10 @@ def test_matvec_batch_of_operators(dirichlet):
     A = dirichlet.A_IB
     v = randn(BATCH, A.shape[1], seed=17, requires_grad=True)
     theta = thetas(A.n_params, seed=18, requires_grad=True)
-    assert gradcheck(lambda v, t: pp.matvec(A, v, theta=t), (v, theta))
-    y = pp.matvec(A, v, theta=theta)
+    assert gradcheck(lambda v, t: matvec(A, v, theta=t), (v, theta))
+    y = matvec(A, v, theta=theta)
     for i in range(BATCH):
-        torch.testing.assert_close(y[i], pp.matvec(A, v[i], theta=theta[i]), rtol=1e-14, atol=0)
+        torch.testing.assert_close(y[i], matvec(A, v[i], theta=theta[i]), rtol=1e-14, atol=0)
 
 
 def test_one_pc_setup_per_sample_and_the_last_is_reused_in_backward(dirichlet):
@@ -148,7 +150,7 @@ def test_batch_of_operators_needs_a_matching_batch_of_right_hand_sides(b_shape, 
     theta = random_theta(A.n_params).expand(theta_batch, -1)
     with pytest.raises(ValueError, match=r"theta must have shape .*\.expand\("):
         pp.solve(A, torch.ones(b_shape, dtype=torch.float64), solver, theta=theta)
-    assert solver.last is None and solver.stats == pp.SolverStats()
+    assert solver.last is None and solver.stats == SolverStats()
 
 
 def test_dirichlet_batch_sizes_must_agree():
@@ -157,4 +159,4 @@ def test_dirichlet_batch_sizes_must_agree():
     theta = random_theta(D.A_II.n_params).expand(3, -1)
     with pytest.raises(ValueError, match="f has batch size 2 but theta has 3"):
         D.solve(randn(2, D.n), randn(len(D.boundary)), solver, theta=theta)
-    assert solver.last is None and solver.stats == pp.SolverStats()
+    assert solver.last is None and solver.stats == SolverStats()

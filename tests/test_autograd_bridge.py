@@ -11,6 +11,8 @@ import torch
 from _core import CONVERGED, fd_poisson, interior_operator, randn, random_theta, unit_square
 
 import prdp_petsc as pp
+from prdp_petsc.autograd.bridge import matvec
+from prdp_petsc.core.results import SolverStats
 
 
 def converged():
@@ -52,7 +54,7 @@ def test_double_backward_of_a_loss_linear_in_x_raises_for_theta():
 def test_double_backward_through_matvec_raises():
     A = interior_operator(unit_square(2)).A_IB
     theta = random_theta(A.n_params, seed=6, requires_grad=True)
-    y = pp.matvec(A, randn(A.shape[1], seed=7), theta=theta)
+    y = matvec(A, randn(A.shape[1], seed=7), theta=theta)
     with pytest.raises(RuntimeError, match="once_differentiable"):
         second_grad(y, theta)
 
@@ -70,7 +72,7 @@ def test_dirichlet_theta_with_a_scipy_matrix_is_refused():
     solver = converged()
     with pytest.raises(ValueError, match="theta= is only meaningful for a ParametricMatrix"):
         D.solve(randn(9), randn(2), solver, theta=random_theta(4))
-    assert solver.last is None and solver.stats == pp.SolverStats()
+    assert solver.last is None and solver.stats == SolverStats()
 
 
 def test_dirichlet_parametric_matrix_without_theta_is_refused():

@@ -13,6 +13,8 @@ import torch
 from _core import fd_poisson, interior_operator, randn, random_theta, unit_square
 
 import prdp_petsc as pp
+from prdp_petsc.core.results import SolverStats
+from prdp_petsc.fem.fd import laplacian
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +31,7 @@ def assert_untouched(solver):
     """No operator reached PETSc and nothing was solved."""
     with pytest.raises(RuntimeError, match="no operator"):
         solver.mat  # noqa: B018
-    assert solver.stats == pp.SolverStats() and solver.last is None
+    assert solver.stats == SolverStats() and solver.last is None
 
 
 def poisoned(t: torch.Tensor, value: float) -> torch.Tensor:
@@ -336,7 +338,7 @@ def test_messages_print_plain_numbers():
         lambda: pp.KSPSolver(max_it=5, rtol=np.float64(-1.0)),
         lambda: pp.KSPSolver(max_it=5, structure=pp.Structure(block_size=np.int64(0))),
         lambda: pp.KSPSolver(max_it=5, pc_lag=np.int64(0)),
-        lambda: pp.laplacian((np.int32(0), 4)),
+        lambda: laplacian((np.int32(0), 4)),
     ],
 )
 def test_validation_messages_print_numpy_values_as_numbers(bad):

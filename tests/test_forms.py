@@ -15,6 +15,7 @@ from skfem.helpers import dot, grad
 from skfem.models.poisson import mass
 
 import prdp_petsc as pp
+from prdp_petsc.errors import StructureError
 from prdp_petsc.fem.forms import AFFINE_RTOL
 
 
@@ -165,7 +166,7 @@ def test_nonaffine_forms_are_refused(coefficient, body):
     form = BilinearForm(lambda u, v, w: body(u, v, w.kappa))
     basis = skfem.Basis(skfem.MeshTri().refined(2), skfem.ElementTriP1())
     cb = basis.with_element(coefficient())
-    with pytest.raises(pp.StructureError, match="not affine in w.kappa") as error:
+    with pytest.raises(StructureError, match="not affine in w.kappa") as error:
         pp.from_form(form, basis, cb, positive=True)
     assert isinstance(error.value, ValueError)
     mismatch = float(error.value.args[0].split(" by ")[1].split(" of the")[0])
@@ -185,7 +186,7 @@ def test_forms_that_turn_into_inf_or_nan_are_refused(body, positive):
     basis = skfem.Basis(skfem.MeshTri().refined(1), skfem.ElementTriP1())
     cb = basis.with_element(skfem.ElementTriP0())
     with np.errstate(divide="ignore", invalid="ignore"):
-        with pytest.raises(pp.StructureError, match="by nan of the largest entry"):
+        with pytest.raises(StructureError, match="by nan of the largest entry"):
             pp.from_form(form, basis, cb, positive=positive)
 
 
@@ -197,7 +198,7 @@ def test_sign_of_the_check_follows_positive():
     A = pp.from_form(form, basis, cb, positive=True)
     theta = positive_theta(cb.N, seed=4)
     assert relative_error(A.matrix(theta), direct(form, basis, cb, theta)) < 1e-13
-    with pytest.raises(pp.StructureError, match="not affine"):
+    with pytest.raises(StructureError, match="not affine"):
         pp.from_form(form, basis, cb, positive=False)
 
 

@@ -11,7 +11,7 @@ import torch
 from _core import reaction_problem
 
 import prdp_petsc as pp
-from prdp_petsc import NonFiniteError
+from prdp_petsc.errors import NonFiniteError
 
 CG = {"ksp_type": "cg", "pc_type": "jacobi"}
 
@@ -32,6 +32,7 @@ def test_converged_newton_solves_the_residual_as_scipy_does():
     with converged() as solver:
         sol = pp.newton_solve(problem, None, f, c, solver=solver, rtol=1e-13)
     assert sol.reason.startswith("CONVERGED") and sol.iterations < 10
+    assert sol.converged and sol.residual_norm == sol.residual_norms[-1] <= 1e-10
     ref = so.root(lambda u: problem.residual(u, f.numpy(), 5.0), np.zeros(problem.n), tol=1e-14)
     assert np.linalg.norm(sol.value.numpy() - ref.x) <= 1e-10 * np.linalg.norm(ref.x)
 

@@ -12,6 +12,7 @@ from skfem.models.poisson import mass
 from torch.autograd import gradcheck
 
 import prdp_petsc as pp
+from prdp_petsc.autograd.bridge import matvec
 
 
 @BilinearForm
@@ -155,8 +156,8 @@ def test_gradcheck_matvec():
     A = pp.diffusion_operator(basis, "P1") + advection(basis)
     v = randn(2, basis.N, seed=9, requires_grad=True)
     theta = random_theta(A.n_params, seed=10, requires_grad=True)
-    assert gradcheck(lambda v, t: pp.matvec(A, v, theta=t), (v, theta))
-    y = pp.matvec(A, v[0], theta=theta).detach().numpy()
+    assert gradcheck(lambda v, t: matvec(A, v, theta=t), (v, theta))
+    y = matvec(A, v[0], theta=theta).detach().numpy()
     np.testing.assert_allclose(y, A.matrix(theta.detach().numpy()) @ v[0].detach().numpy())
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import prdp_petsc as pp
-from prdp_petsc.prdp import fidelity_gap
+from prdp_petsc.prdp import ACCURACY_BAND, fidelity_gap
 
 
 def gap_check(rho=0.7, scale=1.0):
@@ -22,7 +22,7 @@ def gap_check(rho=0.7, scale=1.0):
 
 def test_for_problem_takes_start_step_and_cap_from_k_full():
     ctrl = pp.PRDP.for_problem(104)
-    assert (ctrl.k_init, ctrl.k_max, ctrl.k_full, ctrl.tol) == (13, 104, 104, pp.ACCURACY_BAND)
+    assert (ctrl.k_init, ctrl.k_max, ctrl.k_full, ctrl.tol) == (13, 104, 104, ACCURACY_BAND)
     ks, k = [], ctrl.k
     while True:
         ks.append(k)

@@ -20,6 +20,7 @@ from _core import (
 from petsc4py import PETSc
 
 import prdp_petsc as pp
+from prdp_petsc.core.results import SolveInfo, SolverStats
 
 
 def nonsymmetric():
@@ -183,11 +184,11 @@ def test_stats_last_and_reset():
     assert (s.adjoint_solves, s.adjoint_iterations) == (3, 12)
     assert s.operator_updates == 1 and s.forward_time > 0 and s.adjoint_time > 0
     last = solver.last
-    assert isinstance(last, pp.SolveInfo)
+    assert isinstance(last, SolveInfo)
     assert last.iterations == 4 and last.reason == "DIVERGED_MAX_IT" and last.residual_norm > 0
     assert set(s.as_dict()) >= {"forward_solves", "adjoint_iterations", "operator_updates"}
     solver.reset_stats()
-    assert solver.stats == pp.SolverStats()
+    assert solver.stats == SolverStats()
     solver.max_it = 500
     solver.rtol = 1e-10
     pp.solve(A, b[0], solver, theta=theta.detach())

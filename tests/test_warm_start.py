@@ -11,6 +11,8 @@ import torch
 from _core import CONVERGED, interior_operator, randn, random_theta, unit_square
 
 import prdp_petsc as pp
+from prdp_petsc.autograd.warm_starts import WarmStarts
+from prdp_petsc.errors import NonFiniteError
 
 CG = {"ksp_type": "cg", "pc_type": "jacobi"}
 
@@ -26,7 +28,7 @@ def problem():
 
 
 def test_guesses_are_detached_copies_of_what_was_stored():
-    starts = pp.WarmStarts()
+    starts = WarmStarts()
     assert starts.guess(torch.tensor([3, 1])) is None and starts.misses == 2
     x = torch.arange(6.0, dtype=torch.float64).reshape(2, 3).requires_grad_(True)
     y = x * 2
@@ -41,7 +43,7 @@ def test_guesses_are_detached_copies_of_what_was_stored():
 
 
 def test_missing_keys_start_from_zero_or_from_the_fill():
-    starts = pp.WarmStarts()
+    starts = WarmStarts()
     starts.store(5, torch.ones(3, dtype=torch.float64))  # one key: a vector
     assert torch.equal(starts.guess(5), torch.ones(3, dtype=torch.float64))
     assert torch.equal(starts.guess([7, 5]), torch.tensor([[0.0] * 3, [1.0] * 3]).double())
@@ -54,10 +56,10 @@ def test_missing_keys_start_from_zero_or_from_the_fill():
 
 
 def test_bad_input_is_refused():
-    starts = pp.WarmStarts()
+    starts = WarmStarts()
     with pytest.raises(ValueError, match="one row per key"):
         starts.store([1, 2, 3], torch.zeros(2, 4))
-    with pytest.raises(pp.NonFiniteError, match=r"keys \[2\]"):
+    with pytest.raises(NonFiniteError, match=r"keys \[2\]"):
         starts.store([1, 2], torch.tensor([[0.0, 1.0], [float("nan"), 0.0]]))
     assert len(starts) == 0  # nothing of a refused batch is kept
     with pytest.raises(ValueError, match="1-D"):
@@ -68,9 +70,9 @@ def test_bad_input_is_refused():
 
 
 def test_state_dict_round_trip():
-    starts = pp.WarmStarts()
+    starts = WarmStarts()
     starts.store([(0, 1), (1, 1), 4], torch.randn(3, 5, dtype=torch.float64))
-    other = pp.WarmStarts()
+    other = WarmStarts()
     other.load_state_dict(starts.state_dict())
     for key in [(0, 1), (1, 1), 4]:
         assert torch.equal(other.guess(key), starts.guess(key))
@@ -81,7 +83,7 @@ def test_converged_solve_from_the_guess_has_the_same_value_and_gradients(problem
     epoch's backward leaves the last epoch's tensors alone."""
     A, theta, b = problem
     solver = pp.KSPSolver(CG, **CONVERGED)
-    starts = pp.WarmStarts()
+    starts = WarmStarts()
     idx = torch.tensor([2, 0, 3])
     w = randn(3, A.shape[0], seed=7).detach()
     th0 = theta(0).requires_grad_(True)
@@ -125,7 +127,7 @@ def test_capped_solves_from_the_guess_approach_the_converged_solution(problem, o
     K = 3
     capped = pp.KSPSolver(options, max_it=K)
     exact = pp.KSPSolver(CG, **CONVERGED)
-    starts = pp.WarmStarts()
+    starts = WarmStarts()
     rng = np.random.default_rng(3)
     errors = {"zero": [], "cached": []}
     for epoch in range(8):

@@ -129,7 +129,7 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 PRESETS = {"quick": {}, "paper": {}}
 def build(config, seed):
-    A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
+    A = (sp.identity(10) - 1e-2 * laplacian(10)).tocsr()
     s = pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi"}, prefix="t_", max_it=1)
     th = torch.ones(10, dtype=torch.float64, requires_grad=True)
     def loss(_):

@@ -24,6 +24,7 @@ from skfem import BilinearForm, LinearForm
 from skfem.helpers import ddot, div, grad
 
 import prdp_petsc as pp
+from prdp_petsc.errors import SingularOperatorError
 
 # --8<-- [start:elasticity]
 GAMG = {"ksp_type": "cg", "pc_type": "gamg"}
@@ -75,7 +76,7 @@ def free_body() -> dict:
             solver.set_operator(K)
             solver.solve(b)
         undeclared = "returned"
-    except pp.SingularOperatorError as err:
+    except SingularOperatorError as err:
         undeclared = err.reason  # "SINGULAR": its message says to declare nullspace=
     modes = pp.rigid_body_modes(basis)
     with pp.KSPSolver(

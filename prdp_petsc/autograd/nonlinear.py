@@ -115,7 +115,14 @@ class NonlinearSolution:
     residual_norms: tuple
 
     @property
+    def residual_norm(self) -> float:
+        """``‖R(u)‖₂`` of the returned iterate (the last of `residual_norms`), as a
+        `~prdp_petsc.autograd.solution.LinearSolution` reports its residual."""
+        return self.residual_norms[-1]
+
+    @property
     def converged(self) -> bool:
+        """Whether the outer loop met a tolerance (the cap ``max_newton`` is not one)."""
         return self.reason.startswith("CONVERGED")
 
 

@@ -56,7 +56,9 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     A script that takes PETSc options on its command line hands them to PETSc before
     PETSc is first imported::
 
-        ours, petsc = pp.split_petsc_options(sys.argv[1:])
+        from prdp_petsc.core.options import split_petsc_options
+
+        ours, petsc = split_petsc_options(sys.argv[1:])
         petsc4py.init([sys.argv[0], *petsc])  # then every KSPSolver reads them
         args = parser.parse_args(ours)
 

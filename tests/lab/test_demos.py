@@ -24,6 +24,7 @@ import torch
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.fem.fd import laplacian
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.emulators import heat_step_system
 from prdp_petsc.lab.components.modal import laplacian_modes
@@ -395,7 +396,7 @@ def _heat1d_data(module, seed: int, steps: int):
     n = config["n"]
     rng = np.random.default_rng(seed)
     u0 = module.initial_conditions(config["n_train"] + config["n_val"], n, config["modes"], rng)
-    A = (sp.identity(n, format="csr") - module.NU_DT * pp.laplacian(n)).tocsr()
+    A = (sp.identity(n, format="csr") - module.NU_DT * laplacian(n)).tocsr()
     traj = [u0]
     for _ in range(steps):
         traj.append(scipy.linalg.solve(A.toarray(), traj[-1].T, assume_a="pos").T)

@@ -122,12 +122,13 @@ def test_cli_run_passes_petsc_options(tmp_path):
 DIVERGING_SCENE = """
 import numpy as np, scipy.sparse as sp, torch
 import prdp_petsc as pp
+from prdp_petsc.fem.fd import laplacian
 from prdp_petsc import lab
 
 PRESETS = {"quick": {}}
 
 def build(config, seed):
-    A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
+    A = (sp.identity(10) - 1e-2 * laplacian(10)).tocsr()
     if config.get("advection"):  # a non-symmetric operator: CG does not fit it
         A = (A + config["advection"] * sp.diags([np.ones(9), -np.ones(9)], [1, -1])).tocsr()
     solver = pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi",
@@ -161,6 +162,8 @@ TINY_SCENE = """
 from pathlib import Path
 import numpy as np, scipy.sparse as sp, torch
 import prdp_petsc as pp
+from prdp_petsc.fem.fd import laplacian
+from prdp_petsc.errors import NonFiniteError
 from prdp_petsc import lab
 
 NEVER = 10**9
@@ -179,7 +182,7 @@ PRESETS = {
 }
 
 def build(config, seed):
-    A = (sp.identity(10) - 1e-2 * pp.laplacian(10)).tocsr()
+    A = (sp.identity(10) - 1e-2 * laplacian(10)).tocsr()
     if config["advection"]:  # a non-symmetric operator: CG does not fit it
         A = (A + config["advection"] * sp.diags([np.ones(9), -np.ones(9)], [1, -1])).tocsr()
     solvers = [pp.KSPSolver({"ksp_type": "richardson", "pc_type": "jacobi"},
@@ -194,7 +197,7 @@ def build(config, seed):
         if epoch == config["interrupt_at"]:
             raise KeyboardInterrupt
         if epoch >= config["invalid_at"]:
-            raise pp.NonFiniteError("b contains NaN or Inf")
+            raise NonFiniteError("b contains NaN or Inf")
         if epoch >= config["bug_at"]:  # a bug in the scene, not a solver outcome
             np.ones(3) + np.ones(4)
         return [epoch]

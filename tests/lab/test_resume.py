@@ -30,6 +30,7 @@ NOISY_SCENE = """
 import os, random
 import numpy as np, scipy.sparse as sp, scipy.sparse.linalg as spla, torch
 import prdp_petsc as pp
+from prdp_petsc.fem.fd import laplacian
 from prdp_petsc import lab
 from prdp_petsc.lab.training.scene import shuffled_batches
 
@@ -37,7 +38,7 @@ PRESETS = {"quick": {"epochs": 6, "lr": 2e-2}, "slow": {"epochs": 6, "lr": 1e-3}
 
 def build(config, seed):
     n = 12
-    A = (sp.identity(n) - 0.2 * pp.laplacian(n)).tocsr()
+    A = (sp.identity(n) - 0.2 * laplacian(n)).tocsr()
     rng = np.random.default_rng(seed)
     x = torch.from_numpy(rng.standard_normal((16, n)))
     y = torch.from_numpy(spla.spsolve(A.tocsc(), x.numpy().T).T.copy())

@@ -11,12 +11,13 @@ from prdp_petsc.lab.training.scene import Settings, check_presets, load_scene, p
 SCENE = """
 import numpy as np, scipy.sparse as sp, torch
 import prdp_petsc as pp
+from prdp_petsc.fem.fd import laplacian
 from prdp_petsc import lab
 
 PRESETS = {presets}
 
 def build(config, seed):
-    A = (sp.identity(6) - 1e-2 * pp.laplacian(6)).tocsr()
+    A = (sp.identity(6) - 1e-2 * laplacian(6)).tocsr()
     solver = pp.KSPSolver({{"ksp_type": "cg", "pc_type": "none"}}, prefix="sc_", max_it=1)
     theta = torch.ones(6, dtype=torch.float64, requires_grad=True)
     return lab.Scene(

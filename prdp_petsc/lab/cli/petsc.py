@@ -16,7 +16,7 @@ import re
 import sys
 import warnings
 
-from prdp_petsc import split_petsc_options
+from prdp_petsc.core.options import split_petsc_options
 
 __all__ = ["apply_warning_options", "init_petsc", "split_petsc_options"]
 

@@ -30,7 +30,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from prdp_petsc import InputError, ParametricMatrix, csr_pattern
+from prdp_petsc import InputError, ParametricMatrix
+from prdp_petsc.fem.parametric import csr_pattern
 
 __all__ = [
     "divergence",

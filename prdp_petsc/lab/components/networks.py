@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from prdp_petsc import once_differentiable
+from prdp_petsc.autograd.once import once_differentiable
 
 __all__ = ["ConvResNet", "MeshNet", "ResidualMLP"]
 

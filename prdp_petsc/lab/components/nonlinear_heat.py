@@ -38,7 +38,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.sparse as sp
 
-from prdp_petsc import InputError, csr_pattern, mass_matrix
+from prdp_petsc import InputError, mass_matrix
+from prdp_petsc.fem.parametric import csr_pattern
 
 if TYPE_CHECKING:
     import skfem

@@ -70,7 +70,8 @@ def _problem(n: int):
 
 
 def _declaration(variant: str, basis, bc) -> dict:
-    from prdp_petsc import block_size, rigid_body_modes
+    from prdp_petsc import rigid_body_modes
+    from prdp_petsc.fem.vector import block_size
 
     if variant == "scalar":
         return {}

@@ -90,9 +90,9 @@ _THREAD_ENV = {
 
 def problem(side: int, seed: int = 0):
     """(A, b, g): the SPD five-point ``−Δ`` (scipy CSR) and the loss's b and g."""
-    import prdp_petsc as pp
+    from prdp_petsc.fem.fd import laplacian
 
-    A = (-pp.laplacian((side, side))).tocsr()
+    A = (-laplacian((side, side))).tocsr()
     A.sort_indices()
     rng = np.random.default_rng(seed)
     return A, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])

@@ -219,6 +219,9 @@ def _owned_solve_worker(args) -> dict:
     from skfem import Basis, ElementTetP1
 
     import prdp_petsc as pp
+    from prdp_petsc.autograd.owned import sum_over_ranks
+    from prdp_petsc.fem.distributed import DistributedParametricMatrix
+    from prdp_petsc.fem.partition import PartitionedMesh
     from prdp_petsc.lab.reports.problems import mean_edge_length
 
     torch.set_num_threads(1)
@@ -227,12 +230,12 @@ def _owned_solve_worker(args) -> dict:
     t0 = time.perf_counter()
     mesh = _mesh(args) if comm.getRank() == 0 else None
     dt = world.bcast(10.0 * mean_edge_length(mesh) ** 2 if mesh is not None else None, root=0)
-    part = pp.PartitionedMesh.distribute(mesh, comm)
+    part = PartitionedMesh.distribute(mesh, comm)
     del mesh
     partition = time.perf_counter() - t0
     basis = Basis(part.mesh, ElementTetP1())
     M = pp.mass_matrix(basis)
-    A = pp.DistributedParametricMatrix.from_local(dt * pp.diffusion_operator(basis) + M, part)
+    A = DistributedParametricMatrix.from_local(dt * pp.diffusion_operator(basis) + M, part)
     u0 = _u0(part.mesh.p)
     rows = part.owned_vertices  # the owned rows are complete: M u0 on them is exact
     b = torch.from_numpy((M @ u0)[:rows])
@@ -243,7 +246,7 @@ def _owned_solve_worker(args) -> dict:
     solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=args.k, comm=comm)
 
     def backward(u):
-        pp.sum_over_ranks(0.5 * ((u - target) ** 2).sum(), comm).backward()
+        sum_over_ranks(0.5 * ((u - target) ** 2).sum(), comm).backward()
         theta.grad = None
 
     forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),

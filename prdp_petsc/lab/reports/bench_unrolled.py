@@ -51,7 +51,7 @@ def ksp_types(solver) -> list[str]:
 
 def unrolled_problem(n: int, seed: int = 1):
     """(A, b, g, side): the SPD five-point ``−Δ`` on a side × side grid, side ≈ √n."""
-    from prdp_petsc import laplacian
+    from prdp_petsc.fem.fd import laplacian
 
     side = max(2, round(float(np.sqrt(n))))
     A = (-laplacian((side, side))).tocsr()

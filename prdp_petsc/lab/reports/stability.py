@@ -179,7 +179,8 @@ def case_neumann(quick: bool = False) -> list[dict]:
 
 def case_sliver(quick: bool = False) -> list[dict]:
     """Dirichlet Poisson on the ``sliver`` mesh (a strip of elements with angles < 5°)."""
-    from prdp_petsc import load_mesh, min_angle_degrees
+    from prdp_petsc import load_mesh
+    from prdp_petsc.fem.meshes import min_angle_degrees
 
     mesh = load_mesh("sliver", 0 if quick else 2)
     A, b, _ = poisson_problem(mesh)

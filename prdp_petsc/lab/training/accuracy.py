@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from prdp_petsc import ACCURACY_BAND
+from prdp_petsc.prdp import ACCURACY_BAND
 
 __all__ = ["equal_accuracy_k"]
 

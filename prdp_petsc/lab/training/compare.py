@@ -25,7 +25,8 @@ import logging
 import math
 from pathlib import Path
 
-from prdp_petsc import SolverError, StructureError
+from prdp_petsc import SolverError
+from prdp_petsc.errors import StructureError
 
 from ..parsing import check_epochs
 from ..provenance import provenance

@@ -16,7 +16,8 @@ from dataclasses import asdict
 import numpy as np
 import torch
 
-from prdp_petsc import PRDP, InputError, NonFiniteError, SolverError
+from prdp_petsc import PRDP, InputError, SolverError
+from prdp_petsc.errors import NonFiniteError
 
 from .checkpoint import CHECKPOINT, restore, save_checkpoint
 from .parallel import Parallel

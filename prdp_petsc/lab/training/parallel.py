@@ -32,7 +32,8 @@ import copy
 import numpy as np
 import torch
 
-from prdp_petsc import InputError, MeshError, NonFiniteError, SolverError, StructureError
+from prdp_petsc import InputError, SolverError
+from prdp_petsc.errors import MeshError, NonFiniteError, StructureError
 
 __all__ = ["MEAN_RTOL", "MODES", "Parallel"]
 
@@ -115,7 +116,7 @@ class Parallel:
             return contextlib.nullcontext()
         from petsc4py import PETSc
 
-        from prdp_petsc import use_comm
+        from prdp_petsc.core.parallel import use_comm
 
         return use_comm(PETSc.COMM_WORLD)
 

@@ -33,7 +33,7 @@ import re
 import warnings
 from collections.abc import Iterator, Mapping
 
-from prdp_petsc import ACCURACY_BAND
+from prdp_petsc.prdp import ACCURACY_BAND
 
 __all__ = [
     "AUTO",
@@ -161,7 +161,7 @@ def route_options(prefixes, route: str, named: Mapping[str, str] | None = None) 
     """
     from petsc4py import PETSc  # here, not at import: the CLI starts PETSc first
 
-    from prdp_petsc import UnusedOptionWarning
+    from prdp_petsc.errors import UnusedOptionWarning
 
     settings = route_settings(route, named)
     opts = PETSc.Options()

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 
-from prdp_petsc import ACCURACY_BAND, savings
+from prdp_petsc.prdp import ACCURACY_BAND, savings
 
 from .accuracy import equal_accuracy_k
 from .routes import REACH_FACTOR, accuracy_target, fastest, time_to_accuracy
