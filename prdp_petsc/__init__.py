@@ -43,6 +43,7 @@ _EXPORTS = {
     "mass_matrix": ".fem.forms",
     "from_form": ".fem.forms",
     "rigid_body_modes": ".fem.vector",
+    "discrete_gradient": ".fem.nedelec",
     "load_mesh": ".fem.meshes",
     # PRDP in a training loop
     "PRDP": ".prdp",

@@ -18,6 +18,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import scipy.sparse as sp
 from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
@@ -45,7 +46,6 @@ from .structure import (
 )
 
 if TYPE_CHECKING:  # mpi4py is optional (the `mpi` extra)
-    import scipy.sparse as sp
     from mpi4py import MPI
 
 __all__ = ["KSPSolver", "UnusedOptionWarning"]
@@ -213,6 +213,7 @@ class KSPSolver:
         self._steps: dict = {}  # kind -> (key, SolveStep) kept between calls (`_step`)
         self._ksp: PETSc.KSP | None = None
         self._adj: PETSc.KSP | None = None
+        self._kernels: dict = {}  # layout -> PETSc null spaces, made once (`attach_nullspaces`)
         self._build(self.comm)
 
     # -- the declared structure (read from `structure`, never set apart from it) ----
@@ -353,6 +354,7 @@ class KSPSolver:
     def destroy(self) -> None:
         """Free the KSPs, the Mat made here and the work vectors; the solver is unusable."""
         self._op.destroy()
+        self._kernels = {}
         self._free_vecs()
         self._destroy_ksps()
 
@@ -555,7 +557,7 @@ class KSPSolver:
         if mat.getComm().getSize() != self._ksp.getComm().getSize():
             self.rebuild_on(mat.getComm())
         if self.nullspace is not None:
-            attach_nullspaces(mat, self.nullspace, self.transpose_nullspace)
+            attach_nullspaces(mat, self.nullspace, self.transpose_nullspace, self._kernels)
         if self.near_nullspace is not None:
             attach_near_nullspace(mat, self.near_nullspace)
         if self._x is not None and self._x.getSizes() != mat.getSizes()[1]:
@@ -735,4 +737,6 @@ class KSPSolver:
 
 def _describe_space(spec) -> str | int | None:
     """A (near-)null space in a JSON record: ``"constant"``, its vector count, or None."""
-    return spec if spec is None or isinstance(spec, str) else len(spec)
+    if spec is None or isinstance(spec, str):
+        return spec
+    return spec.shape[1] if sp.issparse(spec) else len(spec)
