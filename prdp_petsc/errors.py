@@ -28,6 +28,12 @@ The taxonomy tells a caller, and the training harness, what to do:
     `MeshError`
         A mesh file that cannot be read (an exception, never an exit).
 
+`NotConvergedWarning`
+    A solve with a tolerance (``rtol > 0`` or ``atol > 0``) hit ``max_it`` without
+    meeting it; the message gives the true residual.  ``KSPSolver(not_converged=
+    "raise")`` makes it a `SolverError`, ``"ignore"`` silences it.  A capped solve
+    without a tolerance (the training mode: exactly K iterations) is not warned about.
+
 The harness (`prdp_petsc.lab.training.harness.run`) records a `SolverError` or an
 `InputError` raised during training as a stopped run with a named reason and
 lets every other exception propagate: a bug in a scene (a numpy broadcast error,
@@ -40,6 +46,7 @@ __all__ = [
     "InputError",
     "MeshError",
     "NonFiniteError",
+    "NotConvergedWarning",
     "PrdpPetscError",
     "SingularOperatorError",
     "SolverError",
@@ -79,9 +86,10 @@ class SingularOperatorError(SolverError):
     of A to the tolerance a declared null vector must meet (``‖A x‖ ≤ 1e-8 ‖A‖ ‖x‖``)
     while the true residual ``‖b − A x‖`` was not reduced: Krylov iterates grew along
     the kernel (rigid-body modes of elasticity without Dirichlet conditions, the
-    constants of a pure Neumann problem) instead of converging.  Declare the kernel,
-    e.g. ``Structure(nullspace=rigid_body_modes(basis))`` or ``nullspace="constant"``,
-    or add boundary conditions.  `reason` is ``"SINGULAR"``; the message names PETSc's
+    constants of a pure Neumann problem, the gradients of curl-curl) instead of
+    converging.  Declare the kernel, e.g. ``Structure(nullspace=rigid_body_modes(basis))``,
+    ``nullspace=discrete_gradient(basis, dofs)`` or ``nullspace="constant"``, or add
+    boundary conditions.  `reason` is ``"SINGULAR"``; the message names PETSc's
     own reason.
     """
 
@@ -122,6 +130,21 @@ class UnusedOptionWarning(UserWarning):
     command-line run with ``python -W error::prdp_petsc.errors.UnusedOptionWarning -m
     prdp_petsc.lab.cli ...`` (``PYTHONWARNINGS=...`` for ``prdp-petsc``), which the
     command line applies when it starts.
+    """
+
+
+class NotConvergedWarning(UserWarning):
+    """A solve with a tolerance ended without meeting it (``DIVERGED_MAX_IT``).
+
+    Given by `prdp_petsc.KSPSolver` with ``not_converged="warn"`` (the default) when
+    a solve with ``rtol > 0`` or ``atol > 0`` hits ``max_it``: the message names the
+    KSP/PC, the iterations, the tolerances and the true residual ``‖b − A x‖/‖b‖``,
+    and what to do (raise ``max_it``, loosen ``rtol``, or choose another KSP/PC).
+    A capped solve with ``rtol = atol = 0`` (exactly K iterations, how PRDP trains)
+    is never warned about.  ``not_converged="raise"`` turns it into a `SolverError`
+    with reason ``DIVERGED_MAX_IT`` (what a training harness records as a stopped
+    run); ``warnings.simplefilter("error", NotConvergedWarning)`` raises the warning
+    itself instead.
     """
 
 

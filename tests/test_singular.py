@@ -7,13 +7,23 @@ with |u| ≈ 1e14 and a true residual 50 times ‖b‖, and the capped solve's
 error is tiny *because* ‖x‖ exploded).  Each such solve must raise
 `SingularOperatorError`, which says to declare ``nullspace=``; with the modes
 declared, the solve returns the minimum-norm least-squares solution.
+
+Curl-curl on Nédélec elements (ε = 0) has every gradient in its kernel.  CG fails on
+it as ``DIVERGED_DTOL`` with an iterate that is a null vector only to 1e-7..1e-5 (the
+kernel part grew, but not to rounding level): not provably singular, but it looks so,
+and the error says how to declare the null space (the discrete gradient).  An
+indefinite operator (Helmholtz) fails too, and its error does not say so.
 """
 
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
+import skfem
 import torch
+from _curl_curl import curl_curl, interior, triangles
 from _vector import body_load, elasticity
+from skfem import BilinearForm
+from skfem.helpers import dot, grad
 
 import prdp_petsc as pp
 from prdp_petsc.core import safeguards
@@ -100,6 +110,64 @@ def test_clamped_body_solves(free_body):
         x = s.solve(b[bc.interior])
     expected = spla.spsolve(M.tocsc(), b[bc.interior])
     assert np.linalg.norm(x - expected) <= 1e-8 * np.linalg.norm(expected)
+
+
+@pytest.fixture(scope="module", params=["tri", "tet"])
+def curl_curl_system(request):
+    """Curl-curl, ε = 0, u × n = 0, on triangles or tetrahedra, with an incompatible load."""
+    if request.param == "tri":
+        _, A, b, _ = triangles(4)
+    else:
+        basis, A, b = curl_curl(skfem.MeshTet().refined(2), skfem.ElementTetN0)
+        A, b, _ = interior(basis, A, b)
+    return A, b
+
+
+# the paths by which CG on curl-curl fails (DIVERGED_DTOL), with a tolerance and capped
+CURL_CURL_CASES = {
+    "cg/icc": ({"ksp_type": "cg", "pc_type": "icc"}, 2000, 1e-8),
+    "cg/gamg": ({"ksp_type": "cg", "pc_type": "gamg"}, 2000, 1e-8),
+    "cg/jacobi": ({"ksp_type": "cg", "pc_type": "jacobi"}, 2000, 1e-8),
+    "cg/icc capped": ({"ksp_type": "cg", "pc_type": "icc"}, 60, 0.0),
+    "cg/gamg capped": ({"ksp_type": "cg", "pc_type": "gamg"}, 60, 0.0),
+}
+
+
+@pytest.mark.parametrize("case", CURL_CURL_CASES)
+def test_a_failure_on_curl_curl_names_the_null_space(curl_curl_system, case):
+    A, b = curl_curl_system
+    options, max_it, rtol = CURL_CURL_CASES[case]
+    with pp.KSPSolver(options, max_it=max_it, rtol=rtol) as solver:
+        solver.set_operator(A)
+        with pytest.raises(SolverError) as info:
+            solver.solve(b)
+    message = str(info.value)
+    assert "Structure(nullspace=...)" in message and "discrete_gradient(basis, dofs)" in message
+    if not isinstance(info.value, SingularOperatorError):  # PETSc's reason stands
+        assert info.value.reason == "DIVERGED_DTOL"
+        assert "if the operator is singular" in message
+
+
+@pytest.mark.parametrize("k2", [50.0, 200.0])
+@pytest.mark.parametrize("pc", ["icc", "gamg", "jacobi", "none"])
+def test_an_indefinite_failure_claims_no_singularity(k2, pc):
+    """Helmholtz ``−Δu − k² u`` (indefinite, not singular): CG fails
+    (DIVERGED_INDEFINITE_MAT/PC), and the error says nothing of a null space."""
+    basis = skfem.Basis(skfem.MeshTri().refined(5), skfem.ElementTriP1())
+
+    @BilinearForm
+    def helmholtz(u, v, w):
+        return dot(grad(u), grad(v)) - k2 * u * v
+
+    kept = basis.complement_dofs(basis.get_dofs())
+    H = helmholtz.assemble(basis).tocsr()[kept][:, kept]
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": pc}, max_it=2000, rtol=1e-8) as solver:
+        solver.set_operator(H)
+        with pytest.raises(SolverError) as info:
+            solver.solve(np.ones(H.shape[0]))
+    assert info.value.reason.startswith("DIVERGED_INDEFINITE")
+    assert not isinstance(info.value, SingularOperatorError)
+    assert "nullspace" not in str(info.value) and "singular" not in str(info.value)
 
 
 def test_what_is_checked_when(monkeypatch):

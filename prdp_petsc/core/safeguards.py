@@ -50,7 +50,13 @@
   - a failed solve is diagnosed (no cost on the hot path): an x that is a null
     vector to rounding level with a residual above `STALLED` ``‖b‖`` is reported
     as `prdp_petsc.errors.SingularOperatorError`, which says to declare the null
-    space; otherwise PETSc's reason stands.  A capped or failed solve is relabelled
+    space; otherwise PETSc's reason stands, and its message says how to declare
+    a null space if x is a null vector to `NEAR_NULL` (`looks_singular`: a hint,
+    not a verdict);
+  - a solve with a tolerance that ended without meeting it (``DIVERGED_MAX_IT``
+    with ``rtol > 0`` or ``atol > 0``) gets its true residual (one ``MatMult``)
+    for the warning or error `prdp_petsc.KSPSolver` gives it (``not_converged``),
+    with the same hint.  A capped or failed solve is relabelled
     only at rounding level because an ill-conditioned operator has null vectors to
     `NULL_TOLERANCE` too (a SIMP stiffness with contrast 1e-9 : 1 breaks GAMG's
     default smoothers with an x that is one to 6e-9; that is ``DIVERGED_INDEFINITE_PC``,
@@ -75,7 +81,9 @@ from .results import SolverError
 __all__ = [
     "FAR_BEYOND",
     "LATE_BREAKDOWNS",
+    "DECLARE_NULLSPACE",
     "LATE_REASONS",
+    "NEAR_NULL",
     "NO_TRANSPOSE_KSP",
     "NULL_TOLERANCE",
     "ROUNDING_LEVEL",
@@ -85,6 +93,7 @@ __all__ = [
     "backward_error",
     "check_transpose_ksp",
     "judge",
+    "looks_singular",
     "operator_norm",
     "rescue",
     "rhs_exponent",
@@ -121,6 +130,19 @@ NO_TRANSPOSE_KSP = frozenset({"cgls"})
 #: (a stalled solve stays near 1, a converged one falls by orders of magnitude even
 #: at high contrast; tests/test_singular.py checks both sides)
 STALLED = 0.1
+#: an iterate of a failed or unconverged solve with ``‖A x‖ ≤ NEAR_NULL ‖A‖ ‖x‖`` looks
+#: like a null vector of A (`looks_singular`): its message says how to declare a null
+#: space.  A hint, not a verdict: an ill-conditioned operator has such near-null
+#: vectors too (`judge` claims singularity only at `ROUNDING_LEVEL`), an indefinite one
+#: does not (tests/test_singular.py checks curl-curl's iterates against Helmholtz's)
+NEAR_NULL = 1e-4
+#: how to declare a null space: the end of every message on a singular-looking operator
+DECLARE_NULLSPACE = (
+    "declare the whole null space, KSPSolver(structure=pp.Structure(nullspace=...)): "
+    "rigid_body_modes(basis) for elasticity without Dirichlet conditions, "
+    "discrete_gradient(basis, dofs) (sparse) for curl-curl on Nédélec elements, "
+    "'constant' for a pure Neumann problem; or add boundary conditions"
+)
 
 
 def check_transpose_ksp(ksp) -> None:
@@ -263,6 +285,11 @@ def judge(residual: Residual, outcome: str, rtol: float = 0.0) -> str | None:
         if residual.norm > limit * residual.initial:
             return "not solved"
     return None
+
+
+def looks_singular(residual: Residual) -> bool:
+    """Whether the iterate of `residual` is a null vector of A to `NEAR_NULL`."""
+    return residual.null_vector(NEAR_NULL)
 
 
 def backward_error(mat: PETSc.Mat, b: PETSc.Vec, x: PETSc.Vec, *, transpose: bool) -> float:

@@ -12,16 +12,19 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import sys
 import time
 import warnings
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from ..errors import InputError, NonFiniteError
+from ..errors import InputError, NonFiniteError, NotConvergedWarning
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
 from .fields import attach_fields
@@ -56,6 +59,10 @@ _NOTHING_PUSHED = PushedOptions([])  # a solve without a set-up reads no options
 
 # PCs that are symmetric operators whenever A is: for them Aᵀλ = g is a forward solve
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
+#: what `KSPSolver(not_converged=...)` does with a tolerance solve that hit max_it
+NOT_CONVERGED = ("warn", "raise", "ignore")
+# a warning points at the first frame outside these folders: the caller's line
+_INTERNAL = (str(Path(__file__).parents[1]) + os.sep,)
 
 
 class KSPSolver:
@@ -76,6 +83,16 @@ class KSPSolver:
     rtol, atol : float
         Stopping tolerances; 0 disables them ("fixed" mode).  Properties, like
         `max_it`: a new value applies to the next solve.
+    not_converged : {"warn", "raise", "ignore"}
+        What a solve *with a tolerance* (``rtol > 0`` or ``atol > 0``, forward or
+        adjoint) that hits its ``max_it`` without meeting it does: ``"warn"``
+        (default) gives a `prdp_petsc.errors.NotConvergedWarning` naming the true
+        residual ``‖b − A x‖/‖b‖`` (one ``MatMult``) and what to do, once per call
+        (the worst row of a batch); ``"raise"`` makes that a `SolverError` (reason
+        ``DIVERGED_MAX_IT``); ``"ignore"`` returns as PETSc does, with only
+        ``last.converged`` False.  A capped solve in fixed mode (``rtol = atol = 0``:
+        exactly K iterations, how PRDP trains) is the normal outcome and never
+        reported.  Set here only, for the solver's life (`clone` copies it).
     adjoint : AdjointSettings or dict, optional
         Settings of the transpose solve; by default the forward ones.
     divtol : float, optional
@@ -141,7 +158,8 @@ class KSPSolver:
     owns ``max_it``: ``-{prefix}ksp_max_it`` / ``ksp_rtol`` / ``ksp_atol`` /
     ``ksp_divtol`` in the options or on the command line are refused.  The KSPs
     live on ``PETSC_COMM_SELF`` until an operator on a larger communicator arrives.
-    Hitting the cap (``DIVERGED_MAX_IT``) is a normal outcome; every other
+    Hitting the cap (``DIVERGED_MAX_IT``) is a normal outcome in fixed mode, and
+    with a tolerance is reported as ``not_converged`` says; every other
     negative reason raises `SolverError`, except a breakdown (or BiCGStab's late
     divergence) after the residual reached rounding level when run far beyond
     convergence: the iterate at rounding level (and below the initial residual) is
@@ -186,6 +204,7 @@ class KSPSolver:
         max_it: int,
         rtol: float = 0.0,
         atol: float = 0.0,
+        not_converged: str = "warn",
         adjoint: AdjointSettings | dict | None = None,
         divtol: float | None = None,
         structure: Structure | None = None,
@@ -195,6 +214,12 @@ class KSPSolver:
         comm: PETSc.Comm | MPI.Comm | None = None,
         **declared: Any,
     ) -> None:
+        if not_converged not in NOT_CONVERGED:
+            raise InputError(
+                f"not_converged must be one of {', '.join(map(repr, NOT_CONVERGED))}, "
+                f"got {not_converged!r}"
+            )
+        self._not_converged = not_converged
         self.comm = as_petsc_comm(comm)
         self._lag = PCLag(pc_lag, pc_lag_tol)
         #: options, prefixes and tolerances (`prdp_petsc.core.configuration.Configuration`)
@@ -272,6 +297,12 @@ class KSPSolver:
         """Whether the current operator is symmetric (declared or tested); None if unknown
         (a caller's PETSc Mat without ``MAT_SYMMETRIC`` set)."""
         return self._op.symmetric
+
+    @property
+    def not_converged(self) -> str:
+        """What a tolerance solve that hit max_it does: ``"warn"``, ``"raise"`` or
+        ``"ignore"`` (set at construction)."""
+        return self._not_converged
 
     @property
     def pc_lag(self) -> int:
@@ -456,6 +487,7 @@ class KSPSolver:
             "ranks": self.ksp.getComm().getSize(),
             "pc_lag": self.pc_lag,
             "pc_lag_tol": self.pc_lag_tol,
+            "not_converged": self.not_converged,
             "block_size": self.block_size,
             "near_nullspace": _describe_space(self.near_nullspace),
             "fields": None if self.fields is None else {k: v.size for k, v in self.fields.items()},
@@ -464,9 +496,9 @@ class KSPSolver:
     def clone(self, **changes: Any) -> KSPSolver:
         """A new solver with the same settings, some of them changed.
 
-        Options, prefix, tolerances, adjoint settings, ``divtol``, null spaces,
-        block size, near-null space, fields, the symmetry declaration, the
-        structure check, the PC lag and the communicator are copied;
+        Options, prefix, tolerances, ``not_converged``, adjoint settings, ``divtol``,
+        null spaces, block size, near-null space, fields, the symmetry declaration,
+        the structure check, the PC lag and the communicator are copied;
         keyword arguments (any of `KSPSolver`'s) replace them.
         """
         declared = {k: changes.pop(k) for k in STRUCTURE_FIELDS if k in changes}
@@ -480,6 +512,7 @@ class KSPSolver:
             structure = merged_structure(replace(structure, **declared), {})
         kwargs = {
             **self.config.arguments(),
+            "not_converged": self.not_converged,
             "structure": structure,
             "check_structure": self.check_structure,
             "pc_lag": self.pc_lag,
@@ -672,7 +705,34 @@ class KSPSolver:
             raise SolverError(f"{kind} solve returned NaN/Inf", reason="DIVERGED_NANORINF")
         elapsed = time.perf_counter() - t0
         self.stats.record(kind, len(batch), iterations, elapsed)
+        if step.unconverged and self.not_converged != "ignore":
+            self._report_unconverged(kind, step, len(batch))
         return out.reshape(rhs.shape)
+
+    def _report_unconverged(self, kind: str, step: SolveStep, rows: int) -> None:
+        """`NotConvergedWarning` (or `SolverError`) for the rows of this call that had a
+        tolerance and hit max_it, naming the worst one's true residual."""
+        row, residual = max(step.unconverged, key=lambda item: item[1].relative)
+        info = step.infos[row]
+        ksp = self._adj if kind == "adjoint" else self._ksp
+        rtol, atol = ksp.getTolerances()[:2]
+        count = len(step.unconverged)
+        which = "" if rows == 1 else f" (row {row}, the worst of {count} of {rows})"
+        adjoint = kind == "adjoint"
+        relation = "‖g − Aᵀλ‖/‖g‖" if adjoint else "‖b − A x‖/‖b‖"
+        cap = "the adjoint's max_it (AdjointSettings(max_it=...))" if adjoint else "max_it"
+        message = (
+            f"{kind} solve ({ksp.getType()}/{ksp.getPC().getType()}) did not converge: "
+            f"{info.reason} after {info.iterations} iterations with rtol={rtol:g}, "
+            f"atol={atol:g}{which}; true residual {relation} = {residual.relative:.3g}. "
+            f"Raise {cap}, loosen rtol, or choose another KSP/PC"
+        )
+        if singular := step.near_null_hint(residual):
+            message += f"; {singular}"
+        if self.not_converged == "raise":
+            raise SolverError(message, reason=info.reason)
+        message += " (KSPSolver(not_converged='ignore') accepts such solves silently)"
+        warnings.warn(message, NotConvergedWarning, stacklevel=_caller_level())
 
     def _step(self, kind: str, ksp: PETSc.KSP, mat: PETSc.Mat, transpose: bool) -> SolveStep:
         """The `SolveStep` of this call: kept per kind while the operator (a Mat made
@@ -733,6 +793,20 @@ class KSPSolver:
             f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self.max_it}, "
             f"rtol={self.rtol}, atol={self.atol}, adjoint_max_it={self.adjoint_max_it})"
         )
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` for a warning given in the function that calls this one: the
+    first frame outside prdp_petsc (and torch's autograd, which runs the bridge), so
+    that the warning names the caller's line."""
+    internal = _INTERNAL
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        internal += (str(Path(torch.__file__).parent) + os.sep,)
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(internal):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _describe_space(spec) -> str | int | None:

@@ -6,7 +6,8 @@ PETSc queries, and everything else (rescue, errors) happens off that path.
 
 What a finished solve costs besides PETSc's own work: a capped one two vector
 norms (``‖x‖``, ``‖b‖``; ``‖A‖`` is kept per operator), a converged one a
-``MatMult`` for its true residual (`prdp_petsc.core.safeguards.judge`).
+``MatMult`` for its true residual (`prdp_petsc.core.safeguards.judge`), and so does
+one that had a tolerance to meet and hit ``max_it`` instead (`SolveStep.unconverged`).
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ class SolveStep:
         "kernel",
         "finite",
         "safe_norms",
+        "unconverged",
     )
 
     def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool, norm):
@@ -95,6 +97,8 @@ class SolveStep:
         self.run = ksp.solveTranspose if transpose else ksp.solve
         self.infos: list[SolveInfo] = []  # one per row solved (the failing one included)
         self.finite = True  # every row's x had a finite norm (so no NaN/Inf entry) so far
+        #: (row, `safeguards.Residual`) of every row that had a tolerance and hit max_it
+        self.unconverged: list[tuple[int, safeguards.Residual]] = []
         # ‖b‖ in this range: every entry's size is in SAFE_RANGE or 0, and b is not scaled
         low, high = safeguards.SAFE_RANGE
         self.safe_norms = (low * math.sqrt(b_vec.getSize()), high)
@@ -167,9 +171,16 @@ class SolveStep:
             raise self._diverged(self.infos[-1], self._diagnose())
         else:
             self.infos.append(self._info(exponent, history, reason))
-            size = self._check_iterate(reason)
+            size, residual = self._check_iterate(reason)
             if exponent or not math.isfinite(size):
                 self.finite = False  # the caller tests the entries
+            if reason == _MAX_IT and math.isfinite(size) and any(self.ksp.getTolerances()[:2]):
+                # a tolerance was set and not met: its true residual, for the report
+                if residual is None:
+                    residual = safeguards.true_residual(
+                        self.mat, self.b_vec, x_vec, transpose=self.transpose, norm=self.norm()
+                    )
+                self.unconverged.append((len(self.infos) - 1, residual))
         if self.kernel is not None:
             self.kernel.remove(x_vec)
             self.finite = False  # x changed after its norm was taken
@@ -187,6 +198,7 @@ class SolveStep:
         """Forget the rows of the last call (the step is kept for the next one)."""
         self.infos = []
         self.finite = True
+        self.unconverged = []
 
     def info(self) -> SolveInfo | None:
         """`SolveInfo` of the last row (PETSc's own outcome when a solve failed)."""
@@ -214,16 +226,16 @@ class SolveStep:
             reduction_rate(history) if computed else None,
         )
 
-    def _check_iterate(self, reason: int) -> float:
+    def _check_iterate(self, reason: int) -> tuple[float, safeguards.Residual | None]:
         """Refuse a finished solve's x that did not solve the system (`safeguards.judge`);
-        return ‖x‖.
+        return ‖x‖ and the `Residual` if it was computed.
 
         Converged: its true residual, one ``MatMult``.  Capped: only when
         ``‖A‖ ‖x‖ > ‖b‖ / NULL_TOLERANCE`` (two vector norms decide).
         """
         size = self.x_vec.norm()
         if not math.isfinite(size):
-            return size  # the caller's finiteness check raises (DIVERGED_NANORINF)
+            return size, None  # the caller's finiteness check raises (DIVERGED_NANORINF)
         if reason in _TOLERANCE_MET:
             outcome = "converged"
         elif reason > 0 and reason != _ITS:
@@ -234,7 +246,7 @@ class SolveStep:
         if outcome == "capped":
             norm = self.norm()
             if not norm * size > self.b_vec.norm() / safeguards.NULL_TOLERANCE:
-                return size
+                return size, None
         residual = safeguards.true_residual(
             self.mat, self.b_vec, self.x_vec, transpose=self.transpose, norm=norm or self.norm()
         )
@@ -249,25 +261,34 @@ class SolveStep:
                 f"{info.iterations} iterations, but its iterate does not solve the system "
                 f"({residual.describe()}): PETSc tested no residual, or the KSP's own "
                 "(often preconditioned) norm, which the true one contradicts. Check the "
-                "preconditioner and whether the operator is singular (declare "
-                "Structure(nullspace=...)); "
-                "-ksp_norm_type unpreconditioned tests the true residual",
+                "preconditioner (-ksp_norm_type unpreconditioned tests the true residual) "
+                f"and whether the operator is singular: if it is, {safeguards.DECLARE_NULLSPACE}",
                 reason="FALSE_CONVERGENCE",
             )
-        return size
+        return size, residual
 
-    def _singular(self, info: SolveInfo, residual) -> SingularOperatorError:
+    def _kernel_named(self) -> str:
+        """The kernel as the messages name it: with the declared one, if any."""
         declared = self.mat.getNullSpace()
         has = declared is not None and bool(declared)
-        what = "a null space the declared one does not cover" if has else "a null space"
+        return "a null space the declared one does not cover" if has else "a null space"
+
+    def _singular(self, info: SolveInfo, residual) -> SingularOperatorError:
         return SingularOperatorError(
-            f"{self.kind} solve ({self._types()}): the operator is singular, with {what}: "
-            f"after {info.iterations} iterations ({info.reason}) x is a null vector of A, "
-            f"{residual.describe()}. Declare the whole null space, e.g. "
-            "KSPSolver(structure=pp.Structure(nullspace=rigid_body_modes(basis))) for elasticity "
-            "without Dirichlet "
-            "conditions or nullspace='constant' for a pure Neumann problem, or add boundary "
-            "conditions",
+            f"{self.kind} solve ({self._types()}): the operator is singular, with "
+            f"{self._kernel_named()}: after {info.iterations} iterations ({info.reason}) x "
+            f"is a null vector of A, {residual.describe()}; {safeguards.DECLARE_NULLSPACE}",
+        )
+
+    def near_null_hint(self, residual: safeguards.Residual | None) -> str:
+        """A sentence saying how to declare a null space if the iterate of `residual`
+        looks like a null vector of A (`safeguards.looks_singular`), else ``""``."""
+        if residual is None or not safeguards.looks_singular(residual):
+            return ""
+        ratio = residual.product / residual.scale
+        return (
+            f"x is nearly a null vector of A (‖A x‖/(‖A‖ ‖x‖) = {ratio:.2g}): if the "
+            f"operator is singular, with {self._kernel_named()}, " + safeguards.DECLARE_NULLSPACE
         )
 
     def _verify(self, reason: int, exponent: int) -> int:
@@ -312,6 +333,8 @@ class SolveStep:
         hint = "check the operator and the PC"
         if self.ksp.getType() == "richardson":
             hint += ", or lower the Richardson scale (-ksp_richardson_scale)"
+        if singular := self.near_null_hint(found):
+            hint = f"{singular}; otherwise {hint}"
         return SolverError(
             f"{self.kind} solve diverged: {info.reason} after {info.iterations} iterations "
             f"({self._types()}, residual {residual}); {hint}",
