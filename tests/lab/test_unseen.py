@@ -60,3 +60,24 @@ def test_cli_writes_the_json_the_results_page_reads(tmp_path, capsys):
         run["prdp"]["final_error"] / run["full"]["final_error"]
     )
     assert "`heat_sink`" in capsys.readouterr().out
+
+
+def test_baselines_put_the_default_beside_the_hand_schedule_and_constant_caps():
+    """``unseen --baselines``: per problem, the hand schedule and each constant cap of
+    K_full/8, /4, /2, judged at equal accuracy as the default is, and the best of them."""
+    result = unseen.compare(["box3d_regions"], [0], quick=True, baselines=True)
+    p = result["problems"]["box3d_regions"]
+    run, b = p["runs"][0], p["baselines"]
+    caps = unseen.constant_caps(run["k_full"])
+    assert set(run["baselines"]) == {"hand", *(f"fixed:{k}" for k in caps)}
+    assert set(b) == {"hand", "K_full/8", "K_full/4", "K_full/2", "best_constant"}
+    for label in ("K_full/8", "K_full/4", "K_full/2"):
+        s = b[label]
+        assert s["equal_accuracy"] == (s["geomean_ratio"] <= 1.05 and s["worst_ratio"] <= 1.10)
+    k_half = max(1, -(-run["k_full"] // 2))
+    assert b["K_full/2"]["saved"][0] == pytest.approx(run["baselines"][f"fixed:{k_half}"]["saved"])
+    fits = [lab for lab in ("K_full/8", "K_full/4", "K_full/2") if b[lab]["equal_accuracy"]]
+    if fits:  # the best constant cap saves the most of those at equal accuracy
+        assert b["best_constant"] in fits
+        assert all(b[b["best_constant"]]["saved"][0] >= b[lab]["saved"][0] for lab in fits)
+    assert "hand schedule" in unseen.table(result)

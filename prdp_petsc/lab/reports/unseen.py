@@ -5,6 +5,11 @@ seed, at constant K_full and with ``PRDP.for_problem(find_k_full(...))`` and its
 checks, in the problem's own loop, and writes ``unseen.json`` for the results page.
 Costs are the inner iterations (forward and adjoint) of every solve a run makes:
 training, validation and the controller's checks.
+
+``--baselines`` adds what the default is measured against: the constant caps
+K_full/8, K_full/4 and K_full/2 (the best one at equal accuracy is what stopping
+below K_full can save at most, without a schedule) and a schedule chosen by hand
+(`HAND`: the reference's plateau test from K_full/10 in steps of K_full/10).
 """
 
 from __future__ import annotations
@@ -16,19 +21,31 @@ from prdp_petsc import PRDP, find_k_full
 
 from .unseen_problems import PROBLEMS, RTOL_FULL, Problem, build
 
-__all__ = ["compare", "main", "parse_arguments", "table", "train"]
+__all__ = ["CONSTANT_FRACTIONS", "HAND", "compare", "main", "parse_arguments", "table", "train"]
+
+#: the constant caps a baseline run tries, as fractions of K_full (rounded up)
+CONSTANT_FRACTIONS = (1 / 8, 1 / 4, 1 / 2)
+#: the hand schedule: `PRDP.paper` (the reference's test) started and stepped at this
+#: fraction of K_full (rounded up), capped at K_full
+HAND = 1 / 10
 
 
 def train(problem: Problem, schedule: str, k_full: int) -> dict:
     """Run `problem` with ``"full"`` (constant K_full), ``"prdp"`` (the default
-    construction, `PRDP.for_problem`, with checks) or ``"fixed:K"``; return its record."""
+    construction, `PRDP.for_problem`, with checks), ``"hand"`` (`HAND`) or
+    ``"fixed:K"``; return its record."""
     solver = problem.solver
-    controller = PRDP.for_problem(k_full, check=problem.check) if schedule == "prdp" else None
+    controller = None
+    if schedule == "prdp":
+        controller = PRDP.for_problem(k_full, check=problem.check)
+    elif schedule == "hand":
+        step = math.ceil(HAND * k_full)
+        controller = PRDP.paper(k_init=step, k_step=step, k_max=max(k_full, step))
     constant = k_full if schedule == "full" else None
     if schedule.startswith("fixed:"):
         constant = int(schedule.split(":", 1)[1])
     elif controller is None and schedule != "full":
-        raise ValueError(f"schedule must be 'full', 'prdp' or 'fixed:K', got {schedule!r}")
+        raise ValueError(f"schedule must be 'full', 'prdp', 'hand' or 'fixed:K', got {schedule!r}")
     solver.reset_stats()
     ks, metrics = [], []
     t0 = time.perf_counter()
@@ -42,7 +59,7 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
         ks.append(k)
         metrics.append(metric)
     record = {"schedule": schedule, "k_full": k_full, "ks": ks, "metrics": metrics}
-    if controller is not None:
+    if controller is not None and controller.check is not None:
         controller.certify()
         record["savings_k"] = controller.savings()
         record["checks"] = [
@@ -59,9 +76,11 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
     return record
 
 
-def compare(names, seeds, *, quick: bool = False) -> dict:
+def compare(names, seeds, *, quick: bool = False, baselines: bool = False) -> dict:
     """Full fidelity and the default PRDP on every problem and seed: the records and,
-    per problem, the final-error ratios (PRDP / full) and the iterations saved."""
+    per problem, the final-error ratios (PRDP / full) and the iterations saved; with
+    `baselines`, the same for the hand schedule and each constant cap of
+    `CONSTANT_FRACTIONS` (``"baselines"``: schedule -> ratios and savings per seed)."""
     out = {"quick": quick, "seeds": list(seeds), "problems": {}}
     for name in names:
         runs = []
@@ -70,18 +89,64 @@ def compare(names, seeds, *, quick: bool = False) -> dict:
             k_full = find_k_full(*problem.probe, problem.solver, rtol=RTOL_FULL)
             full = train(problem, "full", k_full)
             prdp = train(build(name, seed, quick), "prdp", k_full)
-            runs.append({"seed": seed, "k_full": k_full, "full": full, "prdp": prdp,
-                         "error_ratio": prdp["final_error"] / full["final_error"],
-                         "saved": 1.0 - prdp["iterations"] / full["iterations"]})  # fmt: skip
-        ratios = [r["error_ratio"] for r in runs]
-        out["problems"][name] = {
-            "runs": runs,
-            "geomean_ratio": math.exp(sum(math.log(r) for r in ratios) / len(ratios)),
-            "worst_ratio": max(ratios),
-            "saved": [r["saved"] for r in runs],
-            "certified": [r["prdp"]["savings_k"]["certified"] for r in runs],
-        }
+            run = {"seed": seed, "k_full": k_full, "full": full, "prdp": prdp,
+                   **_against(full, prdp)}  # fmt: skip
+            if baselines:
+                schedules = ["hand", *(f"fixed:{k}" for k in constant_caps(k_full))]
+                run["baselines"] = {
+                    s: _against(full, train(build(name, seed, quick), s, k_full)) for s in schedules
+                }
+            runs.append(run)
+        certified = [r["prdp"]["savings_k"]["certified"] for r in runs]
+        out["problems"][name] = {**_summary(runs), "runs": runs, "certified": certified}
+        if baselines:
+            out["problems"][name]["baselines"] = _baselines(runs)
     return out
+
+
+def constant_caps(k_full: int) -> list[int]:
+    """The constant caps of a baseline: `CONSTANT_FRACTIONS` of K_full, rounded up."""
+    return sorted({max(1, math.ceil(f * k_full)) for f in CONSTANT_FRACTIONS})
+
+
+def _against(full: dict, run: dict) -> dict:
+    """A run's final error over full fidelity's, and the share of its iterations saved."""
+    out = {"error_ratio": run["final_error"] / full["final_error"],
+           "saved": 1.0 - run["iterations"] / full["iterations"]}  # fmt: skip
+    if "ks" in run:
+        out["k_final"] = run["ks"][-1]
+    return out
+
+
+def _summary(runs: list[dict]) -> dict:
+    """Geometric-mean and worst error ratio and the savings of `runs` (dicts with
+    ``error_ratio`` and ``saved``)."""
+    ratios = [r["error_ratio"] for r in runs]
+    return {
+        "geomean_ratio": math.exp(sum(math.log(r) for r in ratios) / len(ratios)),
+        "worst_ratio": max(ratios),
+        "saved": [r["saved"] for r in runs],
+    }
+
+
+def _baselines(runs: list[dict]) -> dict:
+    """Per baseline (``hand``, ``K_full/8``, ``K_full/4``, ``K_full/2``): the summary
+    over the seeds, whether it is at equal accuracy, and the best constant cap there."""
+    out = {"hand": _summary([r["baselines"]["hand"] for r in runs])}
+    for frac in CONSTANT_FRACTIONS:
+        caps = [max(1, math.ceil(frac * r["k_full"])) for r in runs]
+        rows = [r["baselines"][f"fixed:{k}"] for r, k in zip(runs, caps, strict=True)]
+        out[f"K_full/{round(1 / frac)}"] = _summary(rows)
+    for summary in out.values():
+        summary["equal_accuracy"] = _equal(summary)
+    constants = [lab for lab in out if lab != "hand" and out[lab]["equal_accuracy"]]
+    out["best_constant"] = max(constants, key=lambda lab: min(out[lab]["saved"]), default=None)
+    return out
+
+
+def _equal(summary: dict) -> bool:
+    """At equal accuracy: geometric mean of the error ratios ≤ 1.05, no seed above 1.10."""
+    return summary["geomean_ratio"] <= 1.05 and summary["worst_ratio"] <= 1.10
 
 
 def table(result: dict) -> str:
@@ -102,7 +167,37 @@ def table(result: dict) -> str:
             + ", ".join(f"{w:.2f}" for w in walls)
             + " |"
         )
+    if all("baselines" in p for p in result["problems"].values()):
+        rows += ["", *_baseline_table(result)]
     return "\n".join(rows)
+
+
+def _baseline_table(result: dict) -> list[str]:
+    """The default against the hand schedule and the best constant cap: error ratio
+    (geometric mean, worst seed) and the iterations saved (mean over the seeds)."""
+    rows = [
+        "| problem | default: ratio, saved | hand schedule: ratio, saved | best constant K at "
+        "equal accuracy: saved | every constant K: ratio, saved |",
+        "|---|---|---|---|---|",
+    ]
+
+    def cell(s: dict) -> str:
+        mean = sum(s["saved"]) / len(s["saved"])
+        return f"{s['geomean_ratio']:.3f} ({s['worst_ratio']:.3f}), {100 * mean:.0f} %"
+
+    for name, p in result["problems"].items():
+        b = p["baselines"]
+        best = b["best_constant"]
+        constants = [lab for lab in b if lab not in ("hand", "best_constant")]
+        best_cell = "none" if best is None else (
+            f"{best}: {100 * sum(b[best]['saved']) / len(b[best]['saved']):.0f} %"
+        )  # fmt: skip
+        rows.append(
+            f"| `{name}` | {cell(p)} | {cell(b['hand'])} | {best_cell} | "
+            + "; ".join(f"{lab}: {cell(b[lab])}" for lab in constants)
+            + " |"
+        )
+    return rows
 
 
 def parse_arguments(argv=None):
@@ -122,6 +217,10 @@ def parse_arguments(argv=None):
     )  # fmt: skip
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
     add_size_preset(parser, "small sizes and few epochs")
+    parser.add_argument(
+        "--baselines", action="store_true",
+        help="also run the hand schedule and the constant caps K_full/8, /4, /2",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     groups, args.seeds = args.seeds, list(dict.fromkeys(s for group in args.seeds for s in group))
     if len(groups) > 1:  # one release more: --seeds 0 1 2
@@ -141,7 +240,9 @@ def main(argv=None) -> int:
 
     args = parse_arguments(argv)
     torch.set_num_threads(1)
-    result = compare(args.problems, args.seeds, quick=args.preset == "quick")
+    result = compare(
+        args.problems, args.seeds, quick=args.preset == "quick", baselines=args.baselines
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "unseen.json").write_text(json.dumps(result, indent=1))
     print(table(result))
