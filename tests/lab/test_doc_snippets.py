@@ -144,6 +144,8 @@ def _library(ns):
     """The optimisation loop recovers κ = 2 below y = 1/2 and 1 above, roughly, and
     ends certified."""
     assert ns["sol"].adjoint.iterations.tolist() == [20]
+    assert ns["batch"].iterations.tolist() == [20] * 8 == ns["batch"].adjoint.iterations.tolist()
+    assert ns["thetas"].grad.shape == (8, ns["A"].n_params) and ns["thetas"].grad.norm() > 0
     kappa, y = ns["design"].detach().exp().numpy(), ns["y"]
     assert kappa[y < 0.5].mean() > 1.6 and kappa[y > 0.5].mean() < 1.3
     assert ns["prdp"].savings()["certified"] is True
