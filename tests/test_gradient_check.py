@@ -1,6 +1,8 @@
 """`gradient_check` and `find_k_full` take what a training loop has: the check a PRDP
 controller certifies with, and K_full of the operator `solve` gets."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -36,6 +38,10 @@ def test_find_k_full_takes_what_solve_takes(problem):
         pp.find_k_full(A, b, solver)
     with pytest.raises(InputError, match="find_k_full\\(A, b, solver"):
         pp.find_k_full(solver, A, b)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a probe that stops short raises, without a warning first
+        with pytest.raises(pp.SolverError, match="K_full is undefined"):
+            pp.find_k_full(A, b, solver, theta=theta, max_it=3)
 
 
 def test_gradient_check_is_the_gradient_through_the_capped_solve(problem):

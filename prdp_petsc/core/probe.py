@@ -73,7 +73,8 @@ def find_k_full(
     x0 = None if x0 is None else np.atleast_2d(_array(x0))
     operators = _operators(A, theta, len(b))
     iterations = []
-    with solver.clone(max_it=max_it, rtol=rtol, atol=0.0) as probe:
+    # a probe that stops short raises its own error below: no NotConvergedWarning first
+    with solver.clone(max_it=max_it, rtol=rtol, atol=0.0, not_converged="ignore") as probe:
         for i, row in enumerate(b):
             M = operators[min(i, len(operators) - 1)]
             probe.set_operator(M)
