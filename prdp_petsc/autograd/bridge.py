@@ -21,15 +21,15 @@ import scipy.sparse as sp
 import torch
 
 from ..core.operator import as_csr, frozen_csr
-from ..core.results import CallInfo, SolverError
 from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
+from .implicit import ImplicitSolve, MatVec, SolveOperator
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
 from .solution import AdjointSlot, LinearSolution
-from .tensors import as_numpy, check_vector, implicit_gradients
+from .tensors import as_numpy, check_vector
 
 __all__ = ["LinearSolution", "matvec", "solve"]
 
@@ -64,70 +64,6 @@ def _check_pairing(P: ParametricMatrix, values: np.ndarray, shape, name: str) ->
             f"({batch}, {p}) is a batch of operators and needs {name} of shape ({batch}, "
             f"{shape[-1]}); for a shared {name} pass {name}.expand({batch}, -1)"
         )
-
-
-def _solve_each(
-    solver: KSPSolver, csr: tuple, rhs: np.ndarray, symmetric, *, transpose: bool, version=None
-):
-    """Solve every sample with its operator (one ``set_operator`` per operator).
-
-    `version`: the solver's `operator_version` right after one shared operator was
-    set; if it still holds, the solver still has that operator and no check runs.
-    """
-    run = solver.solve_transpose if transpose else solver.solve
-    if version is not None and version == solver.operator_version:
-        return run(rhs)
-    if csr[2].ndim == 1:  # one operator for every row
-        solver.set_operator(csr, symmetric=symmetric)
-        return run(rhs)
-    indptr, indices, data, shape = csr
-    out = np.empty_like(rhs)
-    order = list(reversed(range(len(data)))) if transpose else list(range(len(data)))
-    calls = {}
-    kind = "last_adjoint" if transpose else "last_forward"
-    for i in order:
-        solver.set_operator((indptr, indices, data[i], shape), symmetric=symmetric)
-        try:
-            out[i] = run(rhs[i])
-        except SolverError as err:
-            raise type(err)(f"sample {i} of the batch: {err}", reason=err.reason) from err
-        calls[i] = getattr(solver, kind)
-    # one record of the whole batch, in batch order (the solves ran one per sample)
-    setattr(solver, kind, CallInfo.concat(calls[i] for i in range(len(data))))
-    return out
-
-
-class _ImplicitSolve(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, b, theta, P, csr, solver, outcome):
-        ctx.symmetric = P.is_symmetric if P is not None else None  # None: solver checks values
-        x = _solve_each(solver, csr, b.detach().cpu().numpy(), ctx.symmetric, transpose=False)
-        x = torch.from_numpy(x) if b.is_cpu else torch.from_numpy(x).to(b.device)
-        if csr[2].ndim == 1:  # one operator: the solver keeps it (read-only, never edited)
-            ctx.csr, ctx.version = solver.operator_csr(), solver.operator_version
-        else:  # a batch of operators: the ParametricMatrix's read-only values
-            ctx.csr, ctx.version = csr, None
-        ctx.P, ctx.solver, ctx.outcome = P, solver, outcome
-        if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
-            ctx.save_for_backward(x)
-        return x
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_x):
-        need_b, need_theta = ctx.needs_input_grad[:2]
-        if not (need_b or need_theta):
-            return None, None, None, None, None, None
-        # the operator is set again only if another solve replaced it since the forward;
-        # a NaN or Inf cotangent raises NonFiniteError in the solver (never a zero λ)
-        g = grad_x.detach().cpu().numpy()
-        lam = _solve_each(
-            ctx.solver, ctx.csr, g, ctx.symmetric, transpose=True, version=ctx.version
-        )
-        if ctx.outcome is not None:
-            ctx.outcome.info = ctx.solver.last_adjoint
-        per_sample = ctx.csr[2].ndim == 2
-        return *implicit_gradients(ctx, lam, grad_x, per_sample=per_sample), None, None, None, None
 
 
 def solve(
@@ -263,7 +199,8 @@ def _solve(A, b, solver, theta, mode, x0, outcome):
         from .unrolled import unrolled_solve
 
         return unrolled_solve(A, b, solver, theta=theta)
-    return _ImplicitSolve.apply(b, theta, P, csr, solver, outcome)
+    known_symmetric = P.is_symmetric if P is not None else None  # None: the solver tests
+    return ImplicitSolve.apply(b, theta, SolveOperator(P, csr, known_symmetric), solver, outcome)
 
 
 def _frozen_matrix(csr: tuple) -> sp.csr_matrix:
@@ -287,37 +224,28 @@ class ConstMatVec(torch.autograd.Function):
         return torch.from_numpy(g).to(grad.device), None
 
 
-def _product(P: ParametricMatrix, values: np.ndarray, v: np.ndarray, transpose: bool):
-    """``A v`` (``Aᵀ v``) for one operator or, with values (B, nnz), one per sample."""
-    if values.ndim == 2:
-        return P.matvecs(values, v, transpose=transpose)
-    A = sp.csr_matrix((values, P.indices, P.indptr), shape=P.shape)
-    return np.asarray(((A.T if transpose else A) @ v.T).T)
+class _CSRProduct:
+    """The `Product` of a `ParametricMatrix`'s values: one operator, or (B, nnz) values
+    one per sample."""
 
+    def __init__(self, P: ParametricMatrix, values: np.ndarray) -> None:
+        self.P, self.values = P, values
 
-class _MatVec(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, v, theta, P, values):
-        ctx.P, ctx.values = P, values
-        ctx.save_for_backward(v, theta)  # θ: a second derivative must see it (see .once)
-        y = _product(P, values, v.detach().cpu().numpy(), transpose=False)
-        return torch.from_numpy(y).to(v.device)
+    def _product(self, v: np.ndarray, transpose: bool) -> np.ndarray:
+        if self.values.ndim == 2:
+            return self.P.matvecs(self.values, v, transpose=transpose)
+        P = self.P
+        A = sp.csr_matrix((self.values, P.indices, P.indptr), shape=P.shape)
+        return np.asarray(((A.T if transpose else A) @ v.T).T)
 
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_y):
-        v, _ = ctx.saved_tensors
-        P = ctx.P
-        g = grad_y.detach().cpu().numpy()
-        grad_v = grad_theta = None
-        if ctx.needs_input_grad[0]:
-            grad_v = torch.from_numpy(_product(P, ctx.values, g, transpose=True))
-            grad_v = grad_v.to(grad_y.device)
-        if ctx.needs_input_grad[1]:
-            per_sample = ctx.values.ndim == 2
-            gt = P.vjp_matvec(g, v.detach().cpu().numpy(), per_sample=per_sample)
-            grad_theta = torch.from_numpy(gt).to(grad_y.device)
-        return grad_v, grad_theta, None, None
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        return self._product(v, transpose=False)
+
+    def apply_transpose(self, g: np.ndarray) -> np.ndarray:
+        return self._product(g, transpose=True)
+
+    def theta_vjp(self, g: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return self.P.vjp_matvec(g, v, per_sample=self.values.ndim == 2)
 
 
 def matvec(
@@ -337,4 +265,4 @@ def matvec(
     values = A.values(as_numpy(theta, "theta"))  # validates θ
     check_vector(as_numpy(v, "v"), A.shape[1], "v")
     _check_pairing(A, values, v.shape, "v")
-    return _MatVec.apply(v, theta, A, values)
+    return MatVec.apply(v, theta, _CSRProduct(A, values))

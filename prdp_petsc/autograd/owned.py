@@ -3,7 +3,8 @@
 With a `prdp_petsc.fem.distributed.DistributedParametricMatrix` operator,
 `prdp_petsc.solve`, `prdp_petsc.matvec` and `prdp_petsc.Dirichlet` take and return
 this rank's rows (and its own θ) as torch tensors; they come here.  The maths is
-the replicated bridge's: forward ``KSPSolve``, backward one transpose solve
+the replicated bridge's, run by the same autograd functions
+(`prdp_petsc.autograd.implicit`): forward ``KSPSolve``, backward one transpose solve
 ``Aᵀλ = g``, ``∂L/∂b = λ``, ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``; only the ghost
 values of x and the ghost elements' share of ∂L/∂θ cross between ranks (PETSc
 ghost exchanges, `prdp_petsc.core.ghosts`).
@@ -27,8 +28,9 @@ from ..core.parallel import as_petsc_comm
 from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
+from .implicit import ImplicitSolve, MatVec, SolveOperator
 from .once import once_differentiable
-from .tensors import as_numpy, implicit_gradients
+from .tensors import as_numpy
 
 __all__ = ["owned_matvec", "owned_solve", "sum_over_ranks"]
 
@@ -49,32 +51,6 @@ def _any_rank(comm, flag: bool) -> bool:
     from mpi4py import MPI
 
     return bool(comm.tompi4py().allreduce(bool(flag), op=MPI.LOR))
-
-
-class _OwnedSolve(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, b, theta, P, csr, solver, outcome):
-        solver.set_operator(csr)
-        x = torch.from_numpy(solver.solve(b.detach().cpu().numpy())).to(b.device)
-        ctx.P, ctx.csr, ctx.solver, ctx.outcome = P, csr, solver, outcome
-        ctx.version = solver.operator_version
-        if ctx.needs_input_grad[1]:
-            ctx.save_for_backward(x)
-        return x
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_x):
-        need_b, need_theta = ctx.needs_input_grad[:2]
-        if not (need_b or need_theta):
-            return None, None, None, None, None, None
-        solver = ctx.solver
-        if solver.operator_version != ctx.version:  # another solve replaced the operator
-            solver.set_operator(ctx.csr)
-        lam = solver.solve_transpose(grad_x.detach().cpu().numpy())
-        if ctx.outcome is not None:
-            ctx.outcome.info = solver.last_adjoint
-        return *implicit_gradients(ctx, lam, grad_x), None, None, None, None
 
 
 def owned_solve(
@@ -99,28 +75,24 @@ def owned_solve(
     _agree_shape(A, b, A.local_shape[0], "b")
     as_numpy(b, "b", finite=False)  # float64; NaN or Inf is refused by the solver on all ranks
     csr = A.owned_csr(as_numpy(theta, "theta", finite=False))  # validated on all ranks
-    return _OwnedSolve.apply(b, theta, A, csr, solver, outcome)
+    return ImplicitSolve.apply(b, theta, SolveOperator(A, csr), solver, outcome)
 
 
-class _OwnedMatVec(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, v, theta, P, values):
-        ctx.P, ctx.values = P, values
-        ctx.save_for_backward(v, theta)
-        return torch.from_numpy(P.matvec(values, v.detach().cpu().numpy())).to(v.device)
+class _OwnedProduct:
+    """The `Product` of a `DistributedParametricMatrix`'s values: this rank's entries of
+    v (its column block) in, its rows out (collective)."""
 
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_y):
-        v, _ = ctx.saved_tensors
-        g = grad_y.detach().cpu().numpy()
-        grad_v = grad_theta = None
-        if ctx.needs_input_grad[0]:
-            grad_v = torch.from_numpy(ctx.P.rmatvec(ctx.values, g)).to(grad_y.device)
-        if ctx.needs_input_grad[1]:
-            gt = ctx.P.vjp_matvec(g, v.detach().cpu().numpy())
-            grad_theta = torch.from_numpy(gt).to(grad_y.device)
-        return grad_v, grad_theta, None, None
+    def __init__(self, P: DistributedParametricMatrix, values: np.ndarray) -> None:
+        self.P, self.values = P, values
+
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        return self.P.matvec(self.values, v)
+
+    def apply_transpose(self, g: np.ndarray) -> np.ndarray:
+        return self.P.rmatvec(self.values, g)
+
+    def theta_vjp(self, g: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return self.P.vjp_matvec(g, v)
 
 
 def owned_matvec(
@@ -131,7 +103,7 @@ def owned_matvec(
     _agree_shape(A, v, A.local_shape[1], "v")
     as_numpy(v, "v")
     values = A.values(as_numpy(theta, "theta", finite=False))
-    return _OwnedMatVec.apply(v, theta, A, values)
+    return MatVec.apply(v, theta, _OwnedProduct(A, values))
 
 
 class _SumOverRanks(torch.autograd.Function):

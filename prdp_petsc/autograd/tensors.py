@@ -20,7 +20,7 @@ import torch
 
 from ..errors import InputError, NonFiniteError
 
-__all__ = ["as_numpy", "check_finite", "check_vector", "implicit_gradients"]
+__all__ = ["as_numpy", "check_finite", "check_vector"]
 
 
 def as_numpy(t: torch.Tensor, name: str, *, finite: bool = True) -> np.ndarray:
@@ -60,24 +60,3 @@ def check_vector(arr: np.ndarray, n: int, name: str) -> None:
     """`InputError` unless `arr` has shape ``(n,)`` or ``(batch, n)``."""
     if arr.ndim not in (1, 2) or arr.shape[-1] != n:
         raise InputError(f"{name} must have shape ({n},) or (batch, {n}), got {tuple(arr.shape)}")
-
-
-def implicit_gradients(ctx, lam: np.ndarray, grad_x: torch.Tensor, *, per_sample=False):
-    """``(∂L/∂b, ∂L/∂θ)`` of an implicit solve's backward from the adjoint λ:
-    ``∂L/∂b = λ`` and ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])`` (``ctx.P.theta_gradient`` with
-    the saved x), each None where ``ctx.needs_input_grad`` says it is not needed."""
-    need_b, need_theta = ctx.needs_input_grad[:2]
-    device = grad_x.device
-    grad_b = grad_theta = None
-    if need_b:
-        grad_b = torch.from_numpy(lam) if grad_x.is_cpu else torch.from_numpy(lam).to(device)
-    if need_theta:
-        (x,) = ctx.saved_tensors
-        x = x.detach().cpu().numpy()
-        gt = (
-            ctx.P.theta_gradient(lam, x, per_sample=True)
-            if per_sample
-            else ctx.P.theta_gradient(lam, x)
-        )
-        grad_theta = torch.from_numpy(gt).to(device)
-    return grad_b, grad_theta
