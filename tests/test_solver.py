@@ -373,7 +373,7 @@ def test_symmetric_adjoint_as_forward_solve_matches_transpose_solve(options, sym
     fast = pp.KSPSolver(options, max_it=4, adjoint=pp.AdjointSettings(symmetric_pc=symmetric_pc))
     slow = pp.KSPSolver(options, max_it=4, adjoint=pp.AdjointSettings(symmetric_pc=False))
     g_fast, g_slow = _grad_b(A, fast), _grad_b(A, slow)
-    assert fast.symmetric and fast._adjoint_is_forward() and not slow._adjoint_is_forward()
+    assert fast.is_symmetric and fast._adjoint_is_forward() and not slow._adjoint_is_forward()
     assert torch.allclose(g_fast, g_slow, rtol=1e-10, atol=1e-13)
     assert fast.stats.adjoint_iterations == slow.stats.adjoint_iterations == 4
 
@@ -382,7 +382,7 @@ def test_nonsymmetric_operator_keeps_the_transpose_solve():
     solver = pp.KSPSolver({"ksp_type": "gmres", "pc_type": "jacobi"}, max_it=50, rtol=1e-12)
     A = nonsymmetric()
     g = _grad_b(A, solver)
-    assert not solver.symmetric and not solver._adjoint_is_forward()
+    assert not solver.is_symmetric and not solver._adjoint_is_forward()
     w = randn(A.shape[0], seed=8).numpy()
     assert np.allclose(g.numpy(), spla.spsolve(A.T.tocsc(), w), rtol=1e-8, atol=1e-10)
 
@@ -391,11 +391,11 @@ def test_symmetry_is_rechecked_when_values_change():
     A = fd_poisson(4)
     solver = pp.KSPSolver({"ksp_type": "gmres"}, max_it=3)
     solver.set_operator(A)
-    assert solver.symmetric
+    assert solver.is_symmetric
     B = A.copy()
     B.data[1] += 0.25  # same pattern, values no longer symmetric
     solver.set_operator(B)
-    assert not solver.symmetric
+    assert not solver.is_symmetric
     known, flag = solver.mat.isSymmetricKnown()
     assert known and not flag
 
@@ -428,7 +428,7 @@ def test_rounding_level_asymmetry_counts_as_symmetric():
     B.data[1] *= 1 + 1e-16 * 4  # a last-bit difference, as assembly order produces
     solver = pp.KSPSolver({"ksp_type": "cg"}, max_it=3)
     solver.set_operator(B)
-    assert solver.symmetric
+    assert solver.is_symmetric
 
 
 def test_command_line_forward_options_reach_the_inheriting_adjoint():
@@ -490,42 +490,48 @@ def test_clone_copies_every_setting():
     assert solver.adjoint_max_it == 2  # settings objects are not shared
 
 
-def test_structure_is_declared_once_and_the_old_keywords_still_work():
-    """`structure=pp.Structure(...)` is the one spelling; ``nullspace=`` and the other
-    five keywords still work for one release, with a FutureWarning naming the new one."""
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("symmetric", True),
+        ("nullspace", "constant"),
+        ("transpose_nullspace", "constant"),
+        ("near_nullspace", "constant"),
+        ("block_size", 2),
+        ("fields", {"u": np.arange(2)}),
+    ],
+)
+def test_structure_is_declared_once_and_the_old_keywords_are_refused(name, value):
+    """`structure=pp.Structure(...)` is the one spelling: the keywords of 0.1's shims
+    (``nullspace=`` and the other five) are refused by the solver and by `clone`."""
+    with pytest.raises(TypeError, match=f"unexpected keyword argument '{name}'"):
+        pp.KSPSolver(max_it=5, **{name: value})
     with pp.KSPSolver(max_it=5, structure=pp.Structure(nullspace="constant")) as s:
         assert s.nullspace == s.transpose_nullspace == "constant" and s.block_size == 1
         copy = s.clone(max_it=3)
         assert copy.structure is s.structure
         copy.destroy()
-    with pytest.warns(FutureWarning, match=r"structure=pp.Structure\(nullspace=\.\.\."):
-        old = pp.KSPSolver(max_it=5, nullspace="constant", symmetric=True)
-    assert old.structure.nullspace == "constant" and old.declared_symmetric is True
-    with pytest.warns(FutureWarning):
-        assert old.clone(block_size=2).structure.block_size == 2
-    old.destroy()
-    with pytest.raises(pp.InputError, match="declare the structure once"):
-        pp.KSPSolver(max_it=5, structure=pp.Structure(), nullspace="constant")
-    with pytest.raises(TypeError, match="unexpected keyword"):
-        pp.KSPSolver(max_it=5, nulspace="constant")
+        with pytest.raises(TypeError, match=f"unexpected keyword argument '{name}'"):
+            s.clone(**{name: value})
+
+
+def test_structure_must_be_a_structure_and_the_shims_are_gone():
     with pytest.raises(TypeError, match="pp.Structure"):
         pp.KSPSolver(max_it=5, structure={"nullspace": "constant"})
+    with pp.KSPSolver(max_it=5) as s:
+        assert not hasattr(s, "setup") and not hasattr(s, "set_tolerances")
+        assert not hasattr(s, "symmetric")  # the outcome is is_symmetric
 
 
-def test_clone_with_a_new_null_space_moves_its_transpose_along():
+def test_clone_with_another_structure_takes_it_whole():
     v = np.ones(8) / np.sqrt(8.0)
     with pp.KSPSolver(max_it=5, structure=pp.Structure(nullspace="constant")) as s:
-        with pytest.warns(FutureWarning) as caught:
-            copy = s.clone(nullspace=v[None, :])
-        assert "transpose_nullspace" not in str(caught[0].message)
-        assert caught[0].filename == __file__  # the warning names the caller's line
+        copy = s.clone(structure=pp.Structure(nullspace=v[None, :]))
         assert copy.transpose_nullspace is copy.nullspace and copy.nullspace.shape == (1, 8)
         copy.destroy()
-        with pytest.raises(pp.InputError, match="declare the structure once"):
-            s.clone(structure=pp.Structure(), nullspace="constant")
-    with pytest.warns(FutureWarning) as caught:
-        pp.KSPSolver(max_it=5, symmetric=True).destroy()
-    assert caught[0].filename == __file__
+
+
+def test_structure_refuses_impossible_declarations():
     with pytest.raises(pp.InputError, match="symmetric must be"):
         pp.Structure(symmetric=1)
     with pytest.raises(pp.InputError, match="transpose_nullspace without nullspace"):

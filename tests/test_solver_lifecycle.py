@@ -47,7 +47,7 @@ def test_large_penalty_does_not_hide_an_asymmetry(epsilon, beta):
     b = randn(A.shape[0], seed=1, requires_grad=True)
     w = randn(A.shape[0], seed=2)
     pp.solve(A, b, solver).backward(w)
-    assert not solver.symmetric
+    assert not solver.is_symmetric
     exact = spla.spsolve(A.T.tocsc(), w.numpy())
     assert np.linalg.norm(b.grad.numpy() - exact) <= 1e-8 * np.linalg.norm(exact)
 
@@ -67,10 +67,10 @@ def test_declared_structure_wins_over_the_test():
     A = penalized_advection_diffusion(1e-20)
     solver = pp.KSPSolver(CG_JACOBI, max_it=3, structure=pp.Structure(symmetric=False))
     solver.set_operator(fd_poisson(4))
-    assert not solver.symmetric  # declared: no test, KSPSolveTranspose for the adjoint
+    assert not solver.is_symmetric  # declared: no test, KSPSolveTranspose for the adjoint
     solver = pp.KSPSolver(CG_JACOBI, max_it=3)
-    solver.set_operator(A, symmetric=True)
-    assert solver.symmetric
+    solver.set_operator(A, known_symmetric=True)
+    assert solver.is_symmetric
     K = pp.diffusion_operator(unit_square(1), "P0")
     declared = pp.ParametricMatrix(K.indptr, K.indices, K.shape, K.a0, K.G, symmetric=False)
     assert K.is_symmetric and not declared.is_symmetric
@@ -214,12 +214,12 @@ def test_options_reach_a_pc_set_up_again_for_a_new_pattern():
 def test_changed_symmetry_declaration_is_applied_for_unchanged_values():
     A = fd_poisson(4)
     solver = pp.KSPSolver(CG_JACOBI, max_it=3)
-    solver.set_operator(A, symmetric=True)
+    solver.set_operator(A, known_symmetric=True)
     version = solver.operator_version
-    solver.set_operator(A, symmetric=False)
-    assert not solver.symmetric and solver.operator_version > version
+    solver.set_operator(A, known_symmetric=False)
+    assert not solver.is_symmetric and solver.operator_version > version
     solver.set_operator(A)  # back to testing the values
-    assert solver.symmetric
+    assert solver.is_symmetric
 
 
 def test_read_only_view_of_a_changed_buffer_is_not_taken_as_unchanged():

@@ -83,7 +83,7 @@ def test_rounding_level_asymmetry_is_symmetric():
     A[0, 1], A[1, 0] = 1e-7, 1e-7 + 3e-16 * 3600
     with pp.KSPSolver("-ksp_type cg -pc_type jacobi", max_it=5) as solver:
         solver.set_operator(A.tocsr())
-        assert solver.symmetric is True
+        assert solver.is_symmetric is True
         solver.solve(RHS)
 
 

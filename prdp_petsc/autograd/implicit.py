@@ -65,7 +65,7 @@ class SolveOperator:
             return run(rhs)
         if self.per_sample:
             return self._solve_each(solver, rhs, transpose)
-        solver.set_operator(self.operator, symmetric=self.known_symmetric)
+        solver.set_operator(self.operator, known_symmetric=self.known_symmetric)
         out = run(rhs)
         self.operator = solver.operator_csr() or self.operator  # the solver's kept arrays
         self.version = solver.operator_version
@@ -80,7 +80,9 @@ class SolveOperator:
         order = reversed(range(len(data))) if transpose else range(len(data))
         calls = {}
         for i in order:
-            solver.set_operator((indptr, indices, data[i], shape), symmetric=self.known_symmetric)
+            solver.set_operator(
+                (indptr, indices, data[i], shape), known_symmetric=self.known_symmetric
+            )
             try:
                 out[i] = run(rhs[i])
             except SolverError as err:

@@ -173,7 +173,7 @@ class _Loop:
                 reason = "DIVERGED_MAX_IT"
             if reason is not None:
                 break
-            solver.set_operator(operator(u, *params), symmetric=symmetric)
+            solver.set_operator(operator(u, *params), known_symmetric=symmetric)
             try:
                 delta = solver.solve(-r)
             except SolverError as err:
@@ -228,7 +228,7 @@ class _NonlinearSolve(torch.autograd.Function):
         loop = ctx.loop
         problem, solver = loop.problem, loop.adjoint_solver
         symmetric = getattr(problem, "jacobian_symmetric", None)
-        solver.set_operator(problem.jacobian(u, *params), symmetric=symmetric)
+        solver.set_operator(problem.jacobian(u, *params), known_symmetric=symmetric)
         lam = solver.solve_transpose(grad_u.detach().cpu().numpy())
         products = problem.vjp(u, lam, *params, needs=needs)
         grads = []

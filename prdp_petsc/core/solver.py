@@ -16,7 +16,6 @@ import os
 import sys
 import time
 import warnings
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -40,13 +39,7 @@ from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings
 from .step import SolveStep
-from .structure import (
-    STRUCTURE_FIELDS,
-    Structure,
-    check_structure,
-    merged_structure,
-    warn_structure_keywords,
-)
+from .structure import Structure, check_structure
 
 if TYPE_CHECKING:  # mpi4py is optional (the `mpi` extra)
     from mpi4py import MPI
@@ -130,10 +123,6 @@ class KSPSolver:
         collective: each rank passes the same full operator and right-hand sides,
         keeps its own rows in an MPIAIJ matrix, and gets the full solution back
         (the *replicated* layout of `prdp_petsc.core.parallel`).
-    **declared
-        ``symmetric``, ``nullspace``, ``transpose_nullspace``, ``near_nullspace``,
-        ``block_size``, ``fields`` one by one: the spelling of earlier releases,
-        still accepted with a ``FutureWarning``; use ``structure=``.
 
     Notes
     -----
@@ -212,7 +201,6 @@ class KSPSolver:
         pc_lag: int = 1,
         pc_lag_tol: float = 1.2,
         comm: PETSc.Comm | MPI.Comm | None = None,
-        **declared: Any,
     ) -> None:
         if not_converged not in NOT_CONVERGED:
             raise InputError(
@@ -225,7 +213,9 @@ class KSPSolver:
         #: options, prefixes and tolerances (`prdp_petsc.core.configuration.Configuration`)
         self.config = Configuration(options, prefix, max_it, rtol, atol, adjoint, divtol)
         #: the declared structure of every operator (`prdp_petsc.core.structure.Structure`)
-        self.structure = merged_structure(structure, declared)
+        self.structure = Structure() if structure is None else structure
+        if not isinstance(self.structure, Structure):
+            raise TypeError(f"structure must be a pp.Structure, got {type(structure).__name__}")
         self.check_structure = bool(check_structure)
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
@@ -293,9 +283,10 @@ class KSPSolver:
         return self._op.mat
 
     @property
-    def symmetric(self) -> bool | None:
-        """Whether the current operator is symmetric (declared or tested); None if unknown
-        (a caller's PETSc Mat without ``MAT_SYMMETRIC`` set)."""
+    def is_symmetric(self) -> bool | None:
+        """Whether the current operator is symmetric: declared (``structure.symmetric``,
+        else `set_operator`'s ``known_symmetric``), else tested; None if unknown (a
+        caller's PETSc Mat without ``MAT_SYMMETRIC`` set)."""
         return self._op.symmetric
 
     @property
@@ -372,15 +363,6 @@ class KSPSolver:
                 self._ksp.setOperators(self._op.mat)
                 self._adj.setOperators(self._op.mat)
                 self._op.version += 1
-
-    def setup(self, comm: PETSc.Comm | None = None) -> None:
-        """Deprecated name of `rebuild_on` (it never meant PETSc's ``KSPSetUp``)."""
-        warnings.warn(
-            "KSPSolver.setup(comm) is deprecated: it is KSPSolver.rebuild_on(comm)",
-            FutureWarning,
-            stacklevel=2,
-        )
-        self.rebuild_on(comm)
 
     def destroy(self) -> None:
         """Free the KSPs, the Mat made here and the work vectors; the solver is unusable."""
@@ -462,17 +444,6 @@ class KSPSolver:
         self.config.set_adjoint_max_it(value)
         self._apply_tolerances()
 
-    def set_tolerances(self, *, rtol: float | None = None, atol: float | None = None) -> None:
-        """Deprecated: set the properties, ``solver.rtol = ...`` / ``solver.atol = ...``."""
-        warnings.warn(
-            "KSPSolver.set_tolerances(...) is deprecated: set solver.rtol / solver.atol",
-            FutureWarning,
-            stacklevel=2,
-        )
-        given = {k: v for k, v in (("rtol", rtol), ("atol", atol)) if v is not None}
-        self.config.set_tolerances(**given)
-        self._apply_tolerances()
-
     def _apply_tolerances(self) -> None:
         if self._ksp is not None:
             self.config.apply(self._ksp, self._adj)
@@ -499,21 +470,13 @@ class KSPSolver:
         Options, prefix, tolerances, ``not_converged``, adjoint settings, ``divtol``,
         null spaces, block size, near-null space, fields, the symmetry declaration,
         the structure check, the PC lag and the communicator are copied;
-        keyword arguments (any of `KSPSolver`'s) replace them.
+        keyword arguments (any of `KSPSolver`'s) replace them, e.g.
+        ``clone(structure=Structure(nullspace="constant"))`` for another structure.
         """
-        declared = {k: changes.pop(k) for k in STRUCTURE_FIELDS if k in changes}
-        if declared and "structure" in changes:
-            merged_structure(changes["structure"], declared)  # raises: declared twice
-        structure = changes.pop("structure", self.structure)
-        if declared:  # the old spelling: what it names replaces the copied declaration
-            warn_structure_keywords(declared)
-            if "nullspace" in declared and structure.transpose_nullspace is structure.nullspace:
-                declared.setdefault("transpose_nullspace", None)  # follows the new one
-            structure = merged_structure(replace(structure, **declared), {})
         kwargs = {
             **self.config.arguments(),
             "not_converged": self.not_converged,
-            "structure": structure,
+            "structure": self.structure,
             "check_structure": self.check_structure,
             "pc_lag": self.pc_lag,
             "pc_lag_tol": self.pc_lag_tol,
@@ -554,7 +517,10 @@ class KSPSolver:
         return self._op.csr()
 
     def set_operator(
-        self, A: sp.spmatrix | PETSc.Mat | OwnedCSR | tuple, *, symmetric: bool | None = None
+        self,
+        A: sp.spmatrix | PETSc.Mat | OwnedCSR | tuple,
+        *,
+        known_symmetric: bool | None = None,
     ) -> None:
         """Set the matrix; the PC is set up again only if its values changed (and then
         only every `pc_lag`-th time).
@@ -565,16 +531,17 @@ class KSPSolver:
             A PETSc Mat is used as given (any communicator, e.g. distributed); an
             `~prdp_petsc.core.operator.OwnedCSR` (this rank's rows only) becomes an
             MPIAIJ Mat of those rows.  Both give the owned layout.
-        symmetric : bool, optional
-            Whether A = Aᵀ, if the caller knows (e.g. `ParametricMatrix.is_symmetric`);
-            the solver's own `symmetric` declaration wins.  Otherwise a CSR operator
-            is tested entry against mirror whenever its values change, and a
-            PETSc Mat is asked (``MatIsSymmetricKnown``).
+        known_symmetric : bool, optional
+            Whether A = Aᵀ, if the caller knows (e.g. `ParametricMatrix.is_symmetric`,
+            which the bridge passes: it spares the test); the declared
+            ``structure.symmetric`` wins.  Otherwise a CSR operator is tested entry
+            against mirror whenever its values change, and a PETSc Mat is asked
+            (``MatIsSymmetricKnown``).  The outcome is `is_symmetric`.
         """
         self._alive()
         if self.declared_symmetric is not None:
-            symmetric = self.declared_symmetric
-        change = self._op.update(A, symmetric)
+            known_symmetric = self.declared_symmetric
+        change = self._op.update(A, known_symmetric)
         if change == "new":
             self._attach(self._op.mat)
             self._lag.operator_changed(new_mat=True)

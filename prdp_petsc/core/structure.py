@@ -26,7 +26,6 @@ and are not.  Experts turn the check off with ``KSPSolver(check_structure=False)
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,14 +37,11 @@ from .fields import normalize_fields
 from .nullspace import normalize_nullspace
 
 __all__ = [
-    "STRUCTURE_FIELDS",
     "SYMMETRIC_ONLY_KSP",
     "SYMMETRIC_ONLY_PC",
     "Structure",
     "check_structure",
-    "merged_structure",
     "symmetric_only",
-    "warn_structure_keywords",
 ]
 
 
@@ -56,10 +52,11 @@ class Structure:
     Parameters
     ----------
     symmetric : bool, optional
-        ``True`` (A = Aᵀ), ``False``, or ``None`` (default) to take the operator's own
-        declaration (`ParametricMatrix.symmetric`, the ``symmetric=`` of
-        `KSPSolver.set_operator`) or else test every entry against its mirror whenever
-        the values change.
+        ``True`` (A = Aᵀ), ``False``, or ``None`` (default) to take what the caller
+        knows of each operator (`ParametricMatrix.is_symmetric`, the
+        ``known_symmetric=`` of `KSPSolver.set_operator`) or else test every entry
+        against its mirror whenever the values change (`KSPSolver.is_symmetric` says
+        which it is).
     nullspace : "constant" or array_like (k, n), optional
         Null space of a singular operator (pure Neumann, periodic), attached to every
         Mat with ``MatSetNullSpace``: Krylov iterates stay orthogonal to it and the
@@ -121,47 +118,6 @@ class Structure:
         set_(self, "near_nullspace", normalize_nullspace(self.near_nullspace, "near_nullspace"))
         set_(self, "block_size", int(size))
         set_(self, "fields", normalize_fields(self.fields))
-
-
-#: the declarations of a `Structure`, also accepted one by one (the old spelling) by
-#: `KSPSolver` and `KSPSolver.clone`
-STRUCTURE_FIELDS = (
-    "symmetric",
-    "nullspace",
-    "transpose_nullspace",
-    "near_nullspace",
-    "block_size",
-    "fields",
-)
-
-
-def warn_structure_keywords(declared: dict, stacklevel: int = 3) -> None:
-    """The deprecation warning of ``KSPSolver(nullspace=..., ...)``; `stacklevel` points
-    it at the caller's line."""
-    names = ", ".join(f"{k}=" for k in declared)
-    warnings.warn(
-        f"KSPSolver({names}) is deprecated: declare the structure once, "
-        f"KSPSolver(structure=pp.Structure({names.replace('=', '=...')}))",
-        FutureWarning,
-        stacklevel=stacklevel,
-    )
-
-
-def merged_structure(structure: Structure | None, declared: dict) -> Structure:
-    """`structure` (None: nothing declared), or the old keyword arguments `declared`."""
-    unknown = set(declared) - set(STRUCTURE_FIELDS)
-    if unknown:
-        raise TypeError(f"KSPSolver got unexpected keyword arguments {sorted(unknown)}")
-    if structure is not None and not isinstance(structure, Structure):
-        raise TypeError(f"structure must be a pp.Structure, got {type(structure).__name__}")
-    if not declared:
-        return structure if structure is not None else Structure()
-    if structure is not None:
-        raise InputError(
-            f"declare the structure once: structure= and {sorted(declared)} were both given"
-        )
-    warn_structure_keywords(declared, stacklevel=4)  # the caller of KSPSolver(...)
-    return Structure(**declared)
 
 
 #: KSP types whose iteration is only valid for a symmetric operator (PETSc 3.26)
