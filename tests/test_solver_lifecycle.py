@@ -267,3 +267,32 @@ def test_setup_on_another_communicator_keeps_the_operator():
     solver._build(PETSc.COMM_SELF)
     solver.rebuild_on(PETSc.COMM_SELF)  # same size: nothing to do
     assert solver.operator_version == version
+
+
+def test_operator_layouts_report_what_changed_and_keep_counting_across_kinds():
+    """One layout class per operator kind (`layout_for`), one `Change` per update; a new
+    kind continues the version count, so a backward's remembered version never matches."""
+    from prdp_petsc.core.operator import CallerMat, Change, ReplicatedCSR, layout_for
+
+    A = fd_poisson(3)
+    op = layout_for(A)
+    assert type(op) is ReplicatedCSR and op.mat is None
+    assert op.update(A) is Change.NEW and op.symmetric
+    assert op.update(A.copy()) is Change.NONE
+    assert op.update(A, known_symmetric=False) is Change.SYMMETRY and not op.symmetric
+    assert op.update(2.0 * A) is Change.VALUES and op.symmetric  # tested again
+    assert layout_for(op.mat, op) is op and op.update(op.mat) is Change.NONE  # its own Mat
+    version = op.version
+    mat = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr, A.indices, A.data))
+    held = layout_for(mat, op)
+    assert type(held) is CallerMat and held.version == version and op.mat is None
+    assert held.update(mat) is Change.NEW and held.version == version + 1
+    assert held.csr() is None and held.arrays() == [] and held.symmetric is None  # not known
+    assert layout_for(mat, held) is held and held.update(mat) is Change.NONE
+    with pytest.raises(TypeError, match="OwnedCSR"):
+        layout_for(np.eye(3), held)
+    back = layout_for(A, held)
+    assert type(back) is ReplicatedCSR and back.update(A) is Change.NEW
+    assert back.version == version + 2 and held.mat is None
+    back.destroy()
+    mat.destroy()

@@ -1,5 +1,11 @@
 """The PETSc Mat behind a `KSPSolver`, kept in step with the caller's operator.
 
+One class per operator layout, behind one interface (`OperatorLayout`: `update`
+returns a `Change`; ``mat``, ``csr``, ``norm``, ``symmetric``, ``arrays``,
+``destroy``): `ReplicatedCSR` (a CSR matrix every rank holds in full), `CallerMat` (a
+caller's PETSc Mat, used as given) and `OwnedRows` (this rank's rows, `OwnedCSR`).
+`layout_for` picks the class once per operator kind.
+
 A scipy CSR matrix (or a tuple ``(indptr, indices, data, shape)``) becomes a
 ``MATAIJ`` once (sequential, or on a larger communicator an MPIAIJ that holds
 this rank's rows of the full CSR matrix every rank passes: see
@@ -16,7 +22,7 @@ values are kept as an array nobody can change: the library's own when it made th
 otherwise a copy made when the values change, never per call (a caller's read-only
 array may have writeable views, so it is copied too).  The pattern is kept the same way, a copy
 made once per new pattern.  An array is never edited in place once kept: new values
-replace it.  `OperatorMat.csr` hands out these arrays, so a backward that holds them
+replace it.  `ReplicatedCSR.csr` hands out these arrays, so a backward that holds them
 can set its operator again after another solve replaced it, at no extra copy; an
 unchanged caller's matrix passed again costs one comparison of its values (by
 identity, without a pass, when the library owns them).  The comparison is needed
@@ -40,6 +46,7 @@ has new values or is unchanged, since each of those steps is collective.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 import scipy.sparse as sp
@@ -51,13 +58,24 @@ from .parallel import ownership_range
 from .safeguards import operator_norm
 from .sparsity import DIAGONAL_RTOL, csr_symmetric, transpose_permutation
 
-__all__ = ["OperatorMat", "OwnedCSR", "as_csr", "frozen_csr"]
+__all__ = [
+    "LAYOUTS",
+    "CallerMat",
+    "Change",
+    "OperatorLayout",
+    "OwnedCSR",
+    "OwnedRows",
+    "ReplicatedCSR",
+    "as_csr",
+    "frozen_csr",
+    "layout_for",
+]
 
 
 def as_csr(A, *, finite: bool = True) -> tuple:
     """``(indptr, indices, data, shape)`` of a scipy matrix or such a tuple (validated).
 
-    `finite`: also refuse NaN or Inf values (`NonFiniteError`); `OperatorMat.update`
+    `finite`: also refuse NaN or Inf values (`NonFiniteError`); `ReplicatedCSR.update`
     tests only values it has not seen, so an unchanged operator costs no pass.
     """
     if isinstance(A, tuple):
@@ -118,7 +136,7 @@ def frozen_csr(A) -> tuple:
     the others.
 
     The implicit solve does not need this (the solver keeps the forward's operator,
-    `OperatorMat.csr`); a constant matrix product whose backward needs the forward's
+    `ReplicatedCSR.csr`); a constant matrix product whose backward needs the forward's
     matrix does.
     """
     indptr, indices, data, shape = as_csr(A)
@@ -174,8 +192,26 @@ class OwnedCSR:
             raise NonFiniteError("A has NaN or Inf entries")
 
 
-class OperatorMat:
-    """One PETSc Mat, its CSR pattern and the values it holds.
+class Change(Enum):
+    """What `OperatorLayout.update` changed, and so what the solver must do."""
+
+    #: a new Mat (pattern, size or communicator): attach it under the KSPs
+    NEW = "new"
+    #: new values in the same Mat: the PC is set up again (every `pc_lag`-th time)
+    VALUES = "values"
+    #: the same values, only the caller's symmetry declaration changed
+    SYMMETRY = "symmetry"
+    #: nothing
+    NONE = "none"
+
+
+class OperatorLayout:
+    """One layout of the operator behind a `KSPSolver`: one PETSc Mat and what is kept of it.
+
+    One subclass per layout (`ReplicatedCSR`, `CallerMat`, `OwnedRows`), each saying
+    which operators it takes (`accepts`); `layout_for` chooses among them once per
+    operator kind, so another layout (device matrices) is one more class in
+    `LAYOUTS`.
 
     Attributes
     ----------
@@ -185,153 +221,184 @@ class OperatorMat:
         Mat whose structure nobody declared.
     version : int
         Increases whenever the Mat or its values change: a caller that remembers
-        it can tell in O(1) whether the Mat still holds its operator.
+        it can tell in O(1) whether the Mat still holds its operator.  A new layout
+        continues the count of the one it replaces.
     replicated : bool
-        True when the Mat was made here from a CSR matrix every rank holds in full
-        (vectors are full length), False for a caller's Mat (vectors hold the
-        rank's own rows).
+        True when every rank holds the full operator and full-length vectors (a Mat
+        made here from a CSR matrix every rank passes), False when vectors hold the
+        rank's own rows.
+    made_here : bool
+        Whether the Mat was made here (and so cannot be edited by a caller).
     block_size : int
-        Rows per block (``MatSetBlockSize``) of every Mat held here.
+        Rows per block (``MatSetBlockSize``) of the Mat held here.
     """
 
-    def __init__(self, comm=None, block_size: int = 1):
+    replicated: bool = True
+    made_here: bool = True
+
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
         self.comm = PETSc.COMM_SELF if comm is None else comm
         self.block_size = int(block_size)
         self.mat: PETSc.Mat | None = None
-        self.replicated = True
-        self.symmetric = False
-        self.version = 0
-        self._owned = False
-        self._declared: bool | None = None  # the caller's word on a Mat of its own
-        self._pattern: tuple | None = None  # (indptr, indices, shape) as PETSc ints
-        self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
-        self._values: np.ndarray | None = None  # the library's own, or a copy it owns
-        self._tperm: np.ndarray | None = None
+        self.symmetric: bool | None = False
+        self.version = version
+        self._declared: bool | None = None  # the caller's word on symmetry
         self._norm: tuple[int, float] | None = None  # (version, ‖A‖) of `norm`
 
-    def update(self, A, symmetric: bool | None = None) -> str:
-        """Hold operator `A`; return what changed.
+    @classmethod
+    def accepts(cls, A) -> bool:
+        """Whether operator `A` is of this layout's kind."""
+        raise NotImplementedError
 
-        ``"new"`` (a new Mat), ``"values"`` (new values in the same Mat),
-        ``"symmetry"`` (only the caller's symmetry declaration) or ``"same"``.
-        """
-        if isinstance(A, OwnedCSR):
-            return self._update_owned(A, A.symmetric if symmetric is None else symmetric)
-        if isinstance(A, PETSc.Mat):
-            if A is self.mat:
-                return "same"
-            self._set_block_size(A)
-            self.destroy()
-            self.mat = A
-            self.replicated = False
-            self._declared = symmetric
-            self.refresh_symmetry()
-            self.version += 1
-            return "new"
+    def update(self, A, known_symmetric: bool | None = None) -> Change:
+        """Hold operator `A` (of this layout's kind, or the Mat held); return what changed.
+
+        `known_symmetric`: whether A = Aᵀ, if the caller knows; None to test it (or
+        ask PETSc)."""
+        if A is self.mat:
+            return Change.NONE
+        return self._update(A, known_symmetric)
+
+    def _update(self, A, known_symmetric: bool | None) -> Change:
+        raise NotImplementedError
+
+    def csr(self) -> tuple | None:
+        """``(indptr, indices, data, shape)`` of the operator held, as kept here: arrays
+        nobody changes (new values replace `data`, never edit it), so a caller may hold
+        them and set them again later (`update` recognises them without a comparison).
+        None unless the layout keeps the full CSR matrix (`ReplicatedCSR`)."""
+        return None
+
+    def refresh_symmetry(self) -> None:
+        """Ask the Mat again whether it is symmetric, where a caller may have edited it."""
+
+    def norm(self) -> float:
+        """``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂ of the current values, kept until they change
+        (collective; a caller's Mat edited in place keeps its old norm)."""
+        if self._norm is None or self._norm[0] != self.version:
+            self._norm = (self.version, operator_norm(self.mat))
+        return self._norm[1]
+
+    def arrays(self) -> list[np.ndarray]:
+        """The numpy arrays kept here (values, pattern, transpose permutation)."""
+        return []
+
+    def destroy(self) -> None:
+        """Free a Mat made here (a caller's Mat is left alone) and forget the operator."""
+        if self.made_here and self.mat is not None:
+            self.mat.destroy()
+        self.mat = None
+
+    def _redeclare(self, known_symmetric: bool | None) -> Change:
+        """Unchanged values: `Change.NONE`, unless the symmetry declaration changed."""
+        if known_symmetric == self._declared:
+            return Change.NONE
+        self._mark_symmetry(known_symmetric)
+        self.version += 1
+        return Change.SYMMETRY
+
+    def _mark_symmetry(self, known_symmetric: bool | None) -> None:
+        """Take the declaration, or test A = Aᵀ (`_tested_symmetric`), and tell PETSc."""
+        self._declared = known_symmetric
+        symmetric = self._tested_symmetric() if known_symmetric is None else known_symmetric
+        self.symmetric = bool(symmetric)
+        self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
+
+    def _tested_symmetric(self) -> bool:
+        raise NotImplementedError
+
+
+class _KeptCSR(OperatorLayout):
+    """What the layouts whose Mat is made here from CSR arrays share: the kept values
+    and pattern, and the caller's pattern arrays recognised by identity."""
+
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
+        super().__init__(comm, block_size, version)
+        self._indptr: np.ndarray | None = None  # the pattern as kept, PETSc ints
+        self._indices: np.ndarray | None = None
+        self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
+        self._values: np.ndarray | None = None  # the library's own, or a copy it owns
+
+    def arrays(self) -> list[np.ndarray]:
+        kept = [self._values, self._indptr, self._indices]
+        return [a for a in kept if a is not None]
+
+    def destroy(self) -> None:
+        super().destroy()
+        self._indptr = self._indices = self._source = self._values = None
+
+
+class ReplicatedCSR(_KeptCSR):
+    """A scipy CSR matrix (or ``(indptr, indices, data, shape)``) every rank holds in
+    full, as a ``MATAIJ`` made here: sequential, or on a larger communicator an MPIAIJ
+    holding this rank's rows (split by whole blocks; `prdp_petsc.core.parallel`).
+    Symmetry is declared or tested entry against mirror."""
+
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
+        super().__init__(comm, block_size, version)
+        self._shape: tuple | None = None
+        self._tperm: np.ndarray | None = None
+
+    @classmethod
+    def accepts(cls, A) -> bool:
+        return isinstance(A, tuple) or sp.issparse(A)
+
+    def _update(self, A, known_symmetric: bool | None) -> Change:
         if isinstance(A, tuple) and A[2] is self._values and self._known(A[0], A[1]):
             # the values kept (the library's own): this operator's `csr`, or values the
             # library made and set last; nothing to compare
-            return self._redeclare(symmetric)
+            return self._redeclare(known_symmetric)
         indptr, indices, data, shape = as_csr(A, finite=False)
         if self._same_pattern(indptr, indices, shape):
             # compare with the kept values: the caller may have changed `data` in place
             if equal(data, self._values):
-                return self._redeclare(symmetric)  # kept values were tested finite
+                return self._redeclare(known_symmetric)  # kept values were tested finite
             check_values(data)
             self._set_values(data)
             self._values = _kept(data)  # replaced, never edited: a backward may hold it
             self._source = (indptr, indices)
-            self._mark_symmetry(symmetric)
+            self._mark_symmetry(known_symmetric)
             self.version += 1
-            return "values"
+            return Change.VALUES
         check_values(data)
         if shape[0] % self.block_size:
             raise InputError(
                 f"the operator has {shape[0]} rows, not a multiple of block_size={self.block_size}"
             )
         self.destroy()
-        ip, ix = _kept(indptr, PETSc.IntType), _kept(indices, PETSc.IntType)
-        self._pattern = (ip, ix, shape)
+        self._indptr, self._indices = _kept(indptr, PETSc.IntType), _kept(indices, PETSc.IntType)
+        self._shape = shape
         self._make_mat(data)
-        self._owned = True
-        self.replicated = True
         self._source = (indptr, indices)
         self._values = _kept(data)
-        self._tperm = transpose_permutation(ip, ix, shape)
-        self._mark_symmetry(symmetric)
+        self._tperm = transpose_permutation(self._indptr, self._indices, shape)
+        self._mark_symmetry(known_symmetric)
         self.version += 1
-        return "new"
-
-    @property
-    def owned(self) -> bool:
-        """Whether the Mat was made here (not a caller's, which the caller may edit)."""
-        return self._owned
+        return Change.NEW
 
     def csr(self) -> tuple | None:
-        """``(indptr, indices, data, shape)`` of the operator held, as kept here: arrays
-        nobody changes (new values replace `data`, never edit it), so a caller may hold
-        them and set them again later (`update` recognises them without a comparison).
-        None for a caller's Mat or the owned layout."""
-        if self._pattern is None or not self.replicated or not self._owned:
+        if self._indptr is None:
             return None
-        ip, ix, shape = self._pattern
-        return ip, ix, self._values, shape
+        return self._indptr, self._indices, self._values, self._shape
 
-    def _update_owned(self, A: OwnedCSR, symmetric: bool | None) -> str:
-        """`update` for this rank's rows of a distributed matrix (decided collectively)."""
-        same_pattern = (
-            self._pattern is not None
-            and self._pattern[2] == ("owned", A.shape, A.local_shape)
-            and (
-                (self._source[0] is A.indptr and self._source[1] is A.indices)
-                or (
-                    np.array_equal(self._pattern[0], A.indptr)
-                    and np.array_equal(self._pattern[1], A.indices)
-                )
-            )
-        )
-        same_values = same_pattern and equal(A.data, self._values)
-        same_pattern, same_values = _all_ranks(A.comm, same_pattern, same_values)
-        if same_values:
-            return self._redeclare(symmetric)
-        if same_pattern:
-            self.mat.setValuesCSR(self._pattern[0], self._pattern[1], A.data)
-            self.mat.assemble()
-        else:
-            (m, n), (M, N) = A.local_shape, A.shape
-            if not _all_ranks(A.comm, m % self.block_size == 0 and n % self.block_size == 0)[0]:
-                raise InputError(
-                    f"block_size={self.block_size} does not divide the rows of every rank "
-                    f"(here {m}): the owned layout splits rows by mesh vertices, so it "
-                    "carries a block size only if every rank owns whole blocks"
-                )
-            self.destroy()
-            ip = np.asarray(A.indptr, dtype=PETSc.IntType)
-            ix = np.asarray(A.indices, dtype=PETSc.IntType)
-            self._pattern = (ip, ix, ("owned", A.shape, A.local_shape))
-            self.mat = PETSc.Mat().createAIJ(
-                size=((m, M), (n, N)), bsize=self.block_size, csr=(ip, ix, A.data), comm=A.comm
-            )
-            self.mat.assemble()
-            self._owned = True
-            self.replicated = False
-        self._source = (A.indptr, A.indices)
-        self._values = _kept(A.data, np.float64)
-        self._mark_symmetry(symmetric)
-        self.version += 1
-        return "values" if same_pattern else "new"
+    def arrays(self) -> list[np.ndarray]:
+        return [*super().arrays(), *([self._tperm] if self._tperm is not None else [])]
+
+    def destroy(self) -> None:
+        super().destroy()
+        self._shape = self._tperm = None
 
     def _local_rows(self, data: np.ndarray) -> tuple:
         """This rank's rows of the CSR pattern and of `data` (all of them on one rank)."""
-        ip, ix, shape = self._pattern
+        ip, ix = self._indptr, self._indices
         if self.comm.getSize() == 1:
             return ip, ix, data
-        start, end = ownership_range(shape[0], self.comm, self.block_size)
+        start, end = ownership_range(self._shape[0], self.comm, self.block_size)
         lo, hi = int(ip[start]), int(ip[end])
         return ip[start : end + 1] - ip[start], ix[lo:hi], data[lo:hi]
 
     def _make_mat(self, data: np.ndarray) -> None:
-        shape = self._pattern[2]
+        shape = self._shape
         ip, ix, local = self._local_rows(data)
         if self.comm.getSize() == 1:
             size = shape
@@ -342,6 +409,63 @@ class OperatorMat:
             size=size, bsize=self.block_size, csr=(ip, ix, local), comm=self.comm
         )
         self.mat.assemble()
+
+    def _set_values(self, data: np.ndarray) -> None:
+        ip, ix, local = self._local_rows(data)
+        self.mat.setValuesCSR(ip, ix, local)
+        self.mat.assemble()
+
+    def _known(self, indptr, indices) -> bool:
+        """Whether (indptr, indices) are the arrays of the pattern held (no comparison)."""
+        if self._indptr is None:
+            return False
+        return (indptr is self._source[0] and indices is self._source[1]) or (
+            indptr is self._indptr and indices is self._indices
+        )
+
+    def _same_pattern(self, indptr, indices, shape) -> bool:
+        if self._indptr is None or self._shape != shape:
+            return False
+        if self._known(indptr, indices):
+            return True
+        return equal(self._indptr, indptr) and equal(self._indices, indices)
+
+    def _tested_symmetric(self) -> bool:
+        """Entry against mirror, on the kept values."""
+        return self._tperm is not None and csr_symmetric(
+            self._indptr, self._indices, self._values, self._shape, self._tperm
+        )
+
+
+class CallerMat(OperatorLayout):
+    """A caller's PETSc Mat, used as given (any communicator: vectors hold the rank's own
+    rows).  Nothing is kept or copied: the caller may edit it, so its symmetry is asked
+    again (``MatIsSymmetricKnown``) before it decides the adjoint's maths."""
+
+    replicated = False
+    made_here = False
+
+    @classmethod
+    def accepts(cls, A) -> bool:
+        return isinstance(A, PETSc.Mat)
+
+    def _update(self, A: PETSc.Mat, known_symmetric: bool | None) -> Change:
+        self._set_block_size(A)
+        self.destroy()
+        self.mat = A
+        self._declared = known_symmetric
+        self.refresh_symmetry()
+        self.version += 1
+        return Change.NEW
+
+    def refresh_symmetry(self) -> None:
+        if self.mat is None:
+            return
+        if self._declared is not None:
+            self.symmetric = bool(self._declared)
+        else:
+            known, flag = self.mat.isSymmetricKnown()
+            self.symmetric = bool(flag) if known else None
 
     def _set_block_size(self, mat: PETSc.Mat) -> None:
         """Give a caller's Mat the block size (``MatSetBlockSize``), if it has another."""
@@ -356,77 +480,104 @@ class OperatorMat:
                 "(MatSetBlockSize before its preallocation)"
             ) from err
 
-    def _set_values(self, data: np.ndarray) -> None:
-        ip, ix, local = self._local_rows(data)
-        self.mat.setValuesCSR(ip, ix, local)
-        self.mat.assemble()
 
-    def _redeclare(self, symmetric: bool | None) -> str:
-        """Unchanged values: ``"same"``, unless the symmetry declaration changed."""
-        if symmetric == self._declared:
-            return "same"
-        self._mark_symmetry(symmetric)
-        self.version += 1
-        return "symmetry"
+class OwnedRows(_KeptCSR):
+    """This rank's rows of a distributed matrix (`OwnedCSR`, the owned layout): an MPIAIJ
+    Mat made here from those rows alone.  Every rank decides together (one small
+    ``MPI_Allreduce``) whether the Mat is new, has new values or is unchanged, since
+    each of those steps is collective; symmetry is declared or asked of PETSc."""
 
-    def refresh_symmetry(self) -> None:
-        """Ask a caller's Mat again whether it is symmetric (it may have been edited)."""
-        if self.mat is not None and not self._owned:
-            if self._declared is not None:
-                self.symmetric = bool(self._declared)
-            else:
-                known, flag = self.mat.isSymmetricKnown()
-                self.symmetric = bool(flag) if known else None
+    replicated = False
 
-    def _known(self, indptr, indices) -> bool:
-        """Whether (indptr, indices) are the arrays of the pattern held (no comparison)."""
-        if self._pattern is None:
-            return False
-        return (indptr is self._source[0] and indices is self._source[1]) or (
-            indptr is self._pattern[0] and indices is self._pattern[1]
-        )
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
+        super().__init__(comm, block_size, version)
+        self._sizes: tuple | None = None  # (shape, local_shape) of the pattern held
 
-    def _same_pattern(self, indptr, indices, shape) -> bool:
-        if self._pattern is None or self._pattern[2] != shape:
-            return False
-        if self._known(indptr, indices):
-            return True
-        return equal(self._pattern[0], indptr) and equal(self._pattern[1], indices)
+    @classmethod
+    def accepts(cls, A) -> bool:
+        return isinstance(A, OwnedCSR)
 
-    def _mark_symmetry(self, symmetric: bool | None) -> None:
-        """Test A = Aᵀ entry against mirror (unless declared) and tell PETSc."""
-        self._declared = symmetric
-        if symmetric is None and not self.replicated:  # this rank's rows only: ask PETSc
-            scale = self.mat.norm(PETSc.NormType.INFINITY)
-            symmetric = self.mat.isSymmetric(DIAGONAL_RTOL * scale)
-        elif symmetric is None:
-            ip, ix, shape = self._pattern
-            symmetric = self._tperm is not None and csr_symmetric(
-                ip, ix, self._values, shape, self._tperm
+    def _update(self, A: OwnedCSR, known_symmetric: bool | None) -> Change:
+        if known_symmetric is None:
+            known_symmetric = A.symmetric
+        same_pattern = (
+            self._indptr is not None
+            and self._sizes == (A.shape, A.local_shape)
+            and (
+                (self._source[0] is A.indptr and self._source[1] is A.indices)
+                or (
+                    np.array_equal(self._indptr, A.indptr)
+                    and np.array_equal(self._indices, A.indices)
+                )
             )
-        self.symmetric = bool(symmetric)
-        self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, self.symmetric)
-
-    def norm(self) -> float:
-        """``max(‖A‖₁, ‖A‖_∞)`` ≥ ‖A‖₂ of the current values, kept until they change
-        (collective; a caller's Mat edited in place keeps its old norm)."""
-        if self._norm is None or self._norm[0] != self.version:
-            self._norm = (self.version, operator_norm(self.mat))
-        return self._norm[1]
-
-    def arrays(self) -> list[np.ndarray]:
-        """The numpy arrays kept here: the values, the PETSc-int pattern and the
-        transpose permutation (none for a caller's Mat)."""
-        kept = [self._values, self._tperm, *(self._pattern[:2] if self._pattern else ())]
-        return [a for a in kept if a is not None]
+        )
+        same_values = same_pattern and equal(A.data, self._values)
+        same_pattern, same_values = _all_ranks(A.comm, same_pattern, same_values)
+        if same_values:
+            return self._redeclare(known_symmetric)
+        if same_pattern:
+            self.mat.setValuesCSR(self._indptr, self._indices, A.data)
+            self.mat.assemble()
+        else:
+            (m, n), (M, N) = A.local_shape, A.shape
+            if not _all_ranks(A.comm, m % self.block_size == 0 and n % self.block_size == 0)[0]:
+                raise InputError(
+                    f"block_size={self.block_size} does not divide the rows of every rank "
+                    f"(here {m}): the owned layout splits rows by mesh vertices, so it "
+                    "carries a block size only if every rank owns whole blocks"
+                )
+            self.destroy()
+            self._indptr = np.asarray(A.indptr, dtype=PETSc.IntType)
+            self._indices = np.asarray(A.indices, dtype=PETSc.IntType)
+            self._sizes = (A.shape, A.local_shape)
+            self.mat = PETSc.Mat().createAIJ(
+                size=((m, M), (n, N)),
+                bsize=self.block_size,
+                csr=(self._indptr, self._indices, A.data),
+                comm=A.comm,
+            )
+            self.mat.assemble()
+        self._source = (A.indptr, A.indices)
+        self._values = _kept(A.data, np.float64)
+        self._mark_symmetry(known_symmetric)
+        self.version += 1
+        return Change.VALUES if same_pattern else Change.NEW
 
     def destroy(self) -> None:
-        """Free a Mat made here (a caller's Mat is left alone) and forget the pattern."""
-        if self._owned and self.mat is not None:
-            self.mat.destroy()
-        self.mat = None
-        self._owned = False
-        self._pattern = self._source = self._values = self._tperm = None
+        super().destroy()
+        self._sizes = None
+
+    def _tested_symmetric(self) -> bool:
+        """This rank's rows only: PETSc's ``MatIsSymmetric`` (it transposes the Mat)."""
+        scale = self.mat.norm(PETSc.NormType.INFINITY)
+        return self.mat.isSymmetric(DIAGONAL_RTOL * scale)
+
+
+#: the operator layouts, each taking one kind of operator (`OperatorLayout.accepts`)
+LAYOUTS: tuple[type[OperatorLayout], ...] = (ReplicatedCSR, CallerMat, OwnedRows)
+
+
+def layout_for(
+    A, held: OperatorLayout | None = None, *, comm=None, block_size: int = 1
+) -> OperatorLayout:
+    """The layout that holds operator `A`: `held` if it is of A's kind (or holds A's
+    Mat), else a new one of the kind that accepts A, continuing `held`'s version (the
+    old one destroyed).  `TypeError` for an operator no layout takes."""
+    if held is not None and (A is held.mat or held.accepts(A)):
+        return held
+    for kind in LAYOUTS:
+        if kind.accepts(A):
+            break
+    else:
+        raise TypeError(
+            "A must be a scipy sparse matrix, a CSR tuple, a PETSc.Mat or an OwnedCSR, "
+            f"got {type(A)}"
+        )
+    version = 0
+    if held is not None:
+        version = held.version
+        held.destroy()
+    return kind(comm, block_size, version)
 
 
 def _all_ranks(comm: PETSc.Comm, *flags: bool) -> list[bool]:

@@ -33,7 +33,7 @@ from .nullspace import (
     attach_nullspaces,
     check_nullspaces,
 )
-from .operator import OperatorMat, OwnedCSR
+from .operator import Change, OperatorLayout, OwnedCSR, ReplicatedCSR, layout_for
 from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, SolveInfo, SolverError, SolverStats
@@ -221,7 +221,8 @@ class KSPSolver:
         self.last: SolveInfo | None = None
         self.last_forward: CallInfo | None = None
         self.last_adjoint: CallInfo | None = None
-        self._op = OperatorMat(self.comm, self.block_size)
+        #: the operator's layout (`prdp_petsc.core.operator`), chosen by its kind
+        self._op: OperatorLayout = ReplicatedCSR(self.comm, self.block_size)
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
         self._layout: RowLayout | None = None
@@ -541,11 +542,12 @@ class KSPSolver:
         self._alive()
         if self.declared_symmetric is not None:
             known_symmetric = self.declared_symmetric
+        self._op = layout_for(A, self._op, comm=self.comm, block_size=self.block_size)
         change = self._op.update(A, known_symmetric)
-        if change == "new":
+        if change is Change.NEW:
             self._attach(self._op.mat)
             self._lag.operator_changed(new_mat=True)
-        elif change == "values":
+        elif change is Change.VALUES:
             self._lag.operator_changed()
             self.stats.operator_updates += 1
             if self.nullspace is not None:
@@ -705,7 +707,7 @@ class KSPSolver:
         """The `SolveStep` of this call: kept per kind while the operator (a Mat made
         here, whose null spaces only this solver sets) and the adjoint's maths (PC
         type, ``symmetric_pc``) stay."""
-        if not self._op.owned:  # a caller's Mat may be edited: ask it every call
+        if not self._op.made_here:  # a caller's Mat may be edited: ask it every call
             as_transpose = transpose and not self._adjoint_is_forward()
             return SolveStep(
                 ksp, mat, self._b, self._x, self._layout, kind, as_transpose, self._op.norm
