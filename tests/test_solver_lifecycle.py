@@ -296,3 +296,21 @@ def test_operator_layouts_report_what_changed_and_keep_counting_across_kinds():
     assert back.version == version + 2 and held.mat is None
     back.destroy()
     mat.destroy()
+
+
+def test_each_side_keeps_its_own_record_through_a_rebuild():
+    """Forward and adjoint are one object each (`Side`); a record names its side by the
+    plain word a JSON file holds, and new KSPs keep the last records."""
+    from prdp_petsc.core.results import Side
+
+    solver = pp.KSPSolver(CG_JACOBI, max_it=3)
+    solver.set_operator(fd_poisson(3))
+    solver.solve(np.ones(9))
+    solver.solve_transpose(np.ones(9))
+    forward, adjoint = solver.last_forward, solver.last_adjoint
+    assert (forward.kind, adjoint.kind) == (Side.FORWARD.value, Side.ADJOINT.value)
+    assert type(forward.kind) is str and forward.iterations == adjoint.iterations == 3
+    solver._destroy_ksps()
+    solver._build(PETSc.COMM_SELF)
+    assert solver.last_forward is forward and solver.last_adjoint is adjoint
+    solver.destroy()

@@ -3,19 +3,31 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from petsc4py import PETSc
 
 from ..errors import SolverError
 
-__all__ = ["CallInfo", "SolveInfo", "SolverError", "SolverStats", "reason_name"]
+__all__ = ["CallInfo", "Side", "SolveInfo", "SolverError", "SolverStats", "reason_name"]
 
 _REASONS = {
     getattr(PETSc.KSP.ConvergedReason, name): name
     for name in dir(PETSc.KSP.ConvergedReason)
     if name.isupper() and isinstance(getattr(PETSc.KSP.ConvergedReason, name), int)
 }
+
+
+class Side(StrEnum):
+    """The two solves of a `KSPSolver`: forward ``A x = b`` and adjoint ``Aᵀ λ = g``.
+
+    The values are the words a record uses (`CallInfo.kind`, `SolverStats.record`):
+    ``Side.FORWARD.value == "forward"``.
+    """
+
+    FORWARD = "forward"
+    ADJOINT = "adjoint"
 
 
 def reason_name(reason: int) -> str:
@@ -91,6 +103,7 @@ class CallInfo:
     Attributes
     ----------
     kind : {"forward", "adjoint"}
+        The `Side` of the call, as its value (a plain string in a JSON record).
     samples : tuple of SolveInfo
     """
 
@@ -151,7 +164,7 @@ class CallInfo:
     def concat(calls) -> CallInfo:
         """One record of several calls of the same kind (a batch of operators)."""
         calls = list(calls)
-        kind = calls[0].kind if calls else "forward"
+        kind = calls[0].kind if calls else Side.FORWARD.value
         return CallInfo(kind, tuple(s for c in calls for s in c.samples))
 
 
@@ -176,7 +189,7 @@ class SolverStats:
 
     def record(self, kind: str, solves: int, iterations: int, seconds: float) -> None:
         """Add one call's work to the ``forward`` or ``adjoint`` counters."""
-        if kind == "forward":
+        if kind == Side.FORWARD:
             self.forward_solves += solves
             self.forward_iterations += iterations
             self.forward_time += seconds

@@ -36,7 +36,7 @@ from .nullspace import (
 from .operator import Change, OperatorLayout, OwnedCSR, ReplicatedCSR, layout_for
 from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
-from .results import CallInfo, SolveInfo, SolverError, SolverStats
+from .results import CallInfo, Side, SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings
 from .step import SolveStep
 from .structure import Structure, check_structure
@@ -56,6 +56,62 @@ _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
 NOT_CONVERGED = ("warn", "raise", "ignore")
 # a warning points at the first frame outside these folders: the caller's line
 _INTERNAL = (str(Path(__file__).parents[1]) + os.sep,)
+
+
+class _Side:
+    """One of a `KSPSolver`'s two solves (`Side.FORWARD` or `Side.ADJOINT`): its KSP and
+    what the solver keeps of it between calls.
+
+    A rebuild (`KSPSolver.rebuild_on`) gives it a new KSP and forgets what belonged to
+    the old one; `last` stays.
+    """
+
+    __slots__ = (
+        "has_fields",
+        "ksp",
+        "last",
+        "prefix",
+        "setup_version",
+        "side",
+        "step",
+        "unchecked",
+    )
+
+    def __init__(self, side: Side, prefix: str) -> None:
+        self.side = side
+        #: its options prefix (the adjoint's is ``<prefix>adj_`` unless set)
+        self.prefix = prefix
+        self.ksp: PETSc.KSP | None = None
+        #: the `CallInfo` of its last call
+        self.last: CallInfo | None = None
+        self.use(None)
+
+    def use(self, ksp: PETSc.KSP | None) -> None:
+        """Take `ksp` (None: none) with nothing done on it yet."""
+        self.ksp = ksp
+        #: the operator version its PC was set up for at its last call (-1: none yet)
+        self.setup_version = -1
+        #: the check for options PETSc never read is pending (it follows the first call)
+        self.unchecked = True
+        #: ``PCFieldSplitSetIS`` was called on its PC
+        self.has_fields = False
+        #: ``(key, SolveStep)`` kept between calls while the key holds (`KSPSolver._step`)
+        self.step: tuple | None = None
+
+    @property
+    def transpose(self) -> bool:
+        """Whether it solves with Aᵀ."""
+        return self.side is Side.ADJOINT
+
+    def types(self) -> str:
+        """``"ksp_type/pc_type"`` as PETSc runs them."""
+        return f"{self.ksp.getType()}/{self.ksp.getPC().getType()}"
+
+    def destroy(self) -> None:
+        """Free the KSP (the side keeps `last`)."""
+        if self.ksp is not None:
+            self.ksp.destroy()
+        self.use(None)
 
 
 class KSPSolver:
@@ -219,16 +275,14 @@ class KSPSolver:
         self.check_structure = bool(check_structure)
         self.stats = SolverStats()
         self.last: SolveInfo | None = None
-        self.last_forward: CallInfo | None = None
-        self.last_adjoint: CallInfo | None = None
         #: the operator's layout (`prdp_petsc.core.operator`), chosen by its kind
         self._op: OperatorLayout = ReplicatedCSR(self.comm, self.block_size)
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
         self._layout: RowLayout | None = None
-        self._steps: dict = {}  # kind -> (key, SolveStep) kept between calls (`_step`)
-        self._ksp: PETSc.KSP | None = None
-        self._adj: PETSc.KSP | None = None
+        #: the forward and the adjoint solve, one object each
+        self._fwd = _Side(Side.FORWARD, self.prefix)
+        self._adj = _Side(Side.ADJOINT, self.adjoint_prefix)
         self._kernels: dict = {}  # layout -> PETSc null spaces, made once (`attach_nullspaces`)
         self._build(self.comm)
 
@@ -268,13 +322,33 @@ class KSPSolver:
     def ksp(self) -> PETSc.KSP:
         """The forward PETSc KSP."""
         self._alive()
-        return self._ksp
+        return self._fwd.ksp
 
     @property
     def adjoint_ksp(self) -> PETSc.KSP:
         """The transpose-solve PETSc KSP."""
         self._alive()
-        return self._adj
+        return self._adj.ksp
+
+    @property
+    def last_forward(self) -> CallInfo | None:
+        """`CallInfo` of the last forward call (every sample's iterations, reason and
+        residual).  Set by `prdp_petsc.autograd.implicit` to one record of a batch of
+        operators, which it solves one call per operator."""
+        return self._fwd.last
+
+    @last_forward.setter
+    def last_forward(self, call: CallInfo | None) -> None:
+        self._fwd.last = call
+
+    @property
+    def last_adjoint(self) -> CallInfo | None:
+        """`CallInfo` of the last adjoint call (as `last_forward`)."""
+        return self._adj.last
+
+    @last_adjoint.setter
+    def last_adjoint(self, call: CallInfo | None) -> None:
+        self._adj.last = call
 
     @property
     def mat(self) -> PETSc.Mat:
@@ -312,18 +386,17 @@ class KSPSolver:
         """Increases whenever the operator (or its values) changes; compare to skip work."""
         return self._op.version
 
+    def _sides(self) -> tuple[_Side, _Side]:
+        return self._fwd, self._adj
+
     def _alive(self) -> None:
-        if self._ksp is None:
+        if self._fwd.ksp is None:
             raise RuntimeError("this KSPSolver was destroyed")
 
     def _build(self, comm) -> None:
         """Create and configure both KSPs on `comm`, fully or not at all."""
         self._items = self.config.option_items()
-        self._setup_version = {"forward": -1, "adjoint": -1}
-        self._steps = {}  # they hold the KSPs
         self._lag.reset()  # new KSPs: every PC is set up at its first solve
-        self._unchecked = {"forward": True, "adjoint": True}  # unused-option check pending
-        self._has_fields = {"forward": False, "adjoint": False}  # PCFieldSplitSetIS done
         ksp = adj = None
         pushed = PushedOptions(self._items, watch=True)
         try:
@@ -345,7 +418,8 @@ class KSPSolver:
         self._used = set(pushed.used)
         for obj in (ksp, adj):  # read by safeguards.rescue
             obj.setConvergenceHistory(reset=True)
-        self._ksp, self._adj = ksp, adj
+        self._fwd.use(ksp)
+        self._adj.use(adj)
         self.config.apply(ksp, adj)
         logger.debug("KSPs %r, %r built", self.prefix, self.adjoint_prefix)
 
@@ -357,12 +431,12 @@ class KSPSolver:
         PETSc's ``KSPSetUp``, which every solve runs as needed.)
         """
         self._alive()
-        if comm is not None and comm.getSize() != self._ksp.getComm().getSize():
+        if comm is not None and comm.getSize() != self._fwd.ksp.getComm().getSize():
             self._destroy_ksps()
             self._build(comm)
             if self._op.mat is not None:  # a caller's distributed Mat: re-attach it
-                self._ksp.setOperators(self._op.mat)
-                self._adj.setOperators(self._op.mat)
+                for side in self._sides():
+                    side.ksp.setOperators(self._op.mat)
                 self._op.version += 1
 
     def destroy(self) -> None:
@@ -373,17 +447,16 @@ class KSPSolver:
         self._destroy_ksps()
 
     def _free_vecs(self) -> None:
-        self._steps = {}  # they hold the Vecs
+        for side in self._sides():
+            side.step = None  # it holds the Vecs
         for obj in (self._x, self._b, self._layout):
             if obj is not None:
                 obj.destroy()
         self._x = self._b = self._layout = None
 
     def _destroy_ksps(self) -> None:
-        for obj in (self._ksp, self._adj):
-            if obj is not None:
-                obj.destroy()
-        self._ksp = self._adj = None
+        for side in self._sides():
+            side.destroy()
 
     def __enter__(self) -> KSPSolver:
         return self
@@ -446,8 +519,8 @@ class KSPSolver:
         self._apply_tolerances()
 
     def _apply_tolerances(self) -> None:
-        if self._ksp is not None:
-            self.config.apply(self._ksp, self._adj)
+        if self._fwd.ksp is not None:
+            self.config.apply(self._fwd.ksp, self._adj.ksp)
 
     def describe(self) -> dict:
         """JSON-ready record of the solver: prefixes, tolerances, options and the
@@ -455,7 +528,10 @@ class KSPSolver:
         return {
             **self.config.describe(),
             "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
-            "adjoint": {"ksp_type": self._adj.getType(), "pc_type": self._adj.getPC().getType()},
+            "adjoint": {
+                "ksp_type": self.adjoint_ksp.getType(),
+                "pc_type": self.adjoint_ksp.getPC().getType(),
+            },
             "ranks": self.ksp.getComm().getSize(),
             "pc_lag": self.pc_lag,
             "pc_lag_tol": self.pc_lag_tol,
@@ -486,19 +562,17 @@ class KSPSolver:
         }
         return type(self)(**kwargs)
 
-    def _unused_after(self, kind: str, pushed: PushedOptions) -> str | None:
-        """After the first `kind` call: the message naming options of this solver that
+    def _unused_after(self, side: _Side, pushed: PushedOptions) -> str | None:
+        """After the first call of `side`: the message naming options of this solver that
         PETSc never read (misspelt, or meant for another type or split), or None."""
-        self._unchecked[kind] = False
+        side.unchecked = False
         self._used |= pushed.used
-        unused = self.config.unused(kind, self._used)
+        unused = self.config.unused(side.side.value, self._used)
         if not unused:
             return None
-        ksp = self._adj if kind == "adjoint" else self._ksp
-        prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
         return (
-            f"PETSc never read these options of the {kind} KSP (prefix {prefix!r}, "
-            f"{ksp.getType()}/{ksp.getPC().getType()}): "
+            f"PETSc never read these options of the {side.side.value} KSP (prefix "
+            f"{side.prefix!r}, {side.types()}): "
             + ", ".join("-" + n for n in unused)
             + "; check their spelling (-help lists the options PETSc reads; a split's "
             "options are fieldsplit_<name>_..., with the names of fields=)"
@@ -556,18 +630,18 @@ class KSPSolver:
     def _attach(self, mat: PETSc.Mat) -> None:
         """Put a new Mat (new pattern, size or communicator) under both KSPs, with the
         declared structure: null spaces, near-null space, fields."""
-        if mat.getComm().getSize() != self._ksp.getComm().getSize():
+        if mat.getComm().getSize() != self._fwd.ksp.getComm().getSize():
             self.rebuild_on(mat.getComm())
         if self.nullspace is not None:
             attach_nullspaces(mat, self.nullspace, self.transpose_nullspace, self._kernels)
         if self.near_nullspace is not None:
             attach_near_nullspace(mat, self.near_nullspace)
         if self._x is not None and self._x.getSizes() != mat.getSizes()[1]:
-            for ksp in (self._ksp, self._adj):  # another size: KSPReset, options stay
-                ksp.reset()
-            self._has_fields = {"forward": False, "adjoint": False}  # the reset dropped them
-        self._ksp.setOperators(mat)
-        self._adj.setOperators(mat)
+            for side in self._sides():  # another size: KSPReset, options stay
+                side.ksp.reset()
+                side.has_fields = False  # the reset dropped them
+        for side in self._sides():
+            side.ksp.setOperators(mat)
         if self.fields is not None:
             self._attach_fields(mat)
         self._free_vecs()
@@ -578,56 +652,56 @@ class KSPSolver:
     def _attach_fields(self, mat: PETSc.Mat) -> None:
         """``PCFieldSplitSetIS`` on the forward PC and on an adjoint PC of its own, once
         per PC (PETSc keeps them for a new Mat, and a second call adds them twice)."""
-        for kind, ksp in (("forward", self._ksp), ("adjoint", self._adj)):
-            if kind == "adjoint" and self._shared_pc:
+        for side in self._sides():
+            if side is self._adj and self._shared_pc:
                 continue  # the forward PC's fields serve both
-            if self._has_fields[kind]:
+            if side.has_fields:
                 continue
-            attach_fields(ksp.getPC(), self.fields, mat)
-            self._has_fields[kind] = True
+            attach_fields(side.ksp.getPC(), self.fields, mat)
+            side.has_fields = True
 
     def _adjoint_is_forward(self) -> bool:
         """True when ``Aᵀλ = g`` can run as a forward solve of the adjoint KSP."""
         self._op.refresh_symmetry()  # a caller's Mat may have been edited
         if not self._op.symmetric or self.adjoint.symmetric_pc is False:
             return False
-        return self.adjoint.symmetric_pc or self._adj.getPC().getType() in _SYMMETRIC_PCS
+        return self.adjoint.symmetric_pc or self._adj.ksp.getPC().getType() in _SYMMETRIC_PCS
 
     # -- solves ---------------------------------------------------------------------
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` from a zero initial guess; `b` is ``(n,)`` or ``(B, n)``."""
-        return self._run(b, transpose=False)
+        return self._run(b, self._fwd)
 
     def solve_transpose(self, g: np.ndarray) -> np.ndarray:
         """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``."""
         safeguards.check_transpose_ksp(self.adjoint_ksp)
-        return self._run(g, transpose=True)
+        return self._run(g, self._adj)
 
-    def _run(self, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
+    def _run(self, rhs: np.ndarray, side: _Side) -> np.ndarray:
         self._alive()
         mat = self.mat
         rhs = np.asarray(rhs, dtype=np.float64)
         batch = rhs.reshape(-1, rhs.shape[-1])
         layout = self._layout
-        kind = "adjoint" if transpose else "forward"
+        kind = side.side
         if batch.shape[1] != layout.size:
             rows = "rows" if layout.replicated or not layout.distributed else "local rows"
             raise InputError(
                 f"right-hand side has {batch.shape[1]} entries, operator has {layout.size} {rows}"
             )
         self._check_finite(batch, kind)
-        ksp = self._adj if transpose else self._ksp
-        step = self._step(kind, ksp, mat, transpose)
+        ksp = side.ksp
+        step = self._step(side, mat)
         out = np.empty_like(batch)
-        check = self._unchecked[kind]
-        slot = "forward" if self._shared_pc else kind  # a shared PC has one age
+        check = side.unchecked
+        slot = Side.FORWARD if self._shared_pc else kind  # a shared PC has one age
         age = self._lag.before_solve(slot, ksp, self.stats)
         t0 = time.perf_counter()
         iterations = 0
         # the options are in PETSc's database while it may read them: at the PC set-up
         # after a new operator (GAMG reads its level options there), and at the first
         # solve, to learn which were never read.  KSPSolve itself reads none.
-        setup = check or self._setup_version[kind] != self._op.version
+        setup = check or side.setup_version != self._op.version
         pushed = PushedOptions(self._items, watch=check) if setup else _NOTHING_PUSHED
         try:
             with pushed:
@@ -657,14 +731,14 @@ class KSPSolver:
                     for i in range(len(batch)):
                         iterations += step(batch[i], out[i])
                 finally:
-                    self._record(kind, self._lag.after_solve(slot, kind, step.infos, age))
+                    self._record(side, self._lag.after_solve(slot, kind, step.infos, age))
         except SolverError as err:
-            if check and (unused := self._unused_after(kind, pushed)):
+            if check and (unused := self._unused_after(side, pushed)):
                 # a misspelt option (a split's, say) is often why the set-up failed
                 raise type(err)(f"{err}; {unused}", reason=err.reason) from err
             raise
-        self._setup_version[kind] = self._op.version
-        if check and (unused := self._unused_after(kind, pushed)):
+        side.setup_version = self._op.version
+        if check and (unused := self._unused_after(side, pushed)):
             warnings.warn(unused, UnusedOptionWarning, stacklevel=3)
         # the step saw a finite ‖x‖ of every row (so no NaN/Inf), or a sum: fast path
         finite = step.finite or bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))
@@ -675,23 +749,23 @@ class KSPSolver:
         elapsed = time.perf_counter() - t0
         self.stats.record(kind, len(batch), iterations, elapsed)
         if step.unconverged and self.not_converged != "ignore":
-            self._report_unconverged(kind, step, len(batch))
+            self._report_unconverged(side, step, len(batch))
         return out.reshape(rhs.shape)
 
-    def _report_unconverged(self, kind: str, step: SolveStep, rows: int) -> None:
+    def _report_unconverged(self, side: _Side, step: SolveStep, rows: int) -> None:
         """`NotConvergedWarning` (or `SolverError`) for the rows of this call that had a
         tolerance and hit max_it, naming the worst one's true residual."""
         row, residual = max(step.unconverged, key=lambda item: item[1].relative)
         info = step.infos[row]
-        ksp = self._adj if kind == "adjoint" else self._ksp
+        ksp, kind = side.ksp, side.side
         rtol, atol = ksp.getTolerances()[:2]
         count = len(step.unconverged)
         which = "" if rows == 1 else f" (row {row}, the worst of {count} of {rows})"
-        adjoint = kind == "adjoint"
+        adjoint = side.transpose
         relation = "‖g − Aᵀλ‖/‖g‖" if adjoint else "‖b − A x‖/‖b‖"
         cap = "the adjoint's max_it (AdjointSettings(max_it=...))" if adjoint else "max_it"
         message = (
-            f"{kind} solve ({ksp.getType()}/{ksp.getPC().getType()}) did not converge: "
+            f"{kind} solve ({side.types()}) did not converge: "
             f"{info.reason} after {info.iterations} iterations with rtol={rtol:g}, "
             f"atol={atol:g}{which}; true residual {relation} = {residual.relative:.3g}. "
             f"Raise {cap}, loosen rtol, or choose another KSP/PC"
@@ -703,30 +777,37 @@ class KSPSolver:
         message += " (KSPSolver(not_converged='ignore') accepts such solves silently)"
         warnings.warn(message, NotConvergedWarning, stacklevel=_caller_level())
 
-    def _step(self, kind: str, ksp: PETSc.KSP, mat: PETSc.Mat, transpose: bool) -> SolveStep:
-        """The `SolveStep` of this call: kept per kind while the operator (a Mat made
+    def _step(self, side: _Side, mat: PETSc.Mat) -> SolveStep:
+        """The `SolveStep` of this call: kept on its side while the operator (a Mat made
         here, whose null spaces only this solver sets) and the adjoint's maths (PC
         type, ``symmetric_pc``) stay."""
+        transpose = side.transpose
         if not self._op.made_here:  # a caller's Mat may be edited: ask it every call
             as_transpose = transpose and not self._adjoint_is_forward()
             return SolveStep(
-                ksp, mat, self._b, self._x, self._layout, kind, as_transpose, self._op.norm
+                side.ksp,
+                mat,
+                self._b,
+                self._x,
+                self._layout,
+                side.side,
+                as_transpose,
+                self._op.norm,
             )
         # what `_adjoint_is_forward` reads (the PC type: a caller may set it on `adjoint_ksp`)
-        pc_type = self._adj.getPC().getType() if transpose else None
+        pc_type = self._adj.ksp.getPC().getType() if transpose else None
         key = (self._op.version, self.adjoint.symmetric_pc, pc_type)
-        kept = self._steps.get(kind)
-        if kept is not None and kept[0] == key:
-            kept[1].reset()
-            return kept[1]
+        if side.step is not None and side.step[0] == key:
+            side.step[1].reset()
+            return side.step[1]
         as_transpose = transpose and not self._adjoint_is_forward()
         step = SolveStep(
-            ksp, mat, self._b, self._x, self._layout, kind, as_transpose, self._op.norm
+            side.ksp, mat, self._b, self._x, self._layout, side.side, as_transpose, self._op.norm
         )
-        self._steps[kind] = (key, step)
+        side.step = (key, step)
         return step
 
-    def _check_finite(self, batch: np.ndarray, kind: str) -> None:
+    def _check_finite(self, batch: np.ndarray, kind: Side) -> None:
         """NaN or Inf in a right-hand side: `NonFiniteError` before any row is solved
         (PETSc would return x = 0 with ``DIVERGED_NANORINF``).  One pass: the sum of
         every entry is finite unless one is NaN or Inf (or the sum overflows: then the
@@ -737,10 +818,10 @@ class KSPSolver:
         if bad:
             rows = np.flatnonzero(~np.all(np.isfinite(batch), axis=1)).tolist()
             where = f" (rows {rows[:5]}{', ...' if len(rows) > 5 else ''})" if rows else ""
-            rhs = "right-hand side (cotangent)" if kind == "adjoint" else "right-hand side"
+            rhs = "right-hand side (cotangent)" if kind is Side.ADJOINT else "right-hand side"
             raise NonFiniteError(f"{kind} solve: the {rhs} contains NaN or Inf{where}")
 
-    def _check_structure(self, ksp: PETSc.KSP, kind: str) -> None:
+    def _check_structure(self, ksp: PETSc.KSP, kind: Side) -> None:
         """`check_structure` of `ksp` against the operator, its sub-solvers after set-up."""
         symmetric = self._op.symmetric
         check_structure(ksp, symmetric, kind)  # before set-up: the cheap, common case
@@ -748,9 +829,8 @@ class KSPSolver:
             ksp.setUp()  # KSPSolve would; now the blocks' KSPs exist
             check_structure(ksp, symmetric, kind, set_up=True)
 
-    def _record(self, kind: str, infos: list[SolveInfo]) -> None:
-        call = CallInfo(kind, tuple(infos))
-        setattr(self, f"last_{kind}", call)
+    def _record(self, side: _Side, infos: list[SolveInfo]) -> None:
+        side.last = CallInfo(side.side.value, tuple(infos))
         self.last = infos[-1] if infos else None
 
     def reset_stats(self) -> None:
