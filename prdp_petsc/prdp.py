@@ -45,6 +45,9 @@ ACCURACY_BAND = 0.05
 START_FRACTION = 1 / 8
 #: ... and every refinement multiplies K by this factor (capped at K_full)
 GROWTH = 2.0
+#: a certified K is checked again once it has run this many times the epochs it had run at
+#: its last check, or ``tol / gap`` times where that is more (a gap far inside the band)
+RECHECK_GROWTH = 2.0
 
 
 @dataclass(frozen=True)
@@ -75,23 +78,36 @@ class PRDPStep:
 
 @dataclass(frozen=True)
 class Certificate:
-    """Outcome of one fidelity check: the same validation quantity at K and at K_full.
+    """Outcome of one fidelity check: the same validation quantity at K and at a
+    higher cap, the `reference` (K_full, or the next level below it), on the same weights.
 
-    ``gap = ‖check(k) − check(k_full)‖ / ‖check(k_full)‖`` on the same weights; the
-    model trained at K is *certified* when ``gap ≤ tol``: at its K the solve changes
-    what training sees (the validation gradient, say) by less than the accuracy band.
+    ``gap = ‖check(k) − check(reference)‖ / scale``, where `scale` is the largest
+    ``‖check(reference)‖`` of the checks at this K so far (this one included); the model
+    trained at K is *certified* when ``gap ≤ tol``: at its K the solve changes what
+    training sees (the validation gradient, say) by less than the accuracy band of the
+    gradient's size at this K.  A scale that is not the current gradient's keeps a
+    converging optimisation (``‖check‖ → 0``) from reading a constant solve error as
+    a growing one.
 
     Attributes
     ----------
     k, k_full : int
         The cap checked and the converged cap.
     at_k, at_full : float
-        ``‖check(k)‖`` and ``‖check(k_full)‖`` (the values themselves for numbers).
+        ``‖check(k)‖`` and ``‖check(reference)‖`` (the values themselves for numbers).
     gap, tol : float
         Relative fidelity gap and the band it is held to.
     epoch : int
         Number of `PRDP.update` calls before the check (the end of training for
         `PRDP.certify` after the last epoch).
+    reference : int, optional
+        The cap `k` was compared with (None: `k_full`).  `PRDP.certify` compares with
+        K_full; a check during training with the next level, ``next_k(k)``, while that
+        is below K_full (a solve at K_full / 4 costs a quarter of one at K_full, and
+        for a solve whose error falls geometrically the next level's error is a small
+        fraction of K's, so the two gaps agree).
+    scale : float, optional
+        The norm the gap is relative to (None: `at_full`).
     """
 
     k: int
@@ -101,6 +117,13 @@ class Certificate:
     gap: float
     tol: float
     epoch: int
+    reference: int | None = None
+    scale: float | None = None
+
+    @property
+    def against(self) -> int:
+        """The cap compared with: `reference`, or `k_full`."""
+        return self.k_full if self.reference is None else self.reference
 
     @property
     def certified(self) -> bool:
@@ -110,9 +133,16 @@ class Certificate:
     def describe(self) -> str:
         """One line for logs and savings reports."""
         verdict = "certified" if self.certified else "NOT certified"
+        if self.k >= self.k_full:
+            return f"{verdict}: K={self.k} is K_full, nothing to compare"
+        name = "K_full" if self.against == self.k_full else "K"
+        scale = ""
+        if self.scale is not None and self.scale != self.at_full:
+            scale = f" of the largest {self.scale:.4g} at this K"
         return (
-            f"{verdict}: check at K={self.k} {self.at_k:.4g}, at K_full={self.k_full} "
-            f"{self.at_full:.4g} (gap {100 * self.gap:.2f} %, band {100 * self.tol:.3g} %)"
+            f"{verdict}: check at K={self.k} {self.at_k:.4g}, at {name}={self.against} "
+            f"{self.at_full:.4g} (gap {100 * self.gap:.2f} %{scale}, band "
+            f"{100 * self.tol:.3g} %)"
         )
 
 
@@ -220,8 +250,9 @@ class PRDP:
        (``use_ema=False`` or ``ema_window=1``: E = H).
     2. While len(E) <= window keep K.
     3. r = E[-1] / E[-window]. If r <= tau_step the metric still improves: keep K.
-    4. Plateau.  With a `check` (the certified test): evaluate it once at K and once
-       at K_full on the same weights; if the two agree within `tol`, K is enough
+    4. Plateau, or a check due (see the Notes).  With a `check` (the certified test):
+       evaluate it once at K and once at the next level (at K_full from K_full / 2 on)
+       on the same weights; if the two agree within `tol` (`Certificate`), K is enough
        (certified: stop refining), else refine.  Without a check (the
        reference's test): r_c = E[-1] / checkpoint (checkpoint starts at +inf); if
        r_c < tau_stop or r_c > tau_worse refine, otherwise the last refinement bought
@@ -263,18 +294,19 @@ class PRDP:
         Geometric refinement factor (>= 1; 1: the reference's additive steps).
     tol : float
         Accuracy band of a check (`ACCURACY_BAND`, 0.05).
-    recheck : float
-        With a ``check``: a check is due `window` epochs into every K, then after
-        intervals that double while K stays certified (at epochs 3, 6, 12, 24, ...
-        of a level), on a plateau while K is not yet certified (at most once per
-        `window` epochs), and as soon as
-        the metric falls below ``recheck`` times its value at the last certified
-        check (in (0, 1]; 0.5: halved).  A model specialises as it trains, and the
-        solve's effect matters more as the loss falls: a K certified early is
-        checked again, a few times (about log2(epochs)) per level.
 
     Notes
     -----
+    **When a check runs** (with a ``check``): `window` epochs into every K; on a
+    plateau while K is not yet certified (at most once per `window` epochs); and,
+    once K is certified, again when K has run `RECHECK_GROWTH` (2) times the epochs it
+    had run at its last check, or ``tol / gap`` times where that is more: a model
+    specialises as it trains, so a K certified early is checked again, about log2(T)
+    times over T epochs while its gap stays near the band, and not before the end when
+    the gap is far inside it (a gap at a tenth of the band waits ten times as long).  A
+    check during training compares K with the next level (`Certificate.reference`)
+    while that is below K_full, with K_full otherwise and always in `certify`.
+
     **Which metric.**  `update` takes the validation metric the user cares about (an
     error against ground truth, or the validation loss).  The ``check`` callable
     ``check(k)`` must depend on K: the gradient of the validation loss with respect
@@ -320,7 +352,7 @@ class PRDP:
     def __init__(
         self, k_init=1, k_step=1, k_max=None, tau_step=0.98, tau_stop=0.9, ema_window=6,
         window=3, k_min=1, use_ema=True, *, restart_window=False, tau_worse=1.0,
-        k_full=None, growth=1.0, tol=ACCURACY_BAND, recheck=0.5, check=None,
+        k_full=None, growth=1.0, tol=ACCURACY_BAND, check=None,
     ):  # fmt: skip
         def _int(name, value, low):
             value = operator.index(value)
@@ -345,13 +377,12 @@ class PRDP:
             ("tau_worse", tau_worse, lambda v: v >= 1, ">= 1"),
             ("growth", growth, lambda v: v >= 1, ">= 1"),
             ("tol", tol, lambda v: v > 0, "> 0"),
-            ("recheck", recheck, lambda v: 0 < v <= 1, "in (0, 1]"),
         ):
             if not (math.isfinite(float(value)) and ok(float(value))):
                 raise ValueError(f"{name} must be finite and {rule}, got {value}")
         self.tau_step, self.tau_stop = float(tau_step), float(tau_stop)
         self.tau_worse, self.growth = float(tau_worse), float(growth)
-        self.tol, self.recheck = float(tol), float(recheck)
+        self.tol = float(tol)
         if check is not None and not callable(check):
             raise ValueError(f"check must be a callable k -> array or float, got {check!r}")
         if check is not None and self.k_full is None:
@@ -365,11 +396,10 @@ class PRDP:
         self._fresh = False  # the next finite metric starts a new EMA (restart_window)
         self._history: list[PRDPStep] = []
         self._checks: list[Certificate] = []
-        self._checked_at: float | None = None  # E at the last certified check, or at
-        # the first metric of the current K: the reference of the `recheck` fall
         self._level_start = 0  # epoch at which the current K began
         self._next_check = self.window  # epoch of the next due check
         self._last_check = -self.window  # epoch of the last check
+        self._scale = 0.0  # largest norm of check(reference) at the current K
 
     @classmethod
     def for_problem(
@@ -479,8 +509,6 @@ class PRDP:
         else:
             ema = self.alpha * value + (1 - self.alpha) * self._ema[-1]
         self._ema.append(ema)
-        if self._checked_at is None:
-            self._checked_at = ema
         refine, reason, gap = self._test(self.check)
         if refine:
             self._refine()
@@ -497,10 +525,10 @@ class PRDP:
             self._checkpoint = self._ema[-1]
         self._restart()
         self._refining = True
-        self._checked_at = None
         epoch = len(self._history) + 1
         self._level_start, self._next_check = epoch, epoch + self.window
         self._k = self.next_k()
+        self._scale = 0.0
 
     def _restart(self) -> None:
         if self.restart_window:
@@ -529,9 +557,8 @@ class PRDP:
         return False, f"plateau r={r:.4g}, stopped, checkpoint ratio {r_c:.4g}", None
 
     def _check_test(self, check) -> tuple[bool, str, float | None]:
-        """Check when one is due (`window` epochs into a level, then at doubling
-        intervals), on a plateau, or after the metric fell by `recheck`: certify K
-        or refine."""
+        """Check when one is due (`window` epochs into a level, then after `_recheck`'s
+        intervals) or on a plateau before K is certified: certify K or refine."""
         epoch, e = len(self._history) + 1, self._ema
         if self.k_max is not None and self._k >= self.k_max:
             self._refining = False
@@ -539,25 +566,37 @@ class PRDP:
         filled = len(e) - self.window >= self._start
         r = _ratio(e[-1], e[-self.window]) if filled else 0.0
         plateau = self._refining and r > self.tau_step and epoch - self._last_check >= self.window
-        fell = e[-1] <= self.recheck * self._checked_at
-        if not (epoch >= self._next_check or plateau or fell):
-            return False, f"r={r:.4g}, next check at epoch {self._next_check}", None
-        cert = self._check(check)
+        if not (epoch >= self._next_check or plateau):
+            return False, f"r={r:.4g}, next check at epoch {self._next_check:.0f}", None
+        cert = self._check(check, min(self.next_k(), self.k_full))
         self._last_check = epoch
         if not cert.certified:
             return True, cert.describe(), cert.gap
         self._refining = False
-        self._checked_at = e[-1]
-        self._next_check = epoch + max(self.window, epoch - self._level_start)
+        self._next_check = self._recheck(epoch, cert.gap)
         logger.info("PRDP epoch %d: %s", epoch, cert.describe())
         return False, cert.describe(), cert.gap
 
-    def _check(self, check) -> Certificate:
-        at_k, at_full = check(self._k), check(self.k_full)
-        size = _norm if not isinstance(at_full, float | int) else float
+    def _recheck(self, epoch: int, gap: float) -> float:
+        """The epoch of the next check of a K certified at `epoch` with `gap`: once K
+        has run ``max(RECHECK_GROWTH, tol / gap)`` times the epochs it had run."""
+        if gap <= 0:
+            return math.inf
+        ran = max(self.window, epoch - self._level_start)
+        return self._level_start + ran * max(RECHECK_GROWTH, self.tol / gap)
+
+    def _check(self, check, reference: int) -> Certificate:
+        """Evaluate `check` at K and at `reference` on the current weights; keep and
+        return the `Certificate`, its gap relative to the largest reference norm at K."""
+        at_k, at_ref = check(self._k), check(reference)
+        size = _norm if not isinstance(at_ref, float | int) else float
+        relative = fidelity_gap(at_k, at_ref)  # raises on NaN / Inf / all zeros
+        norm = _norm(at_ref)
+        self._scale = max(self._scale, norm)
         cert = Certificate(
-            k=self._k, k_full=self.k_full, at_k=size(at_k), at_full=size(at_full),
-            gap=fidelity_gap(at_k, at_full), tol=self.tol, epoch=len(self._history),
+            k=self._k, k_full=self.k_full, at_k=size(at_k), at_full=size(at_ref),
+            gap=relative * norm / self._scale, tol=self.tol, epoch=len(self._history),
+            reference=reference, scale=self._scale,
         )  # fmt: skip
         self._checks.append(cert)
         return cert
@@ -569,18 +608,31 @@ class PRDP:
         given at construction; the result is kept in :attr:`checks`, read by
         :meth:`savings`.  A failed certificate does not raise: K is not enough for the
         accuracy band, and the savings of the run are reported as not certified.
-        A check that the last `update` made at the current K (on these weights: no
-        epoch was trained since) is the answer, and costs nothing again.
+        A check against K_full that the last `update` made at the current K (on these
+        weights: no epoch was trained since) is the answer, and costs nothing again; at
+        K_full itself nothing is evaluated (a trivial certificate, gap 0, not kept in
+        :attr:`checks`).  The gap is relative to the largest reference gradient of the
+        checks at this K (`Certificate`).
         """
         if self.check is None:
             raise ValueError(
                 "certify needs a check: PRDP.for_problem(k_full, check=pp.gradient_check(...))"
             )
         last = self._checks[-1] if self._checks else None
-        if last is not None and last.k == self._k and last.epoch == len(self._history) - 1:
+        if self.k_full is not None and self._k >= self.k_full:  # nothing to compare
+            return Certificate(
+                k=self._k, k_full=self.k_full, at_k=math.nan, at_full=math.nan, gap=0.0,
+                tol=self.tol, epoch=len(self._history), reference=self.k_full,
+            )  # fmt: skip
+        if (
+            last is not None
+            and last.k == self._k
+            and last.against == self.k_full
+            and last.epoch == len(self._history) - 1
+        ):
             logger.info("PRDP end (the last epoch's check): %s", last.describe())
             return last
-        cert = self._check(self.check)
+        cert = self._check(self.check, self.k_full)
         logger.info("PRDP end: %s", cert.describe())
         return cert
 
@@ -631,7 +683,7 @@ class PRDP:
                 raise ValueError("give k_full (no k_full was set at construction)")
             spent = [float(k) for k in ks]
             for c in self._checks:  # a check at the end counts in the last epoch
-                spent[min(c.epoch, len(spent) - 1)] += check_weight * (c.k + c.k_full)
+                spent[min(c.epoch, len(spent) - 1)] += check_weight * (c.k + c.against)
             checked = sum(spent) - sum(ks)
             out = savings(costs=spent, cost_full=base)
             out["ic"] = 1.0 - ks[-1] / float(base)
@@ -658,7 +710,7 @@ class PRDP:
             "k": self._k, "refining": self._refining, "checkpoint": self._checkpoint,
             "ema": list(self._ema), "start": self._start, "fresh": self._fresh,
             "history": [asdict(s) for s in self._history],
-            "checks": [asdict(c) for c in self._checks], "checked_at": self._checked_at,
+            "checks": [asdict(c) for c in self._checks], "scale": self._scale,
             "level_start": self._level_start, "next_check": self._next_check,
             "last_check": self._last_check,
         }  # fmt: skip
@@ -677,8 +729,7 @@ class PRDP:
         self._ema = [float(x) for x in state["ema"]]
         self._history = [PRDPStep(**s) for s in state["history"]]
         self._checks = [Certificate(**c) for c in state.get("checks", [])]
-        checked_at = state.get("checked_at")
-        self._checked_at = None if checked_at is None else float(checked_at)
+        self._scale = float(state.get("scale", 0.0))
         self._level_start = int(state.get("level_start", 0))
         self._next_check = int(state.get("next_check", self.window))
         self._last_check = int(state.get("last_check", -self.window))

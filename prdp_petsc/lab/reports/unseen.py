@@ -4,7 +4,8 @@
 seed, at constant K_full and with ``PRDP.for_problem(find_k_full(...))`` and its
 checks, in the problem's own loop, and writes ``unseen.json`` for the results page.
 Costs are the inner iterations (forward and adjoint) of every solve a run makes:
-training, validation and the controller's checks.
+training, validation and the controller's checks (a PRDP record also counts the checks'
+own, ``check_iterations``).
 
 ``--baselines`` adds what the default is measured against: the constant caps
 K_full/8, K_full/4 and K_full/2 (the best one at equal accuracy is what stopping
@@ -19,7 +20,7 @@ import time
 
 from prdp_petsc import PRDP, find_k_full
 
-from .unseen_problems import PROBLEMS, RTOL_FULL, Problem, build
+from .unseen_problems import HELD_OUT, PROBLEMS, RTOL_FULL, Problem, build
 
 __all__ = ["CONSTANT_FRACTIONS", "HAND", "compare", "main", "parse_arguments", "table", "train"]
 
@@ -35,9 +36,18 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
     construction, `PRDP.for_problem`, with checks), ``"hand"`` (`HAND`) or
     ``"fixed:K"``; return its record."""
     solver = problem.solver
-    controller = None
+    controller, checked = None, [0]  # the checks' inner iterations
+
+    def check(k: int):
+        before = solver.stats.forward_iterations + solver.stats.adjoint_iterations
+        try:
+            return problem.check(k)
+        finally:
+            checked[0] += solver.stats.forward_iterations + solver.stats.adjoint_iterations
+            checked[0] -= before
+
     if schedule == "prdp":
-        controller = PRDP.for_problem(k_full, check=problem.check)
+        controller = PRDP.for_problem(k_full, check=check)
     elif schedule == "hand":
         step = math.ceil(HAND * k_full)
         controller = PRDP.paper(k_init=step, k_step=step, k_max=max(k_full, step))
@@ -63,9 +73,11 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
         controller.certify()
         record["savings_k"] = controller.savings()
         record["checks"] = [
-            {"epoch": c.epoch, "k": c.k, "gap": c.gap, "certified": c.certified}
+            {"epoch": c.epoch, "k": c.k, "against": c.against, "gap": c.gap,
+             "certified": c.certified}
             for c in controller.checks
-        ]
+        ]  # fmt: skip
+        record["check_iterations"] = checked[0]
     stats = solver.stats
     record.update(
         wall_time=time.perf_counter() - t0,
@@ -215,7 +227,8 @@ def parse_arguments(argv=None):
         "--seeds", type=seeds, nargs="+", default=[[0, 1, 2]],
         help="seeds, e.g. 0-2 or 0,3,5 (default 0-2)",
     )  # fmt: skip
-    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
+    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS),
+                        choices=[*PROBLEMS, *HELD_OUT])  # fmt: skip
     add_size_preset(parser, "small sizes and few epochs")
     parser.add_argument(
         "--baselines", action="store_true",
