@@ -68,27 +68,26 @@ class _Side:
 
     __slots__ = (
         "has_fields",
+        "kind",
         "ksp",
         "last",
         "prefix",
         "setup_version",
-        "side",
         "step",
         "unchecked",
     )
 
-    def __init__(self, side: Side, prefix: str) -> None:
-        self.side = side
+    def __init__(self, kind: Side, prefix: str) -> None:
+        self.kind = kind
         #: its options prefix (the adjoint's is ``<prefix>adj_`` unless set)
         self.prefix = prefix
-        self.ksp: PETSc.KSP | None = None
         #: the `CallInfo` of its last call
         self.last: CallInfo | None = None
         self.use(None)
 
     def use(self, ksp: PETSc.KSP | None) -> None:
         """Take `ksp` (None: none) with nothing done on it yet."""
-        self.ksp = ksp
+        self.ksp: PETSc.KSP | None = ksp
         #: the operator version its PC was set up for at its last call (-1: none yet)
         self.setup_version = -1
         #: the check for options PETSc never read is pending (it follows the first call)
@@ -101,7 +100,7 @@ class _Side:
     @property
     def transpose(self) -> bool:
         """Whether it solves with Aᵀ."""
-        return self.side is Side.ADJOINT
+        return self.kind is Side.ADJOINT
 
     def types(self) -> str:
         """``"ksp_type/pc_type"`` as PETSc runs them."""
@@ -567,11 +566,11 @@ class KSPSolver:
         PETSc never read (misspelt, or meant for another type or split), or None."""
         side.unchecked = False
         self._used |= pushed.used
-        unused = self.config.unused(side.side.value, self._used)
+        unused = self.config.unused(side.kind.value, self._used)
         if not unused:
             return None
         return (
-            f"PETSc never read these options of the {side.side.value} KSP (prefix "
+            f"PETSc never read these options of the {side.kind.value} KSP (prefix "
             f"{side.prefix!r}, {side.types()}): "
             + ", ".join("-" + n for n in unused)
             + "; check their spelling (-help lists the options PETSc reads; a split's "
@@ -683,7 +682,7 @@ class KSPSolver:
         rhs = np.asarray(rhs, dtype=np.float64)
         batch = rhs.reshape(-1, rhs.shape[-1])
         layout = self._layout
-        kind = side.side
+        kind = side.kind
         if batch.shape[1] != layout.size:
             rows = "rows" if layout.replicated or not layout.distributed else "local rows"
             raise InputError(
@@ -757,7 +756,7 @@ class KSPSolver:
         tolerance and hit max_it, naming the worst one's true residual."""
         row, residual = max(step.unconverged, key=lambda item: item[1].relative)
         info = step.infos[row]
-        ksp, kind = side.ksp, side.side
+        ksp, kind = side.ksp, side.kind
         rtol, atol = ksp.getTolerances()[:2]
         count = len(step.unconverged)
         which = "" if rows == 1 else f" (row {row}, the worst of {count} of {rows})"
@@ -790,7 +789,7 @@ class KSPSolver:
                 self._b,
                 self._x,
                 self._layout,
-                side.side,
+                side.kind,
                 as_transpose,
                 self._op.norm,
             )
@@ -802,7 +801,7 @@ class KSPSolver:
             return side.step[1]
         as_transpose = transpose and not self._adjoint_is_forward()
         step = SolveStep(
-            side.ksp, mat, self._b, self._x, self._layout, side.side, as_transpose, self._op.norm
+            side.ksp, mat, self._b, self._x, self._layout, side.kind, as_transpose, self._op.norm
         )
         side.step = (key, step)
         return step
@@ -830,7 +829,7 @@ class KSPSolver:
             check_structure(ksp, symmetric, kind, set_up=True)
 
     def _record(self, side: _Side, infos: list[SolveInfo]) -> None:
-        side.last = CallInfo(side.side.value, tuple(infos))
+        side.last = CallInfo(side.kind.value, tuple(infos))
         self.last = infos[-1] if infos else None
 
     def reset_stats(self) -> None:
