@@ -17,6 +17,7 @@ from petsc4py import PETSc
 
 from ..errors import InputError, UnusedOptionWarning, plain
 from .options import option_value, parse_options, prefixed_options
+from .results import Side
 from .settings import AdjointSettings, check_tolerances
 
 __all__ = [
@@ -104,17 +105,18 @@ class Configuration:
                 return False
         return not any(k.startswith("pc_") for k in cmdline)
 
-    def unused(self, kind: str, used: set[str]) -> list[str]:
-        """Option names of the `kind` KSP ("forward"/"adjoint") that PETSc never read.
+    def unused(self, kind: Side, used: set[str]) -> list[str]:
+        """Option names of the `kind` KSP (forward or adjoint) that PETSc never read.
 
         `used` holds the names PETSc read while they were pushed; the command line
         under the KSP's own prefix is included.
         """
-        prefix = self.adjoint_prefix if kind == "adjoint" else self.prefix
-        given = self.adjoint_own if kind == "adjoint" else self.options
+        adjoint = kind is Side.ADJOINT
+        prefix = self.adjoint_prefix if adjoint else self.prefix
+        given = self.adjoint_own if adjoint else self.options
         names = {prefix + k for k in given}
         if prefix:  # the command line under a prefix of its own
-            exclude = None if kind == "adjoint" else self.adjoint_prefix
+            exclude = None if adjoint else self.adjoint_prefix
             names |= {prefix + k for k in prefixed_options(prefix, exclude)}
         opts = PETSc.Options()
         return sorted(n for n in names if n not in used and not opts.used(n))

@@ -6,6 +6,10 @@ are configured from PETSc options under their own prefix, so everything a PETSc
 user knows (``-fwd_ksp_type gmres -fwd_pc_type gamg -fwd_ksp_monitor``) works.
 The solver knows nothing of torch; `prdp_petsc.autograd.bridge` connects it to
 autograd.
+
+Inside, each of the two solves is one `_Side` (`Side.FORWARD`, `Side.ADJOINT`: its KSP,
+prefix and what is kept of it between calls), and the operator is one
+`prdp_petsc.core.operator.OperatorLayout`, whose class the operator's kind chooses.
 """
 
 from __future__ import annotations
@@ -566,7 +570,7 @@ class KSPSolver:
         PETSc never read (misspelt, or meant for another type or split), or None."""
         side.unchecked = False
         self._used |= pushed.used
-        unused = self.config.unused(side.kind.value, self._used)
+        unused = self.config.unused(side.kind, self._used)
         if not unused:
             return None
         return (

@@ -19,7 +19,7 @@ from petsc4py import PETSc
 
 from ..errors import SingularOperatorError
 from . import safeguards
-from .results import SolveInfo, SolverError, reason_name
+from .results import Side, SolveInfo, SolverError, reason_name
 
 __all__ = ["SolveStep", "reduction_rate"]
 
@@ -65,8 +65,8 @@ class SolveStep:
         Work vectors, reused for every row.
     layout : RowLayout
         How rows and results map onto the Vecs (`prdp_petsc.core.parallel`).
-    kind : {"forward", "adjoint"}
-        Named in error messages.
+    kind : Side
+        Which solve this is, named in error messages.
     transpose : bool
         Run ``KSPSolveTranspose`` instead of ``KSPSolve``.
     norm : callable
@@ -91,7 +91,7 @@ class SolveStep:
         "unconverged",
     )
 
-    def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: str, transpose: bool, norm):
+    def __init__(self, ksp, mat, b_vec, x_vec, layout, kind: Side, transpose: bool, norm):
         self.ksp, self.mat, self.kind, self.transpose = ksp, mat, kind, transpose
         self.b_vec, self.x_vec, self.layout, self.norm = b_vec, x_vec, layout, norm
         self.run = ksp.solveTranspose if transpose else ksp.solve
@@ -345,7 +345,7 @@ class SolveStep:
         return f"{self.ksp.getType()}/{self.ksp.getPC().getType()}"
 
     def _petsc_failure(self, err: PETSc.Error) -> SolverError:
-        if self.kind == "adjoint" and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
+        if self.kind is Side.ADJOINT and getattr(err, "ierr", None) == 56:  # PETSC_ERR_SUP
             return SolverError(
                 f"adjoint {self._types()}: the PC has no transpose (PCApplyTranspose) in "
                 "PETSc. Choose another adjoint pc_type, or solve with an explicit "
@@ -354,7 +354,7 @@ class SolveStep:
             )
         hint = (
             " A PC without a transpose cannot serve the adjoint: choose another adjoint pc_type."
-            if self.kind == "adjoint"
+            if self.kind is Side.ADJOINT
             else ""
         )
         if getattr(err, "ierr", None) == 92 and self.mat.getComm().getSize() > 1:
