@@ -308,12 +308,14 @@ def _unseen_body(ds: DataSet) -> list[str]:
     lines = [
         "Six problems written for this page, none of them a shipped scene, each in a "
         "plain torch loop with `PRDP.for_problem(find_k_full(...))` and a check (the "
-        "validation gradient through the solve at K against K_full); see "
+        "validation gradient through the solve at K against the next level 2K, against "
+        "K_full from K_full/2 on and at the end); see "
         "`prdp_petsc.lab.reports.unseen_problems` for the problems. Error ratio: PRDP's final "
         "error "
         "over full fidelity's (constant K_full), same seed, same data and initial weights. "
         "Iterations saved: forward and adjoint inner iterations of every solve, the "
-        "checks included. Certified: the last check, at the final K, within the 5 % band. "
+        "checks included; checks' share: the checks' part of them. Certified: the last "
+        "check, at the final K against K_full, within the 5 % band. "
         "Wall time ratio: PRDP over full, one torch thread, runs one after another.",
         *(
             [

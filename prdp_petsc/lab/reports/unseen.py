@@ -165,16 +165,22 @@ def table(result: dict) -> str:
     """A markdown table of `compare`'s result."""
     rows = [
         "| problem | K_full | error ratio (geo. mean) | worst seed | iterations saved | "
-        "certified | wall time ratio |",
-        "|---|---|---|---|---|---|---|",
+        "checks' share | certified | wall time ratio |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, p in result["problems"].items():
         walls = [r["prdp"]["wall_time"] / r["full"]["wall_time"] for r in p["runs"]]
         k_full = sorted({r["k_full"] for r in p["runs"]})
+        shares = [  # of the PRDP run's inner iterations; not recorded before check_iterations
+            "–" if "check_iterations" not in r["prdp"]
+            else f"{100 * r['prdp']['check_iterations'] / r['prdp']['iterations']:.0f} %"
+            for r in p["runs"]
+        ]  # fmt: skip
         rows.append(
             f"| `{name}` | {', '.join(map(str, k_full))} | {p['geomean_ratio']:.3f} | "
             f"{p['worst_ratio']:.3f} | "
             + ", ".join(f"{100 * s:.0f} %" for s in p["saved"])
+            + f" | {', '.join(shares)}"
             + f" | {sum(bool(c) for c in p['certified'])}/{len(p['certified'])} | "
             + ", ".join(f"{w:.2f}" for w in walls)
             + " |"
