@@ -151,10 +151,10 @@ class Cantilever:
     def compliance(self, theta: np.ndarray, solver: pp.KSPSolver) -> float:
         """bᵀu with A(θ) u = b solved by `solver` (give it a tolerance: converged)."""
         solver.set_operator(self.bc.A_II.matrix(np.asarray(theta, dtype=np.float64)))
-        u = solver.solve(self.b)
-        if not solver.last.converged:
-            raise pp.SolverError(f"the scoring solve did not converge: {solver.last.reason}")
-        return float(self.b @ u)
+        sol = solver.solve(self.b)
+        if not sol.converged:
+            raise pp.SolverError(f"the scoring solve did not converge: {sol.reason}")
+        return float(self.b @ sol.value)
 
 
 def density_filter(centroids: np.ndarray, radius: float) -> sp.csr_matrix:

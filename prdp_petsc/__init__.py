@@ -32,7 +32,7 @@ _EXPORTS = {
     "AdjointSettings": ".core.settings",
     "solve": ".autograd.bridge",
     "Dirichlet": ".autograd.dirichlet",
-    "LinearSolution": ".autograd.solution",
+    "LinearSolution": ".core.solution",
     "newton_solve": ".autograd.nonlinear",
     "NonlinearProblem": ".autograd.nonlinear",
     "NonlinearSolution": ".autograd.nonlinear",

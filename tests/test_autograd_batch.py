@@ -102,19 +102,19 @@ def test_batch_equals_loop_of_single_solves(dirichlet, mode):
     b, w = randn(BATCH, n, seed=14), randn(BATCH, n, seed=15)
     theta = thetas(A.n_params, seed=16, requires_grad=True)
     solver = converged() if mode == "implicit" else pp.KSPSolver(CG_JACOBI, max_it=6)
-    x = pp.solve(A, b, solver, theta=theta, mode=mode)
-    last = solver.last  # the batch's last sample
+    batch = pp.solve(A, b, solver, theta=theta, mode=mode, return_solution=True)
+    x = batch.value
     (grad,) = torch.autograd.grad((x * w).sum(), theta)
     assert grad.shape == theta.shape
     for i in range(BATCH):
         t_i = theta[i].detach().clone().requires_grad_(True)
-        x_i = pp.solve(A, b[i], solver, theta=t_i, mode=mode)
-        (g_i,) = torch.autograd.grad(x_i @ w[i], t_i)
-        torch.testing.assert_close(x[i], x_i, rtol=1e-12, atol=1e-14)
+        alone = pp.solve(A, b[i], solver, theta=t_i, mode=mode, return_solution=True)
+        (g_i,) = torch.autograd.grad(alone.value @ w[i], t_i)
+        torch.testing.assert_close(x[i], alone.value, rtol=1e-12, atol=1e-14)
         torch.testing.assert_close(grad[i], g_i, rtol=1e-12, atol=1e-14)
-    x_i = pp.solve(A, b[-1], solver, theta=theta[-1].detach(), mode=mode)
-    assert (solver.last.iterations, solver.last.reason) == (last.iterations, last.reason)
-    assert solver.last.residual_norm == pytest.approx(last.residual_norm, rel=1e-9)
+        sample = batch.info[i]  # every sample's outcome is the one it has alone
+        assert (alone.iterations, alone.reason) == (sample.iterations, sample.reason)
+        assert alone.residual_norm == pytest.approx(sample.residual_norm, rel=1e-9)
 
 
 def test_matvec_batch_of_operators(dirichlet):
@@ -150,7 +150,7 @@ def test_batch_of_operators_needs_a_matching_batch_of_right_hand_sides(b_shape, 
     theta = random_theta(A.n_params).expand(theta_batch, -1)
     with pytest.raises(ValueError, match=r"theta must have shape .*\.expand\("):
         pp.solve(A, torch.ones(b_shape, dtype=torch.float64), solver, theta=theta)
-    assert solver.last is None and solver.stats == SolverStats()
+    assert solver.stats == SolverStats()
 
 
 def test_dirichlet_batch_sizes_must_agree():
@@ -159,4 +159,4 @@ def test_dirichlet_batch_sizes_must_agree():
     theta = random_theta(D.A_II.n_params).expand(3, -1)
     with pytest.raises(ValueError, match="f has batch size 2 but theta has 3"):
         D.solve(randn(2, D.n), randn(len(D.boundary)), solver, theta=theta)
-    assert solver.last is None and solver.stats == SolverStats()
+    assert solver.stats == SolverStats()

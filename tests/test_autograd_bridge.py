@@ -6,6 +6,7 @@
 * ``theta=`` with a scipy matrix is refused by `Dirichlet.solve` as by `solve`.
 """
 
+import numpy as np
 import pytest
 import torch
 from _core import CONVERGED, fd_poisson, interior_operator, randn, random_theta, unit_square
@@ -72,7 +73,7 @@ def test_dirichlet_theta_with_a_scipy_matrix_is_refused():
     solver = converged()
     with pytest.raises(ValueError, match="theta= is only meaningful for a ParametricMatrix"):
         D.solve(randn(9), randn(2), solver, theta=random_theta(4))
-    assert solver.last is None and solver.stats == SolverStats()
+    assert solver.stats == SolverStats()
 
 
 def test_dirichlet_parametric_matrix_without_theta_is_refused():
@@ -80,7 +81,7 @@ def test_dirichlet_parametric_matrix_without_theta_is_refused():
     solver = converged()
     with pytest.raises(ValueError, match="pass its parameters as theta="):
         D.solve(randn(D.n), randn(len(D.boundary)), solver)
-    assert solver.last is None
+    assert solver.stats == SolverStats()
 
 
 # -- the per-call result: return_solution=True -------------------------------------------
@@ -92,14 +93,16 @@ def test_return_solution_keeps_this_calls_outcome_beside_x():
         sol = pp.solve(A, b, solver, return_solution=True)
         assert isinstance(sol, pp.LinearSolution)
         assert (sol.iterations, sol.reason, sol.converged) == (4, "DIVERGED_MAX_IT", False)
-        assert sol.residual_norm == solver.last.residual_norm > 0
+        assert sol.residual_norm == sol.info[0].residual_norm > 0
+        assert sol.info.kind == "forward" and len(sol.info) == 1
         assert sol.adjoint is None  # no backward yet
         solver.max_it, solver.rtol = 50, 1e-12
-        pp.solve(A, b.detach() * 2, solver)  # another call: the solver's record moves on
-        assert solver.last_forward is not sol.forward and solver.last.converged
+        other = pp.solve(A, b.detach() * 2, solver, return_solution=True)  # another call
+        assert other.converged and other.info is not sol.info
         assert (sol.iterations, sol.reason) == (4, "DIVERGED_MAX_IT")
         sol.value.square().sum().backward()  # the adjoint runs at the solver's cap now
-        assert sol.adjoint is solver.last_adjoint and sol.adjoint.converged
+        assert sol.adjoint.kind == "adjoint" and sol.adjoint.converged
+        assert other.adjoint is None  # its own backward has not run
         solver.max_it, solver.rtol = 4, 0.0
         torch.testing.assert_close(sol.value, pp.solve(A, b.detach(), solver))
 
@@ -143,7 +146,7 @@ def test_return_solution_holds_no_reference_cycle():
             sol = pp.solve(A, b, solver, return_solution=True)
             gone = weakref.ref(sol)
             sol.value.sum().backward(retain_graph=True)
-            assert sol.adjoint is solver.last_adjoint
+            assert sol.adjoint.kind == "adjoint" and len(sol.adjoint) == 1
             del sol
             assert gone() is None
     finally:
@@ -163,3 +166,27 @@ def test_dirichlet_solve_returns_its_solution_too():
         sol.value.square().sum().backward()
     assert sol.value.shape == (basis.N,) and torch.equal(sol.value.detach(), plain)
     assert sol.iterations == 3 and sol.adjoint.iterations.tolist() == [3]
+
+
+def test_every_solve_returns_the_one_result_type():
+    """`KSPSolver.solve` / `solve_transpose` (numpy) and `pp.solve` (torch) return one
+    type, read the same way; the solver keeps no per-call outcome, only `stats`."""
+    A = fd_poisson(5)
+    b = randn(3, 25, seed=7)
+    with pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=6) as solver:
+        solver.set_operator(A)
+        forward = solver.solve(b.numpy())
+        adjoint = solver.solve_transpose(b[0].numpy())
+        bridged = pp.solve(A, b, solver, return_solution=True)
+        for name in ("last", "last_forward", "last_adjoint"):
+            assert not hasattr(solver, name), name
+        assert solver.stats.forward_iterations == 2 * 3 * 6
+    assert type(forward) is type(adjoint) is type(bridged) is pp.LinearSolution
+    assert isinstance(forward.value, np.ndarray) and isinstance(bridged.value, torch.Tensor)
+    np.testing.assert_array_equal(forward.value, bridged.value.numpy())
+    assert forward.iterations.tolist() == bridged.iterations.tolist() == [6, 6, 6]
+    assert forward.reason == bridged.reason == ["DIVERGED_MAX_IT"] * 3
+    assert forward.info.kind == "forward" and adjoint.info.kind == "adjoint"
+    assert (adjoint.iterations, adjoint.reason) == (6, "DIVERGED_MAX_IT")
+    assert adjoint.residual_norm > 0 and not adjoint.converged and adjoint.adjoint is None
+    np.testing.assert_allclose(adjoint.value, forward.value[0], rtol=1e-12)  # A = Aᵀ

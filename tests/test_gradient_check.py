@@ -30,8 +30,8 @@ def test_find_k_full_takes_what_solve_takes(problem):
     assert 5 < k_full < 100 and solver.max_it == 3  # the probe ran on a clone
     solver.max_it = k_full
     solver.rtol = 1e-8
-    pp.solve(A, b, solver, theta=theta)
-    assert solver.last.converged and solver.last.iterations == k_full
+    sol = pp.solve(A, b, solver, theta=theta, return_solution=True)
+    assert sol.converged and sol.iterations == k_full
     thetas = torch.stack([theta.detach(), 4 * theta.detach()])  # a batch of operators
     assert pp.find_k_full(A, b.expand(2, -1), solver, theta=thetas) == k_full  # scaled: same count
     with pytest.raises(InputError, match="theta="):

@@ -154,11 +154,11 @@ def run_cell(ksp: str, pc: str, operator: str, layout: str):
         options(ksp, pc), prefix=prefix, max_it=MAX_IT, rtol=RTOL, structure=op.structure
     ) as solver:
         try:
-            x = pp.solve(op.A, b_t, solver, theta=theta_t)
-            out.last_forward = solver.last_forward
+            sol = pp.solve(op.A, b_t, solver, theta=theta_t, return_solution=True)
+            x, out.forward = sol.value, sol.info
             out.stage = "backward"
             (x * torch.from_numpy(g)).sum().backward()
-            out.last_adjoint = solver.last_adjoint
+            out.adjoint = sol.adjoint
         except (SolverError, InputError) as err:
             out.error = err
             return out, (b, g, thetas)
@@ -200,16 +200,16 @@ def test_cell(ksp, pc, operator, layout):
     assert out.error is None, f"expected {want}, got {out.error!r}"
     errors = answer_errors(out, operator, layout, b, g, thetas)
     if want == NOT_CONVERGENT:  # capped without an error, never converged, not the answer
-        forward = out.last_forward
+        forward = out.forward
         assert forward.reasons == ["DIVERGED_MAX_IT"] * len(forward) and not forward.converged
         assert errors["x"] > 1e3 * tolerance(ksp, pc, operator), errors
         return
     assert max(errors.values()) <= tolerance(ksp, pc, operator), errors
     if want == SOLVES:
-        for call in (out.last_forward, out.last_adjoint):
+        for call in (out.forward, out.adjoint):
             assert call.converged and len(call) == len(np.atleast_2d(b)), call
     else:
-        assert want == UNCERTIFIED and not out.last_forward.converged
+        assert want == UNCERTIFIED and not out.forward.converged
 
 
 def check_never_converged(out: Outcome, ksp: str, pc: str) -> None:
@@ -224,7 +224,7 @@ def check_never_converged(out: Outcome, ksp: str, pc: str) -> None:
             assert out.error.reason == named, repr(out.error)
         return
     assert pc != "gamg"
-    assert not any(call.converged for call in (out.last_forward, out.last_adjoint))
+    assert not any(call.converged for call in (out.forward, out.adjoint))
 
 
 def test_table_tally():

@@ -58,10 +58,10 @@ def drift(solver, heat, steps, *, jump_at=None, solutions=None):
     for t in range(steps):
         th = theta(t) * (100.0 if jump_at is not None and t >= jump_at else 1.0)
         solver.set_operator(A.matrix(th))
-        x = solver.solve(b)
-        out.append(solver.last)
+        sol = solver.solve(b)
+        out.append(sol.info[0])
         if solutions is not None:
-            solutions.append(x)
+            solutions.append(sol.value)
     return out
 
 
@@ -85,10 +85,11 @@ def test_lag_sets_the_pc_up_every_nth_change(options, heat, pc_setups):
     ages = []
     for t in range(11):
         th = torch.from_numpy(theta(t)).requires_grad_(True)
-        pp.solve(A, torch.from_numpy(b), solver, theta=th).sum().backward()
+        sol = pp.solve(A, torch.from_numpy(b), solver, theta=th, return_solution=True)
+        sol.value.sum().backward()
         # the adjoint shares the forward PC: the same age, no set-up of its own
-        assert solver.last_adjoint.pc_ages.tolist() == solver.last_forward.pc_ages.tolist()
-        ages.append(int(solver.last_forward[0].pc_age))
+        assert sol.adjoint.pc_ages.tolist() == sol.info.pc_ages.tolist()
+        ages.append(int(sol.info[0].pc_age))
     assert ages == [0, 1, 2, 3, 4, 0, 1, 2, 3, 4, 0]
     assert pc_setups() - c0 == solver.stats.pc_setups == 3  # t = 0, 5, 10 (of 11)
     assert solver.stats.operator_updates == 11
@@ -101,8 +102,9 @@ def test_an_adjoint_with_its_own_pc_lags_on_its_own(heat, pc_setups):
     c0 = pc_setups()
     for t in range(7):
         th = torch.from_numpy(theta(t)).requires_grad_(True)
-        pp.solve(A, torch.from_numpy(b), solver, theta=th).sum().backward()
-        assert solver.last_forward[0].pc_age == solver.last_adjoint[0].pc_age == t % 3
+        sol = pp.solve(A, torch.from_numpy(b), solver, theta=th, return_solution=True)
+        sol.value.sum().backward()
+        assert sol.info[0].pc_age == sol.adjoint[0].pc_age == t % 3
     assert pc_setups() - c0 == solver.stats.pc_setups == 2 * 3  # t = 0, 3, 6; two PCs
 
 
@@ -118,10 +120,10 @@ def test_reuse_changes_the_pc_not_the_converged_answer(options, heat):
         for t in range(7):
             th = torch.from_numpy(theta(t)).requires_grad_(True)
             bt = torch.from_numpy(b).requires_grad_(True)
-            x = pp.solve(A, bt, solver, theta=th)
-            (x * w).sum().backward()
-            assert solver.last_forward.converged and solver.last_adjoint.converged
-            rows.append((x.detach(), bt.grad, th.grad, solver.last_forward[0]))
+            sol = pp.solve(A, bt, solver, theta=th, return_solution=True)
+            (sol.value * w).sum().backward()
+            assert sol.converged and sol.adjoint.converged
+            rows.append((sol.value.detach(), bt.grad, th.grad, sol.info[0]))
         runs[lag] = rows
     for (x1, gb1, gt1, i1), (x5, gb5, gt5, i5) in zip(runs[1], runs[5], strict=True):
         for fresh, stale in ((x1, x5), (gb1, gb5), (gt1, gt5)):
@@ -149,12 +151,11 @@ def test_capped_solves_on_a_stale_pc_report_k_equivalent(heat):
     # a batch on a stale PC: every sample carries the age and its own k_equivalent
     A, theta, b = heat
     solver.set_operator(A.matrix(theta(5)))  # age 5 = lag: a fresh PC
-    solver.solve(np.stack([b, -2 * b]))
-    assert solver.last_forward.pc_ages.tolist() == [0, 0]
+    assert solver.solve(np.stack([b, -2 * b])).info.pc_ages.tolist() == [0, 0]
     solver.set_operator(A.matrix(theta(6)))
-    solver.solve(np.stack([b, b[::-1].copy()]))
-    assert solver.last_forward.pc_ages.tolist() == [1, 1]
-    assert np.all(solver.last_forward.k_equivalents > 0)
+    stale = solver.solve(np.stack([b, b[::-1].copy()])).info
+    assert stale.pc_ages.tolist() == [1, 1]
+    assert np.all(stale.k_equivalents > 0)
 
 
 @pytest.mark.parametrize("options", [ILU, GAMG_GMRES], ids=["ilu", "gamg"])
@@ -203,7 +204,7 @@ def test_a_solve_that_fails_on_a_stale_pc_runs_again_on_a_fresh_one(heat, caplog
     A, theta, b = heat
     fresh = pp.KSPSolver(options, max_it=K)
     fresh.set_operator(A.matrix(100 * theta(3)))
-    np.testing.assert_allclose(xs[3], fresh.solve(b), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(xs[3], fresh.solve(b).value, rtol=1e-12, atol=1e-14)
 
 
 def test_a_new_pattern_gets_a_new_pc_within_the_lag(pc_setups):
@@ -213,15 +214,13 @@ def test_a_new_pattern_gets_a_new_pc_within_the_lag(pc_setups):
     solver.set_operator(A)
     solver.solve(np.ones(36))
     solver.set_operator(A * 1.5)
-    solver.solve(np.ones(36))
-    assert solver.last.pc_age == 1
+    assert solver.solve(np.ones(36)).info[0].pc_age == 1
     B = fd_poisson(7)  # another size
     solver.set_operator(B)
     solver.solve(np.ones(49))
     C = sp.csr_matrix(B + sp.eye(49, k=3))  # same size, another pattern
     solver.set_operator(C)
-    solver.solve(np.ones(49))
-    assert solver.last.pc_age == 0
+    assert solver.solve(np.ones(49)).info[0].pc_age == 0
     assert pc_setups() - c0 == solver.stats.pc_setups == 3
 
 

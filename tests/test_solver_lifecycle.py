@@ -86,14 +86,14 @@ def test_bad_option_value_fails_at_construction_naming_it():
         pp.KSPSolver("-ksp_type nope", prefix="tst_", max_it=3)
     solver = pp.KSPSolver(CG_JACOBI, max_it=3)  # the database is clean afterwards
     solver.set_operator(fd_poisson(3))
-    assert solver.solve(np.ones(9)).shape == (9,)
+    assert solver.solve(np.ones(9)).value.shape == (9,)
     assert not PETSc.Options().hasName("pc_type")
 
 
 def test_destroy_and_context_manager():
     with pp.KSPSolver(CG_JACOBI, max_it=3) as solver:
         solver.set_operator(fd_poisson(3))
-        x = solver.solve(np.ones(9))
+        x = solver.solve(np.ones(9)).value
         mat = solver.mat
     assert np.all(np.isfinite(x))
     assert mat.handle == 0  # the Mat made by the solver was freed
@@ -160,8 +160,7 @@ def test_tolerances_are_properties(name):
     setattr(solver, name, 1e-3)
     rtol, atol, _, _ = solver.ksp.getTolerances()
     assert {"rtol": rtol, "atol": atol}[name] == 1e-3  # applied now, not at the next max_it
-    solver.solve(np.ones(64))
-    assert solver.last.converged
+    assert solver.solve(np.ones(64)).converged
     with pytest.raises(ValueError, match=name):
         setattr(solver, name, -1.0)
 
@@ -188,7 +187,7 @@ def test_batch_solutions_with_reused_work_vectors_match_spsolve():
     b = np.random.default_rng(0).standard_normal((3, 25))
     solver = pp.KSPSolver(CG_JACOBI, max_it=200, rtol=1e-12)
     solver.set_operator(A)
-    x = solver.solve(b)
+    x = solver.solve(b).value
     assert np.allclose(x, spla.spsolve(A.tocsc(), b.T).T, atol=1e-10)
 
 
@@ -230,10 +229,10 @@ def test_read_only_view_of_a_changed_buffer_is_not_taken_as_unchanged():
     solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "none"}, max_it=200, rtol=1e-12)
     csr = (A.indptr, A.indices, view, A.shape)
     solver.set_operator(csr)
-    x1 = solver.solve(np.ones(16))
+    x1 = solver.solve(np.ones(16)).value
     base *= 2.0  # the caller changes the values behind the read-only view
     solver.set_operator(csr)
-    x2 = solver.solve(np.ones(16))
+    x2 = solver.solve(np.ones(16)).value
     assert np.allclose(x2, x1 / 2, rtol=1e-8)
 
 
@@ -298,19 +297,18 @@ def test_operator_layouts_report_what_changed_and_keep_counting_across_kinds():
     mat.destroy()
 
 
-def test_each_side_keeps_its_own_record_through_a_rebuild():
-    """Forward and adjoint are one object each (`Side`); a record names its side by the
-    plain word a JSON file holds, and new KSPs keep the last records."""
+def test_each_result_names_its_side_and_the_solver_keeps_none():
+    """Forward and adjoint are one object each (`Side`); a call's record names its side
+    by the plain word a JSON file holds, and lives in the result only: the sides keep
+    their KSP, not the outcome of their last call."""
     from prdp_petsc.core.results import Side
 
     solver = pp.KSPSolver(CG_JACOBI, max_it=3)
     solver.set_operator(fd_poisson(3))
-    solver.solve(np.ones(9))
-    solver.solve_transpose(np.ones(9))
-    forward, adjoint = solver.last_forward, solver.last_adjoint
+    forward = solver.solve(np.ones(9)).info
+    adjoint = solver.solve_transpose(np.ones(9)).info
     assert (forward.kind, adjoint.kind) == (Side.FORWARD.value, Side.ADJOINT.value)
     assert type(forward.kind) is str and forward.iterations == adjoint.iterations == 3
-    solver._destroy_ksps()
-    solver._build(PETSc.COMM_SELF)
-    assert solver.last_forward is forward and solver.last_adjoint is adjoint
+    for side in (solver._fwd, solver._adj):
+        assert not hasattr(side, "last")
     solver.destroy()

@@ -51,7 +51,7 @@ def test_symmetric_only_method_on_nonsymmetric_operator_is_refused(options, culp
         with pytest.raises(StructureError, match=culprit) as info:
             solver.solve(RHS)
         assert "gmres" in str(info.value) or "ilu" in str(info.value)  # names an alternative
-        assert solver.last is None  # nothing was solved
+        assert solver.stats.forward_solves == 0  # nothing was solved
 
 
 def test_the_refused_method_really_was_wrong_and_the_alternative_is_right():
@@ -59,22 +59,22 @@ def test_the_refused_method_really_was_wrong_and_the_alternative_is_right():
     exact = spla.spsolve(A.tocsc(), RHS)
     with pp.KSPSolver("-ksp_type cg -pc_type jacobi", max_it=40, check_structure=False) as cg:
         cg.set_operator(A)  # the expert's opt-out: it runs, and is far off
-        off = np.linalg.norm(cg.solve(RHS) - exact) / np.linalg.norm(exact)
+        off = np.linalg.norm(cg.solve(RHS).value - exact) / np.linalg.norm(exact)
     assert off > 0.5
     with pp.KSPSolver("-ksp_type gmres -pc_type ilu", max_it=200, rtol=1e-12) as gmres:
         gmres.set_operator(A)
-        np.testing.assert_allclose(gmres.solve(RHS), exact, rtol=1e-8)
+        np.testing.assert_allclose(gmres.solve(RHS).value, exact, rtol=1e-8)
 
 
 def test_symmetric_operators_and_declarations_are_not_refused():
     with pp.KSPSolver("-ksp_type cg -pc_type icc", max_it=200, rtol=1e-12) as solver:
         solver.set_operator(spd())
-        np.testing.assert_allclose(solver.solve(RHS), spla.spsolve(spd().tocsc(), RHS), rtol=1e-8)
+        x = solver.solve(RHS).value
+        np.testing.assert_allclose(x, spla.spsolve(spd().tocsc(), RHS), rtol=1e-8)
     # the caller's word wins over the test (e.g. an operator symmetric in exact arithmetic)
     with pp.KSPSolver("-ksp_type cg", max_it=5, structure=pp.Structure(symmetric=True)) as solver:
         solver.set_operator(advection_diffusion())
-        solver.solve(RHS)
-        assert solver.last.iterations == 5
+        assert solver.solve(RHS).iterations == 5
 
 
 def test_rounding_level_asymmetry_is_symmetric():
@@ -226,8 +226,9 @@ def test_nan_inputs_raise_in_dirichlet_and_newton():
 def test_residual_not_computed_is_not_zero_and_not_converged():
     with pp.KSPSolver("-ksp_type richardson -pc_type sor", max_it=3) as solver:
         solver.set_operator(spd())
-        x = solver.solve(RHS)
-        info = solver.last
+        sol = solver.solve(RHS)
+    x, info = sol.value, sol.info[0]
+    assert (sol.reason, sol.residual_norm, sol.converged) == (info.reason, None, False)
     assert info.reason == "CONVERGED_ITS" and info.iterations == 3
     assert info.residual_norm is None and not info.residual_computed
     assert not info.converged
@@ -239,19 +240,15 @@ def test_a_batch_reports_every_sample():
     rhs = np.stack([RHS, np.zeros(60), np.sin(np.linspace(0, np.pi, 60))])
     with pp.KSPSolver("-ksp_type cg -pc_type none", max_it=500, rtol=1e-10) as solver:
         solver.set_operator(spd())
-        solver.solve(rhs)
-        batch = solver.last_forward
-        alone = []
-        for row in rhs:
-            solver.solve(row)
-            alone.append(solver.last.iterations)
-        solver.solve_transpose(rhs[:2])
+        batch = solver.solve(rhs).info
+        alone = [solver.solve(row).iterations for row in rhs]
+        adjoint = solver.solve_transpose(rhs[:2]).info
     assert len(batch) == 3 and batch.kind == "forward"
     assert batch.iterations.tolist() == alone
     assert len(set(alone)) == 3  # three different outcomes, not the last one thrice
     assert batch[1].iterations == 0 and batch[1].converged  # b = 0: x = 0 at once
     assert batch.converged and batch.residual_computed.all()
-    assert len(solver.last_adjoint) == 2 and solver.last_adjoint.kind == "adjoint"
+    assert len(adjoint) == 2 and adjoint.kind == "adjoint"
 
 
 def test_a_batch_of_operators_reports_every_sample_in_batch_order():
@@ -262,10 +259,9 @@ def test_a_batch_of_operators_reports_every_sample_in_batch_order():
     theta = torch.stack([torch.ones(A.n_params), 1e4 * torch.ones(A.n_params)]).double()
     b = torch.ones(2, A.shape[0], dtype=torch.float64, requires_grad=True)
     with pp.KSPSolver("-ksp_type cg -pc_type none", max_it=500, rtol=1e-10) as solver:
-        x = pp.solve(A, b, solver, theta=theta)
-        forward = solver.last_forward
-        x.sum().backward()
-        adjoint = solver.last_adjoint
+        sol = pp.solve(A, b, solver, theta=theta, return_solution=True)
+        sol.value.sum().backward()
+        forward, adjoint = sol.info, sol.adjoint
     assert len(forward) == len(adjoint) == 2
     # κ = 1e4 makes the operator stiffer against the unit reaction: more iterations
     assert forward.iterations[1] > forward.iterations[0]

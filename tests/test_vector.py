@@ -42,10 +42,9 @@ def test_gamg_needs_the_modes_on_a_cantilever(cantilever):
     for name, structure in (("scalar", None), ("modes", _structure(basis, bc))):
         with pp.KSPSolver(GAMG, max_it=1000, rtol=1e-8, structure=structure) as s:
             s.set_operator(M)
-            s.solve(f)
-            counts[name] = s.last.iterations
+            counts[name] = s.solve(f).iterations
             s.rtol, s.max_it = 0.0, 10
-            errors[name] = np.linalg.norm(s.solve(f) - exact) / np.linalg.norm(exact)
+            errors[name] = np.linalg.norm(s.solve(f).value - exact) / np.linalg.norm(exact)
     assert counts["modes"] <= 20 and counts["scalar"] >= 3 * counts["modes"], counts
     assert errors["modes"] <= 1e-4 and errors["scalar"] >= 1e-2, errors
 
@@ -57,16 +56,19 @@ def test_structure_reaches_every_mat(cantilever):
         theta = torch.ones((2, A.n_params), dtype=torch.float64, requires_grad=True)
         theta.data[1] *= 3.0
         b = torch.from_numpy(np.stack([f, f]))
-        x = pp.solve(bc.A_II, b, s, theta=theta)  # a batch of operators: two set-ups
-        x.sum().backward()
-        for call in (s.last_forward, s.last_adjoint):
+        # a batch of operators: two set-ups
+        sol = pp.solve(bc.A_II, b, s, theta=theta, return_solution=True)
+        sol.value.sum().backward()
+        for call in (sol.info, sol.adjoint):
             assert call.converged and call.iterations.max() <= 20, call.iterations
         assert s.mat.getBlockSize() == 2 and s.mat.getNearNullSpace().getVecs()
         mat = s.mat
-        pp.solve(bc.A_II, b[0], s, theta=theta[0].detach() * 2)  # new values: the same Mat
-        assert s.mat is mat and s.last.iterations <= 20
+        # new values: the same Mat
+        sol = pp.solve(bc.A_II, b[0], s, theta=theta[0].detach() * 2, return_solution=True)
+        assert s.mat is mat and sol.iterations <= 20
         copy = s.clone()
-        assert copy.block_size == 2 and copy.near_nullspace.shape == (3, len(bc.interior))
+        declared = copy.structure
+        assert declared.block_size == 2 and declared.near_nullspace.shape == (3, len(bc.interior))
         copy.destroy()
     with pytest.raises(InputError, match="entries"):  # another size, other modes needed
         small = elasticity(n=4, length=4.0)[1]
@@ -89,8 +91,7 @@ def test_a_new_size_gets_the_new_modes():
             else solver.clone(structure=structure)
         )
         solver.set_operator(bc.A_II.matrix(np.ones(A.n_params)))
-        solver.solve(body_load(basis)[bc.interior])
-        counts.append(solver.last.iterations)
+        counts.append(solver.solve(body_load(basis)[bc.interior]).iterations)
     solver.destroy()
     assert max(counts) <= 20, counts
 
@@ -136,7 +137,7 @@ def test_a_petsc_nullspace_is_read_once():
             structure=pp.Structure(nullspace=spec, near_nullspace=spec),
         ) as s:
             s.set_operator(K)
-            out.append(s.solve(b))
+            out.append(s.solve(b).value)
             with s.clone() as copy:
-                assert copy.nullspace.shape == (3, basis.N)
+                assert copy.structure.nullspace.shape == (3, basis.N)
     np.testing.assert_allclose(out[0], out[1], atol=1e-9 * np.abs(out[1]).max())

@@ -57,8 +57,8 @@ def elasticity(dim: int = 3, n: int = 8) -> dict:
     iterations = {}
     for name, declared in (("scalar", None), ("modes", structure)):
         with pp.KSPSolver(GAMG, max_it=500, rtol=1e-8, structure=declared) as solver:
-            bc.solve(f, g, solver, theta=theta)
-            iterations[name] = solver.last.iterations
+            sol = bc.solve(f, g, solver, theta=theta, return_solution=True)
+            iterations[name] = sol.iterations
     return iterations
 
 
@@ -83,7 +83,7 @@ def free_body() -> dict:
         GAMG, max_it=500, rtol=1e-10, structure=pp.Structure(nullspace=modes, block_size=2)
     ) as solver:
         solver.set_operator(K)
-        x = solver.solve(b)  # the minimum-norm least-squares solution A⁺b
+        x = solver.solve(b).value  # the minimum-norm least-squares solution A⁺b
     return {"undeclared": undeclared, "x": x, "K": K, "b": b}
 
 
@@ -133,12 +133,13 @@ def stokes(n: int = 8) -> dict:
     with pp.KSPSolver(
         SCHUR, max_it=200, rtol=1e-10, structure=pp.Structure(fields=fields)
     ) as solver:
-        state = bc.solve(f, g, solver, theta=theta)
+        sol = bc.solve(f, g, solver, theta=theta, return_solution=True)
+        state = sol.value
         outflow = np.isclose(basis.doflocs[0], 2.0) & np.isin(np.arange(basis.N), u_x)
         flux = state[torch.from_numpy(np.flatnonzero(outflow))].sum()
         flux.backward()  # the adjoint solve shares the forward PC and its fields
         splits = [k.getOptionsPrefix() for k in solver.ksp.getPC().getFieldSplitSubKSP()]
-        iterations = (solver.last_forward[0].iterations, solver.last_adjoint[0].iterations)
+        iterations = (sol.iterations, sol.adjoint[0].iterations)
     M = bc.A_II.matrix(np.ones(A.n_params))
     direct = spla.spsolve(M.tocsc(), bc.rhs(f, g, theta.detach()).numpy())
     error = np.abs(state.detach().numpy()[bc.interior] - direct).max() / np.abs(direct).max()
@@ -176,10 +177,10 @@ def simp_contrast(n: int = 30, e_min: float = 1e-9) -> dict:
         with pp.KSPSolver(options, max_it=500, rtol=1e-8, structure=structure) as solver:
             solver.set_operator(M)
             try:
-                solver.solve(f)
-                outcome[name] = (solver.last.reason, solver.last.iterations)
-            except pp.SolverError as err:
-                outcome[name] = (err.reason, solver.last.iterations)
+                sol = solver.solve(f)
+                outcome[name] = (sol.reason, sol.iterations)
+            except pp.SolverError as err:  # its message says after how many iterations
+                outcome[name] = (err.reason, None)
     return outcome
 
 

@@ -16,11 +16,14 @@ derivative raises rather than silently missing the solve's second-order term.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import scipy.sparse as sp
 import torch
 
 from ..core.operator import as_csr, frozen_csr
+from ..core.solution import AdjointSlot, LinearSolution
 from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
@@ -28,10 +31,9 @@ from ..fem.parametric import ParametricMatrix
 from .implicit import ImplicitSolve, MatVec, SolveOperator
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
-from .solution import AdjointSlot, LinearSolution
 from .tensors import as_numpy, check_vector
 
-__all__ = ["LinearSolution", "matvec", "solve"]
+__all__ = ["matvec", "solve"]
 
 
 def _operator(A, theta: torch.Tensor | None):
@@ -110,17 +112,16 @@ def solve(
     return_solution : bool
         Return a `LinearSolution` instead of the tensor: x as ``.value`` with this
         call's outcome (``.iterations``, ``.reason``, ``.residual_norm``,
-        ``.forward``, and ``.adjoint`` once a backward ran through ``.value``), to
-        keep beside x; the solver's ``last_forward`` is overwritten by its next call.
+        ``.converged``, ``.info``: every sample's `SolveInfo`; ``.adjoint`` once a
+        backward ran through ``.value``).  The outcome is read there, nowhere else:
+        the solver keeps only running totals (``solver.stats``).
 
     Returns
     -------
     torch.Tensor or LinearSolution
         x, float64, on the device of `b` (in a `LinearSolution` with
-        ``return_solution=True``).  ``solver.last_forward`` (after the backward also
-        ``solver.last_adjoint``) holds every sample's iterations, reason and residual
-        norm of the latest call (`prdp_petsc.core.results.CallInfo`); ``solver.last``
-        the last sample's.
+        ``return_solution=True``, the type `KSPSolver.solve` returns with an
+        ndarray value).
 
     Raises
     ------
@@ -166,22 +167,21 @@ def solve(
         raise InputError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
     if not isinstance(solver, KSPSolver):
         raise TypeError(f"solver must be a KSPSolver, got {type(solver).__name__}")
-    if not return_solution:
-        return _solve(A, b, solver, theta, mode, x0, None)
-    slot = AdjointSlot()  # what the backward fills: the graph holds it, not the result
-    value = _solve(A, b, solver, theta, mode, x0, slot)
-    return LinearSolution(value=value, forward=solver.last_forward, slot=slot)
+    # the backward fills the slot: the graph holds it, not the result
+    sol = _solve(A, b, solver, theta, mode, x0, AdjointSlot())
+    return sol if return_solution else sol.value
 
 
-def _solve(A, b, solver, theta, mode, x0, outcome):
-    """`solve` after its argument checks; `outcome` (an `AdjointSlot`) gets the adjoint's
-    `CallInfo`."""
+def _solve(A, b, solver, theta, mode, x0, outcome: AdjointSlot) -> LinearSolution:
+    """`solve` after its argument checks: x with the forward's `CallInfo`; `outcome`,
+    the result's slot, gets the adjoint's."""
     if isinstance(A, DistributedParametricMatrix):
         if x0 is None:
             return owned_solve(A, b, solver, theta, mode, outcome)
         if x0.shape != b.shape:
             raise InputError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
-        return x0 + _solve(A, b - matvec(A, x0, theta=theta), solver, theta, mode, None, outcome)
+        sol = _solve(A, b - matvec(A, x0, theta=theta), solver, theta, mode, None, outcome)
+        return replace(sol, value=x0 + sol.value)
     P, csr = _operator(A, theta)
     check_vector(as_numpy(b, "b"), csr[3][0], "b")
     if P is not None:
@@ -194,13 +194,16 @@ def _solve(A, b, solver, theta, mode, x0, outcome):
             residual = b - matvec(A, x0, theta=theta)
         else:
             residual = b - ConstMatVec.apply(x0, _frozen_matrix(frozen_csr(A)))
-        return x0 + _solve(A, residual, solver, theta, mode, None, outcome)
+        sol = _solve(A, residual, solver, theta, mode, None, outcome)
+        return replace(sol, value=x0 + sol.value)
     if mode == "unrolled":
         from .unrolled import unrolled_solve
 
         return unrolled_solve(A, b, solver, theta=theta)
     known_symmetric = P.is_symmetric if P is not None else None  # None: the solver tests
-    return ImplicitSolve.apply(b, theta, SolveOperator(P, csr, known_symmetric), solver, outcome)
+    operator = SolveOperator(P, csr, known_symmetric)
+    x = ImplicitSolve.apply(b, theta, operator, solver, outcome)
+    return LinearSolution(x, operator.forward, outcome)
 
 
 def _frozen_matrix(csr: tuple) -> sp.csr_matrix:

@@ -127,7 +127,7 @@ class Convergence:
         """Raise `SolverError` with PETSc's reason if a column diverged.
 
         `what` names the method (``"cg/jacobi"``).  As in implicit mode the first
-        failing column is reported; the caller has set ``solver.last`` from `info`.
+        failing column is reported, with its iterations and residual norm.
         """
         column = self.failed()
         if column is None:

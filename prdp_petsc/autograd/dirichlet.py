@@ -25,12 +25,12 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..core.solution import LinearSolution
 from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .bridge import ConstMatVec, matvec, solve
-from .solution import LinearSolution
 from .tensors import as_numpy, check_vector
 
 __all__ = ["Dirichlet"]

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..core.results import CallInfo, SolverError
+from ..core.solution import AdjointSlot, LinearSolution
 from ..core.solver import KSPSolver
 from .once import once_differentiable
 
@@ -46,7 +47,7 @@ class SolveOperator:
     another solve replaced it, the kept operator is set again (no copy, no comparison).
     """
 
-    __slots__ = ("P", "known_symmetric", "operator", "per_sample", "version")
+    __slots__ = ("P", "forward", "known_symmetric", "operator", "per_sample", "version")
 
     def __init__(self, P, operator, known_symmetric: bool | None = None) -> None:
         self.P = P
@@ -56,8 +57,10 @@ class SolveOperator:
         self.per_sample = isinstance(operator, tuple) and operator[2].ndim == 2
         #: the solver's `operator_version` while it holds this operator (None: unknown)
         self.version: int | None = None
+        #: the `CallInfo` of the forward solve on it (set by `ImplicitSolve`)
+        self.forward: CallInfo | None = None
 
-    def solve(self, solver: KSPSolver, rhs: np.ndarray, *, transpose: bool) -> np.ndarray:
+    def solve(self, solver: KSPSolver, rhs: np.ndarray, *, transpose: bool) -> LinearSolution:
         """``A x = rhs`` (``Aᵀ λ = rhs`` with `transpose`), the operator set only if the
         solver no longer holds it."""
         run = solver.solve_transpose if transpose else solver.solve
@@ -71,9 +74,10 @@ class SolveOperator:
         self.version = solver.operator_version
         return out
 
-    def _solve_each(self, solver: KSPSolver, rhs: np.ndarray, transpose: bool) -> np.ndarray:
-        """A batch of operators: one ``set_operator`` and one solve per sample; the
-        backward visits them in reverse, so the forward's last operator is still set."""
+    def _solve_each(self, solver: KSPSolver, rhs: np.ndarray, transpose: bool) -> LinearSolution:
+        """A batch of operators: one ``set_operator`` and one solve per sample, one
+        result of them all; the backward visits them in reverse, so the forward's last
+        operator is still set."""
         run = solver.solve_transpose if transpose else solver.solve
         indptr, indices, data, shape = self.operator
         out = np.empty_like(rhs)
@@ -84,17 +88,12 @@ class SolveOperator:
                 (indptr, indices, data[i], shape), known_symmetric=self.known_symmetric
             )
             try:
-                out[i] = run(rhs[i])
+                sol = run(rhs[i])
             except SolverError as err:
                 raise type(err)(f"sample {i} of the batch: {err}", reason=err.reason) from err
-            calls[i] = solver.last_adjoint if transpose else solver.last_forward
+            out[i], calls[i] = sol.value, sol.info
         # one record of the whole batch, in batch order (the solves ran one per sample)
-        call = CallInfo.concat(calls[i] for i in range(len(data)))
-        if transpose:
-            solver.last_adjoint = call
-        else:
-            solver.last_forward = call
-        return out
+        return LinearSolution(out, CallInfo.concat(calls[i] for i in range(len(data))))
 
 
 def _gradients(ctx, lam: np.ndarray, grad_x: torch.Tensor, *, per_sample=False):
@@ -120,13 +119,14 @@ def _gradients(ctx, lam: np.ndarray, grad_x: torch.Tensor, *, per_sample=False):
 
 class ImplicitSolve(torch.autograd.Function):
     """``x = A(θ)⁻¹ b`` with a `KSPSolver`: ``apply(b, theta, operator, solver, outcome)``
-    with a `SolveOperator`; `outcome` (an `AdjointSlot` or None) gets the adjoint's
-    `CallInfo`."""
+    with a `SolveOperator`, which keeps the forward's `CallInfo` (``operator.forward``);
+    `outcome`, the result's `AdjointSlot`, gets the adjoint's."""
 
     @staticmethod
     def forward(ctx, b, theta, operator: SolveOperator, solver: KSPSolver, outcome):
-        x = operator.solve(solver, b.detach().cpu().numpy(), transpose=False)
-        x = torch.from_numpy(x) if b.is_cpu else torch.from_numpy(x).to(b.device)
+        sol = operator.solve(solver, b.detach().cpu().numpy(), transpose=False)
+        operator.forward = sol.info
+        x = torch.from_numpy(sol.value) if b.is_cpu else torch.from_numpy(sol.value).to(b.device)
         ctx.operator, ctx.P, ctx.solver, ctx.outcome = operator, operator.P, solver, outcome
         if ctx.needs_input_grad[1]:  # ∂L/∂θ needs x; saved so in-place edits of x are caught
             ctx.save_for_backward(x)
@@ -140,11 +140,11 @@ class ImplicitSolve(torch.autograd.Function):
             return None, None, None, None, None
         # a NaN or Inf cotangent raises NonFiniteError in the solver (never a zero λ)
         g = grad_x.detach().cpu().numpy()
-        lam = ctx.operator.solve(ctx.solver, g, transpose=True)
-        if ctx.outcome is not None:
-            ctx.outcome.info = ctx.solver.last_adjoint
+        sol = ctx.operator.solve(ctx.solver, g, transpose=True)
+        outcome: AdjointSlot = ctx.outcome
+        outcome.info = sol.info  # the result's `adjoint`
         per_sample = ctx.operator.per_sample
-        return *_gradients(ctx, lam, grad_x, per_sample=per_sample), None, None, None
+        return *_gradients(ctx, sol.value, grad_x, per_sample=per_sample), None, None, None
 
 
 class Product(Protocol):

@@ -117,7 +117,7 @@ class NonlinearSolution:
     @property
     def residual_norm(self) -> float:
         """``‖R(u)‖₂`` of the returned iterate (the last of `residual_norms`), as a
-        `~prdp_petsc.autograd.solution.LinearSolution` reports its residual."""
+        `~prdp_petsc.core.solution.LinearSolution` reports its residual."""
         return self.residual_norms[-1]
 
     @property
@@ -175,11 +175,11 @@ class _Loop:
                 break
             solver.set_operator(operator(u, *params), known_symmetric=symmetric)
             try:
-                delta = solver.solve(-r)
+                step = solver.solve(-r)
             except SolverError as err:
                 raise SolverError(f"{self.method} step {k}: {err}", reason=err.reason) from err
-            inner += solver.last.iterations
-            u = u + delta
+            inner += step.iterations
+            u = u + step.value
             k += 1
             r = problem.residual(u, *params)
             norms.append(float(np.linalg.norm(r)))
@@ -229,7 +229,7 @@ class _NonlinearSolve(torch.autograd.Function):
         problem, solver = loop.problem, loop.adjoint_solver
         symmetric = getattr(problem, "jacobian_symmetric", None)
         solver.set_operator(problem.jacobian(u, *params), known_symmetric=symmetric)
-        lam = solver.solve_transpose(grad_u.detach().cpu().numpy())
+        lam = solver.solve_transpose(grad_u.detach().cpu().numpy()).value
         products = problem.vjp(u, lam, *params, needs=needs)
         grads = []
         for i, (need, product) in enumerate(zip(needs, products, strict=True)):
@@ -252,7 +252,7 @@ def _array(p) -> np.ndarray:
 def _check_krylov(solver: KSPSolver, ksp, symmetric, what: str) -> None:
     """Refuse a symmetric-only method on an operator declared non-symmetric, before any
     step runs (the solver itself checks the operators it gets, declared or tested)."""
-    if symmetric is False and solver.declared_symmetric:
+    if symmetric is False and solver.structure.symmetric:
         raise StructureError(
             f"the {what} is not symmetric, but its KSPSolver was built with "
             "Structure(symmetric=True) (that would give wrong gradients); build it without"

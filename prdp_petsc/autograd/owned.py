@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from ..core.parallel import as_petsc_comm
+from ..core.solution import AdjointSlot, LinearSolution
 from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
@@ -59,14 +60,14 @@ def owned_solve(
     solver: KSPSolver,
     theta: torch.Tensor | None,
     mode: str,
-    outcome=None,
-) -> torch.Tensor:
+    outcome: AdjointSlot | None = None,
+) -> LinearSolution:
     """`prdp_petsc.solve` for a `DistributedParametricMatrix` (collective).
 
     `b` holds this rank's rows, ``(m,)`` or ``(B, m)`` (a batch sharing θ), `theta`
-    this rank's parameters ``(p,)``; x holds this rank's rows of the solution.
-    Implicit mode only.  `outcome`: the `AdjointSlot` of a ``return_solution=True``
-    call, which the backward fills (None: no such call).
+    this rank's parameters ``(p,)``; x, the result's ``value``, holds this rank's rows
+    of the solution.  Implicit mode only.  `outcome`: the result's `AdjointSlot`,
+    which the backward fills (None: a new one).
     """
     if mode != "implicit":
         raise InputError("the owned layout runs implicit (adjoint) gradients only")
@@ -75,7 +76,10 @@ def owned_solve(
     _agree_shape(A, b, A.local_shape[0], "b")
     as_numpy(b, "b", finite=False)  # float64; NaN or Inf is refused by the solver on all ranks
     csr = A.owned_csr(as_numpy(theta, "theta", finite=False))  # validated on all ranks
-    return ImplicitSolve.apply(b, theta, SolveOperator(A, csr), solver, outcome)
+    slot = AdjointSlot() if outcome is None else outcome
+    operator = SolveOperator(A, csr)
+    x = ImplicitSolve.apply(b, theta, operator, solver, slot)
+    return LinearSolution(x, operator.forward, slot)
 
 
 class _OwnedProduct:

@@ -20,9 +20,10 @@ Failures are those of implicit mode: CG on an operator known to be non-symmetric
 raises `prdp_petsc.errors.StructureError` (unless ``check_structure=False``), a NaN
 or Inf cotangent `prdp_petsc.errors.NonFiniteError`; a divergence PETSc reports
 (``DIVERGED_DTOL``, ``DIVERGED_NANORINF``, CG's ``DIVERGED_INDEFINITE_PC``/``_MAT``)
-raises `SolverError` with the same reason name, and ``solver.last`` describes
-the last column (the failing one on error) with PETSc's iterations, reason and
-residual norm.  Right-hand sides beyond ``2^±100`` are scaled by a power of two
+raises `SolverError` with the same reason name and, in its message, the failing
+column's iterations and residual norm; a solve that returns reports every column's
+iterations, reason and residual norm as implicit mode does (`LinearSolution.info`).
+Right-hand sides beyond ``2^±100`` are scaled by a power of two
 first, as `KSPSolver` does.  Not repeated from implicit mode: the rescue of
 breakdowns at rounding level (`prdp_petsc.core.safeguards`); for the supported
 methods with a positive diagonal, zᵀr is a sum of non-negative terms and those
@@ -45,6 +46,7 @@ from petsc4py import PETSc
 
 from ..core import safeguards
 from ..core.results import SolverError
+from ..core.solution import LinearSolution
 from ..core.solver import KSPSolver
 from ..core.sparsity import csr_symmetric
 from ..core.structure import check_structure, symmetric_only
@@ -69,15 +71,21 @@ def method_of(solver: KSPSolver) -> tuple[str, str, float]:
     return ksp.getType(), ksp.getPC().getType(), scale
 
 
-def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torch.Tensor:
+def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> LinearSolution:
     """K steps of the solver's method in torch; differentiable in b and θ.
+
+    Returns
+    -------
+    LinearSolution
+        x as ``.value`` (a tensor) with every sample's outcome; ``.adjoint`` stays
+        None (the backward is torch's, no transpose solve).
 
     Raises
     ------
     SolverError
         When PETSc would report a divergence (same reason name as implicit mode).
     """
-    if solver.nullspace is not None:
+    if solver.structure.nullspace is not None:
         raise InputError(
             "mode='unrolled' does not project null spaces as PETSc does; use mode='implicit' "
             "for a solver with a nullspace"
@@ -101,9 +109,6 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
         x = _richardson(A_t, B, inv_m, scale, solver.max_it, conv)
     else:
         x = _cg(A_t, B, inv_m, solver.max_it, conv)
-    column = conv.failed()
-    solver.last_forward = conv.call_info()  # every sample, as implicit mode reports them
-    solver.last = conv.info(-1 if column is None else column)
     conv.check(f"{ksp_type}/{pc_type}")
     x = _ldexp(x, exponents)
     if not bool(torch.isfinite(x).all()):  # e.g. -ksp_norm_type none: PETSc tests nothing
@@ -117,7 +122,8 @@ def unrolled_solve(A, b: torch.Tensor, solver: KSPSolver, *, theta=None) -> torc
     stats.forward_iterations += its
     stats.forward_time += time.perf_counter() - t0
     x = x.T.reshape(b.shape).to(b.device)
-    return _AdjointCount.apply(x, solver, B.shape[1], its)
+    # every sample's outcome, as implicit mode reports them (no adjoint solve will run)
+    return LinearSolution(_AdjointCount.apply(x, solver, B.shape[1], its), conv.call_info())
 
 
 def _symmetric(A) -> bool:

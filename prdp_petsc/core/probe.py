@@ -122,11 +122,11 @@ def _operators(A, theta, rows: int) -> list:
 
 
 def _solve(probe: KSPSolver, row: np.ndarray) -> int:
-    probe.solve(row)
-    if not probe.last.converged:
+    sol = probe.solve(row)
+    if not sol.converged:
         raise SolverError(
             f"the solver did not reach rtol={probe.rtol} in {probe.max_it} iterations "
-            f"({probe.last.reason}); K_full is undefined",
-            reason=probe.last.reason,
+            f"({sol.reason}); K_full is undefined",
+            reason=sol.reason,
         )
-    return probe.last.iterations
+    return sol.iterations

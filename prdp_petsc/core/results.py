@@ -95,9 +95,8 @@ class SolveInfo:
 class CallInfo:
     """The outcome of every sample of one solver call (a batch), in batch order.
 
-    `KSPSolver` keeps the last forward and the last adjoint call as
-    ``solver.last_forward`` and ``solver.last_adjoint``; ``solver.last`` is the
-    last sample of the last call, as before.  Index it (``info[i]``) for one
+    A call's `prdp_petsc.core.solution.LinearSolution` carries it as ``info`` (and a
+    backward's transpose solve as ``adjoint``).  Index it (``info[i]``) for one
     sample's `SolveInfo`.
 
     Attributes

@@ -42,6 +42,7 @@ from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, Side, SolveInfo, SolverError, SolverStats
 from .settings import AdjointSettings
+from .solution import LinearSolution
 from .step import SolveStep
 from .structure import Structure, check_structure
 
@@ -67,14 +68,13 @@ class _Side:
     what the solver keeps of it between calls.
 
     A rebuild (`KSPSolver.rebuild_on`) gives it a new KSP and forgets what belonged to
-    the old one; `last` stays.
+    the old one.
     """
 
     __slots__ = (
         "has_fields",
         "kind",
         "ksp",
-        "last",
         "prefix",
         "setup_version",
         "step",
@@ -85,8 +85,6 @@ class _Side:
         self.kind = kind
         #: its options prefix (the adjoint's is ``<prefix>adj_`` unless set)
         self.prefix = prefix
-        #: the `CallInfo` of its last call
-        self.last: CallInfo | None = None
         self.use(None)
 
     def use(self, ksp: PETSc.KSP | None) -> None:
@@ -111,7 +109,7 @@ class _Side:
         return f"{self.ksp.getType()}/{self.ksp.getPC().getType()}"
 
     def destroy(self) -> None:
-        """Free the KSP (the side keeps `last`)."""
+        """Free the KSP."""
         if self.ksp is not None:
             self.ksp.destroy()
         self.use(None)
@@ -141,9 +139,9 @@ class KSPSolver:
         (default) gives a `prdp_petsc.errors.NotConvergedWarning` naming the true
         residual ``‖b − A x‖/‖b‖`` (one ``MatMult``) and what to do, once per call
         (the worst row of a batch); ``"raise"`` makes that a `SolverError` (reason
-        ``DIVERGED_MAX_IT``); ``"ignore"`` returns as PETSc does, with only
-        ``last.converged`` False.  A capped solve in fixed mode (``rtol = atol = 0``:
-        exactly K iterations, how PRDP trains) is the normal outcome and never
+        ``DIVERGED_MAX_IT``); ``"ignore"`` returns as PETSc does, with only the
+        result's ``converged`` False.  A capped solve in fixed mode (``rtol = atol =
+        0``: exactly K iterations, how PRDP trains) is the normal outcome and never
         reported.  Set here only, for the solver's life (`clone` copies it).
     adjoint : AdjointSettings or dict, optional
         Settings of the transpose solve; by default the forward ones.
@@ -191,7 +189,8 @@ class KSPSolver:
     the value None or True (``{"pc_fieldsplit_detect_saddle_point": None}``); False
     writes the value ``false``.
 
-    Structure is declared once, here: `nullspace`, `transpose_nullspace`,
+    Structure is declared once, here, and read back as `structure` (the solver
+    mirrors none of its fields): its `nullspace`, `transpose_nullspace`,
     `near_nullspace` and `block_size` are set on every Mat the solver gets (a new
     pattern, a new size, another communicator, every operator of a batch; new
     values of the same pattern keep the Mat and with it what was set), `fields` on
@@ -211,7 +210,7 @@ class KSPSolver:
     negative reason raises `SolverError`, except a breakdown (or BiCGStab's late
     divergence) after the residual reached rounding level when run far beyond
     convergence: the iterate at rounding level (and below the initial residual) is
-    returned and PETSc's reason is kept in `last` (see `prdp_petsc.core.safeguards`).
+    returned with PETSc's reason in its result (see `prdp_petsc.core.safeguards`).
     What PETSc calls converged is checked against the true residual ``‖b − A x‖``
     (one ``MatMult``), a capped iterate only when it is suspiciously large (two vector
     norms): an iterate that blew up along the kernel of a singular operator whose
@@ -236,10 +235,13 @@ class KSPSolver:
     never towards a worse solve going unreported.  A caller's Mat edited in place
     (the same Mat passed again) is not seen as a change; PETSc sets its PC up again.
 
-    Every call reports every sample: ``last_forward`` and ``last_adjoint`` are the
-    `CallInfo` of the last forward and adjoint call (iterations, reason and
-    residual per sample; a residual PETSc did not compute is None, never 0), and
-    ``last`` is the `SolveInfo` of the last sample of the last call.  A NaN or Inf
+    The outcome of a call is read from what it returns, one place: `solve` and
+    `solve_transpose` return a `prdp_petsc.core.solution.LinearSolution` (as
+    ``prdp_petsc.solve(..., return_solution=True)`` does, with a tensor value):
+    ``sol.value`` with ``sol.iterations``, ``sol.reason``, ``sol.residual_norm``,
+    ``sol.converged`` and ``sol.info``, every sample's `SolveInfo` (a residual PETSc
+    did not compute is None, never 0).  The solver keeps no per-call outcome, only
+    the running totals in `stats` (`SolverStats`).  A NaN or Inf
     in a right-hand side raises `prdp_petsc.errors.NonFiniteError` before PETSc
     sees it; a solve that returns NaN or Inf raises `SolverError`.
     """
@@ -277,9 +279,8 @@ class KSPSolver:
             raise TypeError(f"structure must be a pp.Structure, got {type(structure).__name__}")
         self.check_structure = bool(check_structure)
         self.stats = SolverStats()
-        self.last: SolveInfo | None = None
         #: the operator's layout (`prdp_petsc.core.operator`), chosen by its kind
-        self._op: OperatorLayout = ReplicatedCSR(self.comm, self.block_size)
+        self._op: OperatorLayout = ReplicatedCSR(self.comm, self.structure.block_size)
         self._x: PETSc.Vec | None = None
         self._b: PETSc.Vec | None = None
         self._layout: RowLayout | None = None
@@ -288,37 +289,6 @@ class KSPSolver:
         self._adj = _Side(Side.ADJOINT, self.adjoint_prefix)
         self._kernels: dict = {}  # layout -> PETSc null spaces, made once (`attach_nullspaces`)
         self._build(self.comm)
-
-    # -- the declared structure (read from `structure`, never set apart from it) ----
-    @property
-    def declared_symmetric(self) -> bool | None:
-        """``structure.symmetric``."""
-        return self.structure.symmetric
-
-    @property
-    def nullspace(self):
-        """``structure.nullspace``."""
-        return self.structure.nullspace
-
-    @property
-    def transpose_nullspace(self):
-        """``structure.transpose_nullspace``."""
-        return self.structure.transpose_nullspace
-
-    @property
-    def near_nullspace(self):
-        """``structure.near_nullspace``."""
-        return self.structure.near_nullspace
-
-    @property
-    def block_size(self) -> int:
-        """``structure.block_size``."""
-        return self.structure.block_size
-
-    @property
-    def fields(self):
-        """``structure.fields``."""
-        return self.structure.fields
 
     # -- PETSc objects ------------------------------------------------------------
     @property
@@ -332,26 +302,6 @@ class KSPSolver:
         """The transpose-solve PETSc KSP."""
         self._alive()
         return self._adj.ksp
-
-    @property
-    def last_forward(self) -> CallInfo | None:
-        """`CallInfo` of the last forward call (every sample's iterations, reason and
-        residual).  Set by `prdp_petsc.autograd.implicit` to one record of a batch of
-        operators, which it solves one call per operator."""
-        return self._fwd.last
-
-    @last_forward.setter
-    def last_forward(self, call: CallInfo | None) -> None:
-        self._fwd.last = call
-
-    @property
-    def last_adjoint(self) -> CallInfo | None:
-        """`CallInfo` of the last adjoint call (as `last_forward`)."""
-        return self._adj.last
-
-    @last_adjoint.setter
-    def last_adjoint(self, call: CallInfo | None) -> None:
-        self._adj.last = call
 
     @property
     def mat(self) -> PETSc.Mat:
@@ -528,6 +478,8 @@ class KSPSolver:
     def describe(self) -> dict:
         """JSON-ready record of the solver: prefixes, tolerances, options and the
         KSP/PC types PETSc really uses (command-line options included)."""
+        structure = self.structure
+        fields = structure.fields
         return {
             **self.config.describe(),
             "forward": {"ksp_type": self.ksp.getType(), "pc_type": self.ksp.getPC().getType()},
@@ -539,9 +491,9 @@ class KSPSolver:
             "pc_lag": self.pc_lag,
             "pc_lag_tol": self.pc_lag_tol,
             "not_converged": self.not_converged,
-            "block_size": self.block_size,
-            "near_nullspace": _describe_space(self.near_nullspace),
-            "fields": None if self.fields is None else {k: v.size for k, v in self.fields.items()},
+            "block_size": structure.block_size,
+            "near_nullspace": _describe_space(structure.near_nullspace),
+            "fields": None if fields is None else {k: v.size for k, v in fields.items()},
         }
 
     def clone(self, **changes: Any) -> KSPSolver:
@@ -617,9 +569,10 @@ class KSPSolver:
             (``MatIsSymmetricKnown``).  The outcome is `is_symmetric`.
         """
         self._alive()
-        if self.declared_symmetric is not None:
-            known_symmetric = self.declared_symmetric
-        self._op = layout_for(A, self._op, comm=self.comm, block_size=self.block_size)
+        structure = self.structure
+        if structure.symmetric is not None:
+            known_symmetric = structure.symmetric
+        self._op = layout_for(A, self._op, comm=self.comm, block_size=structure.block_size)
         change = self._op.update(A, known_symmetric)
         if change is Change.NEW:
             self._attach(self._op.mat)
@@ -627,7 +580,7 @@ class KSPSolver:
         elif change is Change.VALUES:
             self._lag.operator_changed()
             self.stats.operator_updates += 1
-            if self.nullspace is not None:
+            if structure.nullspace is not None:
                 check_nullspaces(self._op.mat)
 
     def _attach(self, mat: PETSc.Mat) -> None:
@@ -635,17 +588,20 @@ class KSPSolver:
         declared structure: null spaces, near-null space, fields."""
         if mat.getComm().getSize() != self._fwd.ksp.getComm().getSize():
             self.rebuild_on(mat.getComm())
-        if self.nullspace is not None:
-            attach_nullspaces(mat, self.nullspace, self.transpose_nullspace, self._kernels)
-        if self.near_nullspace is not None:
-            attach_near_nullspace(mat, self.near_nullspace)
+        structure = self.structure
+        if structure.nullspace is not None:
+            attach_nullspaces(
+                mat, structure.nullspace, structure.transpose_nullspace, self._kernels
+            )
+        if structure.near_nullspace is not None:
+            attach_near_nullspace(mat, structure.near_nullspace)
         if self._x is not None and self._x.getSizes() != mat.getSizes()[1]:
             for side in self._sides():  # another size: KSPReset, options stay
                 side.ksp.reset()
                 side.has_fields = False  # the reset dropped them
         for side in self._sides():
             side.ksp.setOperators(mat)
-        if self.fields is not None:
+        if structure.fields is not None:
             self._attach_fields(mat)
         self._free_vecs()
         self._x, self._b = mat.createVecs()
@@ -660,7 +616,7 @@ class KSPSolver:
                 continue  # the forward PC's fields serve both
             if side.has_fields:
                 continue
-            attach_fields(side.ksp.getPC(), self.fields, mat)
+            attach_fields(side.ksp.getPC(), self.structure.fields, mat)
             side.has_fields = True
 
     def _adjoint_is_forward(self) -> bool:
@@ -671,16 +627,31 @@ class KSPSolver:
         return self.adjoint.symmetric_pc or self._adj.ksp.getPC().getType() in _SYMMETRIC_PCS
 
     # -- solves ---------------------------------------------------------------------
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solve ``A x = b`` from a zero initial guess; `b` is ``(n,)`` or ``(B, n)``."""
+    def solve(self, b: np.ndarray) -> LinearSolution:
+        """Solve ``A x = b`` from a zero initial guess; `b` is ``(n,)`` or ``(B, n)``.
+
+        Returns
+        -------
+        LinearSolution
+            x as ``.value`` (an ndarray, shape of `b`) with this call's outcome:
+            ``.iterations``, ``.reason``, ``.residual_norm``, ``.converged`` and
+            ``.info``, every sample's `SolveInfo`.
+        """
         return self._run(b, self._fwd)
 
-    def solve_transpose(self, g: np.ndarray) -> np.ndarray:
-        """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``."""
+    def solve_transpose(self, g: np.ndarray) -> LinearSolution:
+        """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``.
+
+        Returns
+        -------
+        LinearSolution
+            λ as ``.value`` with this call's outcome, as `solve` (``.info.kind`` is
+            ``"adjoint"``).
+        """
         safeguards.check_transpose_ksp(self.adjoint_ksp)
         return self._run(g, self._adj)
 
-    def _run(self, rhs: np.ndarray, side: _Side) -> np.ndarray:
+    def _run(self, rhs: np.ndarray, side: _Side) -> LinearSolution:
         self._alive()
         mat = self.mat
         rhs = np.asarray(rhs, dtype=np.float64)
@@ -701,6 +672,7 @@ class KSPSolver:
         age = self._lag.before_solve(slot, ksp, self.stats)
         t0 = time.perf_counter()
         iterations = 0
+        infos: list[SolveInfo] = []
         # the options are in PETSc's database while it may read them: at the PC set-up
         # after a new operator (GAMG reads its level options there), and at the first
         # solve, to learn which were never read.  KSPSolve itself reads none.
@@ -734,7 +706,7 @@ class KSPSolver:
                     for i in range(len(batch)):
                         iterations += step(batch[i], out[i])
                 finally:
-                    self._record(side, self._lag.after_solve(slot, kind, step.infos, age))
+                    infos = self._lag.after_solve(slot, kind, step.infos, age)
         except SolverError as err:
             if check and (unused := self._unused_after(side, pushed)):
                 # a misspelt option (a split's, say) is often why the set-up failed
@@ -753,7 +725,7 @@ class KSPSolver:
         self.stats.record(kind, len(batch), iterations, elapsed)
         if step.unconverged and self.not_converged != "ignore":
             self._report_unconverged(side, step, len(batch))
-        return out.reshape(rhs.shape)
+        return LinearSolution(out.reshape(rhs.shape), CallInfo(kind.value, tuple(infos)))
 
     def _report_unconverged(self, side: _Side, step: SolveStep, rows: int) -> None:
         """`NotConvergedWarning` (or `SolverError`) for the rows of this call that had a
@@ -831,10 +803,6 @@ class KSPSolver:
         if symmetric is False and ksp.getPC().getType() in ("bjacobi", "asm"):
             ksp.setUp()  # KSPSolve would; now the blocks' KSPs exist
             check_structure(ksp, symmetric, kind, set_up=True)
-
-    def _record(self, side: _Side, infos: list[SolveInfo]) -> None:
-        side.last = CallInfo(side.kind.value, tuple(infos))
-        self.last = infos[-1] if infos else None
 
     def reset_stats(self) -> None:
         """Zero the counters in `stats`."""

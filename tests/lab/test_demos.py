@@ -230,8 +230,9 @@ def check_ns2d(t):
     with pp.KSPSolver(t.module.GMRES, prefix="t_demo_ns_", max_it=50_000, rtol=1e-12,
                       structure=pp.Structure(nullspace=mac.nullspace(n))) as solver:  # fmt: skip
         solver.set_operator(A)
-        x = solver.solve(b)
-        assert solver.last.converged
+        sol = solver.solve(b)
+        assert sol.converged
+    x = sol.value
     u, v, p = x.reshape(3, -1)
     assert np.abs(mac.divergence(x, n)).max() < 1e-9 * n * np.abs(np.r_[u, v]).max()
     assert abs(p.mean()) < 1e-12 * np.abs(p).max()

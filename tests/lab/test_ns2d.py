@@ -1,5 +1,6 @@
 """prdp_petsc.lab.components.mac and demos/ns2d.py: the periodic MAC Navier–Stokes step."""
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 import torch
 
 import prdp_petsc as pp
+from prdp_petsc.errors import NotConvergedWarning
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.components.networks import ConvResNet
 from prdp_petsc.lab.reports import ns2d as ns2d_reports
@@ -245,9 +247,11 @@ def test_adjoint_with_own_tolerance_runs_to_its_rtol():
     scene = NS2D.build({**NS2D.PRESETS["quick"], "adjoint_rtol": 1e-8}, 0)
     solver = scene.solvers[0]
     solver.max_it = 8
-    scene.loss(torch.arange(3)).backward()
+    with warnings.catch_warnings():  # an adjoint that missed its rtol would warn
+        warnings.simplefilter("error", NotConvergedWarning)
+        scene.loss(torch.arange(3)).backward()
     assert solver.stats.forward_iterations == 8 * 6  # two capped solves of 3 samples
-    assert solver.last.reason == "CONVERGED_RTOL" and solver.stats.adjoint_iterations > 8 * 3
+    assert solver.stats.adjoint_iterations > 8 * 3
 
 
 def test_adjoint_report_physics_gradient_matters():
@@ -295,7 +299,8 @@ def test_gradcheck_of_one_indirectly_corrected_step():
     config = {**NS2D.PRESETS["quick"], "n": n, "correction": "indirect"}
     hybrid = NS2D.Corrector(config, net)
     s0 = state(n, 2).requires_grad_(True)
-    with converged(n) as solver:
+    with converged(n) as solver, warnings.catch_warnings():
+        warnings.simplefilter("error", NotConvergedWarning)  # every solve met its rtol
         assert torch.autograd.gradcheck(lambda s: hybrid(s, solver), (s0,), atol=1e-6)
         with torch.no_grad():
             f = hybrid.network(s0)
@@ -305,7 +310,6 @@ def test_gradcheck_of_one_indirectly_corrected_step():
             A = hybrid.A.matrix(hybrid.theta(s0)[0].numpy())
             residual = A @ (x - plain)[0].numpy() - np.r_[f[0].numpy() / DT, np.zeros(n * n)]
         assert np.abs(residual).max() < 1e-8 * np.abs(f.numpy()).max() / DT
-        assert solver.last.converged
 
 
 @pytest.mark.parametrize("correction", ["direct", "indirect"])

@@ -34,14 +34,15 @@ def setup():
     solver.destroy()
 
 
-def forward(A, M, x, solver):
-    return pp.solve(A, torch.from_numpy((M @ x.numpy().T).T), solver)
+def forward(A, M, x, solver, **kw):
+    return pp.solve(A, torch.from_numpy((M @ x.numpy().T).T), solver, **kw)
 
 
 def test_inverse_simulator_inverts_the_converged_forward(setup):
     sip, A, M, x_true, solver = setup
-    y = forward(A, M, x_true, solver)
-    assert solver.last.converged
+    sol = forward(A, M, x_true, solver, return_solution=True)
+    assert sol.converged
+    y = sol.value
     back = sip.InverseSimulator(A, M)(y)
     assert torch.linalg.norm(back - x_true) <= 1e-8 * torch.linalg.norm(x_true)
 

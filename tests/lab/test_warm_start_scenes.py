@@ -20,12 +20,12 @@ def scene_solve_accuracy(name: str, warm: bool, monkeypatch, *, K: int, epochs: 
     record = []
     solve, newton_solve = pp.solve, pp.newton_solve
 
-    def recorded_solve(A, b, solver, **kw):
-        x = solve(A, b, solver, **kw)
+    def recorded_solve(A, b, solver, *, return_solution=False, **kw):
+        sol = solve(A, b, solver, return_solution=True, **kw)
         if torch.is_grad_enabled():  # training, not validation
             norms = b.detach().norm(dim=-1).numpy()
-            record.extend(solver.last_forward.residual_norms / norms)
-        return x
+            record.extend(sol.info.residual_norms / norms)
+        return sol if return_solution else sol.value
 
     def recorded_newton(problem, u0, *params, **kw):
         sol = newton_solve(problem, u0, *params, **kw)

@@ -129,7 +129,7 @@ def test_singular_operator_with_null_space(nullspace):
             {"ksp_type": "cg"}, structure=pp.Structure(nullspace=spec), comm=comm, **CONVERGED
         ) as s:
             s.set_operator(K)
-            out.append(s.solve(b))
+            out.append(s.solve(b).value)
     assert all_ranks(_rel(out[1], out[0]) <= 1e-10)
     assert all_ranks(abs(out[1].sum()) <= 1e-8 * np.abs(out[1]).max())  # minimum norm
 
@@ -166,7 +166,7 @@ def test_owned_layout_with_a_callers_distributed_mat():
     b = np.random.default_rng(4).standard_normal(n)
     with pp.KSPSolver({"ksp_type": "cg"}, **CONVERGED) as solver:
         solver.set_operator(mat)
-        x_local = solver.solve(b[start:end])
+        x_local = solver.solve(b[start:end]).value
         with pytest.raises(ValueError, match="local rows"):
             solver.solve(b if end - start != n else b[:-1])
     mat.destroy()
@@ -203,7 +203,7 @@ def test_sequential_only_pc_names_its_parallel_form():
     options = {"ksp_type": "cg", "pc_type": "bjacobi", "sub_pc_type": "icc"}
     with pp.KSPSolver(options, comm=COMM, **CONVERGED) as s:
         s.set_operator(A)
-        x = s.solve(np.ones(n))
+        x = s.solve(np.ones(n)).value
     assert all_ranks(_rel(A @ x, np.ones(n)) <= 1e-10)
 
 
@@ -218,6 +218,6 @@ def test_owned_layout_scales_the_right_hand_side_together(atol):
     b[0] = 1e40
     with pp.KSPSolver({"ksp_type": "cg"}, max_it=500, rtol=1e-12, atol=atol) as solver:
         solver.set_operator(mat)
-        x = np.concatenate(COMM.allgather(solver.solve(b[start:end])))
+        x = np.concatenate(COMM.allgather(solver.solve(b[start:end]).value))
     mat.destroy()
     assert all_ranks(_rel(x, np.linalg.solve(full.toarray(), b)) <= 1e-9)

@@ -47,11 +47,12 @@ def test_replicated_layout_splits_whole_blocks_and_keeps_the_modes(cube):
     for comm in (PETSc.COMM_SELF, PETSc.COMM_WORLD):
         with pp.KSPSolver(GAMG, comm=comm, structure=structure, **CONVERGED) as solver:
             solver.set_operator(M)
-            out.append(solver.solve(f))
+            sol = solver.solve(f)
+            out.append(sol.value)
             start, end = solver.mat.getOwnershipRange()
             assert all_ranks(start % 3 == 0 and end % 3 == 0 and solver.mat.getBlockSize() == 3)
             assert all_ranks(len(solver.mat.getNearNullSpace().getVecs()) == 6)
-            assert all_ranks(solver.last.converged and solver.last.iterations <= 20)
+            assert all_ranks(sol.converged and sol.iterations <= 20)
     assert all_ranks(_rel(out[1], out[0]) <= 1e-8)
     assert all_ranks(ownership_range(M.shape[0], PETSc.COMM_WORLD, 3) == (start, end))
 
@@ -74,8 +75,9 @@ def test_owned_layout_with_a_callers_mat(cube):
         GAMG, structure=pp.Structure(near_nullspace=modes, block_size=3), **CONVERGED
     ) as solver:
         solver.set_operator(mat)
-        x = np.concatenate(COMM.allgather(solver.solve(f[start:end])))
-        assert all_ranks(mat.getBlockSize() == 3 and solver.last.iterations <= 20)
+        sol = solver.solve(f[start:end])
+        x = np.concatenate(COMM.allgather(sol.value))
+        assert all_ranks(mat.getBlockSize() == 3 and sol.iterations <= 20)
     mat.destroy()
     assert all_ranks(_rel(x, np.linalg.solve(M.toarray(), f)) <= 1e-8)
 
@@ -107,7 +109,7 @@ def test_stokes_fields_on_two_ranks_equal_serial():
             SCHUR, comm=comm, structure=pp.Structure(fields=fields), **CONVERGED
         ) as solver:
             solver.set_operator(M)
-            out.append(solver.solve(b))
+            out.append(solver.solve(b).value)
             splits = solver.ksp.getPC().getFieldSplitSubKSP()
             assert all_ranks(
                 [k.getOptionsPrefix() for k in splits] == ["fieldsplit_u_", "fieldsplit_p_"]
@@ -127,6 +129,6 @@ def test_singular_operator_raises_on_every_rank():
         GAMG, comm=PETSc.COMM_WORLD, structure=pp.Structure(nullspace=modes), **CONVERGED
     ) as solver:
         solver.set_operator(K)
-        x = solver.solve(body_load(basis))
+        x = solver.solve(body_load(basis)).value
     expected = np.linalg.pinv(K.toarray()) @ body_load(basis)
     assert all_ranks(_rel(x, expected) <= 1e-8)

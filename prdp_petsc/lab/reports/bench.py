@@ -173,8 +173,11 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         steps = (raw_step, bridge_step, b_only_step)
         for step in steps if i % 2 == 0 else steps[::-1]:
             step(i >= warmup)
-    if solver.last.iterations != k:
-        raise RuntimeError(f"bridge KSP ran {solver.last.iterations} iterations, not {k}")
+    stats = solver.stats  # every bridge solve, forward and adjoint, ran exactly k
+    for side in ("forward", "adjoint"):
+        solves, its = getattr(stats, f"{side}_solves"), getattr(stats, f"{side}_iterations")
+        if its != k * solves:
+            raise RuntimeError(f"bridge {side} KSP: {its} iterations in {solves} solves, not {k}")
 
     if ksp_types(solver) != [raw.getType(), raw.getPC().getType()]:
         raise RuntimeError(f"bridge KSP is {ksp_types(solver)}, raw is {raw.getType()}")

@@ -99,15 +99,15 @@ def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
             ) as s:
                 s.set_operator(M)
                 t0 = time.perf_counter()
-                x = s.solve(b)
+                info = s.solve(b)
                 first = time.perf_counter() - t0
-                info = s.last
+                x = info.value
                 t0 = time.perf_counter()
                 s.solve(b)
                 second = time.perf_counter() - t0
                 reference = x if reference is None else reference
                 s.rtol, s.max_it = 0.0, k
-                capped = s.solve(b)
+                capped = s.solve(b).value
             results[variant] = {
                 "cells": n,
                 "unknowns": int(M.shape[0]),

@@ -125,7 +125,9 @@ def _prdp_petsc(A, b_np, g_np, k):
         return b.grad.numpy()
 
     def check():
-        if solver.last_forward[0].iterations != k or solver.last_adjoint[0].iterations != k:
+        stats = solver.stats  # every solve of every call, forward and adjoint
+        exact = stats.forward_iterations == k * stats.forward_solves
+        if not exact or stats.adjoint_iterations != k * stats.adjoint_solves:
             raise RuntimeError("prdp_petsc did not run exactly K iterations")
         return {"ksp": [solver.ksp.getType(), solver.ksp.getPC().getType()]}
 

@@ -187,7 +187,8 @@ def _replicated_solve_worker(args) -> dict:
 
     forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),
                                backward)  # fmt: skip
-    u = pp.solve(A, b, solver, theta=theta)
+    sol = pp.solve(A, b, solver, theta=theta, return_solution=True)
+    u = sol.value
     mat = solver.mat
     replicated = _distinct_nbytes(
         [A.indptr, A.indices, A.a0, A.G.data, A.G.indices, A.G.indptr]
@@ -200,7 +201,7 @@ def _replicated_solve_worker(args) -> dict:
         "nnz": int(A.nnz),
         "parameters": int(A.n_params),
         "k": args.k,
-        "iterations": solver.last.iterations,
+        "iterations": sol.iterations,
         "assembly_s": assembly,
         "forward_s": float(np.median(forward[1:])),
         "backward_s": float(np.median(backward[1:])),
@@ -251,7 +252,8 @@ def _owned_solve_worker(args) -> dict:
 
     forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),
                                backward)  # fmt: skip
-    u = pp.solve(A, b, solver, theta=theta)
+    sol = pp.solve(A, b, solver, theta=theta, return_solution=True)
+    u = sol.value
     mat = solver.mat
     P = A.local
     local = _distinct_nbytes(
@@ -266,7 +268,7 @@ def _owned_solve_worker(args) -> dict:
         "nnz": nnz,
         "parameters": int(A.params.size),
         "k": args.k,
-        "iterations": solver.last.iterations,
+        "iterations": sol.iterations,
         "partition_s": partition,
         "assembly_s": assembly,
         "forward_s": float(np.median(forward[1:])),

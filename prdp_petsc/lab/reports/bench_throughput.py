@@ -130,7 +130,11 @@ def bench_throughput(
             "bridge_s": statistics.median(t["bridge"]),
             "timings_s": t,
         }
-    if solver.last.iterations != k or raw.getIterationNumber() != k:
+    stats = solver.stats  # every bridge solve, forward and adjoint
+    exact = stats.forward_iterations == k * stats.forward_solves
+    if not exact or stats.adjoint_iterations != k * stats.adjoint_solves:
+        raise RuntimeError("fixed mode did not run exactly K iterations")
+    if raw.getIterationNumber() != k:
         raise RuntimeError("fixed mode did not run exactly K iterations")
     lo, hi = str(min(batches)), str(max(batches))
     if lo != hi:

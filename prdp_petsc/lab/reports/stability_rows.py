@@ -139,9 +139,10 @@ def evaluate(
     t0 = time.perf_counter()
     try:
         th = torch.tensor(theta, dtype=torch.float64, requires_grad=True)
-        x = solve(A, b_t, solver, theta=th)
-        row["iterations"] = solver.last.iterations
-        row["reason"] = solver.last.reason
+        sol = solve(A, b_t, solver, theta=th, return_solution=True)
+        x = sol.value
+        row["iterations"] = sol.iterations
+        row["reason"] = sol.reason
         xn = x.detach().numpy()
         scale = float(np.max(np.abs(b)))  # |b| may be 1e-300: norms would underflow
         r = (b - A.matrix(theta) @ xn) / scale
@@ -166,8 +167,8 @@ def evaluate(
             row["taylor_noise"] = taylor["noise"] / max(abs(float(J.detach())), 1e-300)
         row["_x"], row["_grad"] = xn, grad
     except (SolverError, ValueError) as err:
-        if solver.last is not None and row["reason"] is None:
-            row["reason"] = solver.last.reason
+        if isinstance(err, SolverError) and row["reason"] is None:
+            row["reason"] = err.reason  # the failing solve's PETSc reason
         row["outcome"] = f"{type(err).__name__}: {getattr(err, 'reason', '') or str(err)[:60]}"
         row["message"] = str(err)
     row["seconds"] = time.perf_counter() - t0

@@ -107,8 +107,10 @@ def _setup(opts: dict, adjoint, A):
 
 
 def _gradient_step(problem, solver, x):
-    """Adjoint solve and ``∂L/∂θ = −Gᵀ(λ ⊙ x)`` at the capped forward solution x."""
-    return problem.A.theta_gradient(solver.solve_transpose(problem.loss_grad(x)), x)
+    """Adjoint solve and ``∂L/∂θ = −Gᵀ(λ ⊙ x)`` at the capped forward solution x:
+    ``(gradient, the adjoint solve's LinearSolution)``."""
+    adjoint = solver.solve_transpose(problem.loss_grad(x))
+    return problem.A.theta_gradient(adjoint.value, x), adjoint
 
 
 def _measure(problem, A, opts, adjoint, ks, refs, max_seconds) -> list[dict]:
@@ -122,10 +124,11 @@ def _measure(problem, A, opts, adjoint, ks, refs, max_seconds) -> list[dict]:
         solver.max_it = K
         row = {"K": K, "t_setup": t_setup}
         try:
-            x, row["t_forward"] = _timed(lambda: solver.solve(problem.b))
-            row["iterations"], row["reason"] = solver.last.iterations, solver.last.reason
-            grad, row["t_adjoint"] = _timed(lambda x=x: _gradient_step(problem, solver, x))
-            row["adjoint_iterations"] = solver.last.iterations
+            sol, row["t_forward"] = _timed(lambda: solver.solve(problem.b))
+            x = sol.value
+            row["iterations"], row["reason"] = sol.iterations, sol.reason
+            step, row["t_adjoint"] = _timed(lambda x=x: _gradient_step(problem, solver, x))
+            grad, row["adjoint_iterations"] = step[0], step[1].iterations
         except SolverError as err:
             row["error"] = err.reason
             rows.append(row)
@@ -154,7 +157,7 @@ def _retime(problem, A, opts, adjoint, rows, limit: float) -> None:
             continue
         if row["t_total"] <= limit:
             solver.max_it = row["K"]
-            x, t_forward = _timed(lambda: solver.solve(problem.b), 0.0, 1)
+            x, t_forward = _timed(lambda: solver.solve(problem.b).value, 0.0, 1)
             _, t_adjoint = _timed(lambda x=x: _gradient_step(problem, solver, x), 0.0, 1)
             row["t_forward"] = min(row["t_forward"], t_forward)
             row["t_adjoint"] = min(row["t_adjoint"], t_adjoint)
