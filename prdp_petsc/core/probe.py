@@ -71,13 +71,14 @@ def find_k_full(
         )
     b = np.atleast_2d(_array(b))
     x0 = None if x0 is None else np.atleast_2d(_array(x0))
-    operators = _operators(A, theta, len(b))
-    iterations = []
+    operator_of = _operators(A, theta, len(b))
+    iterations, M = [], None
     # a probe that stops short raises its own error below: no NotConvergedWarning first
     with solver.clone(max_it=max_it, rtol=rtol, atol=0.0, not_converged="ignore") as probe:
         for i, row in enumerate(b):
-            M = operators[min(i, len(operators) - 1)]
-            probe.set_operator(M)
+            if (row_operator := operator_of(i)) is not M:  # one operator: set once
+                M = row_operator
+                probe.set_operator(M)
             if x0 is not None:
                 probe.ksp.setConvergenceHistory(max_it + 1, reset=True)
             count = _solve(probe, row)
@@ -100,25 +101,26 @@ def _array(value) -> np.ndarray:
     return np.asarray(value, dtype=np.float64)
 
 
-def _operators(A, theta, rows: int) -> list:
-    """The operator(s) to probe: ``A.matrix(θ)`` of a parametric `A` (one per row of a
-    (B, p) θ, which must match the rows of b), else `A` itself."""
+def _operators(A, theta, rows: int):
+    """``i -> the operator of row i``: ``A.matrix(θ)`` of a parametric `A` (row i's own,
+    made when asked, for a (B, p) θ whose rows match those of b), else `A` itself."""
     parametric = callable(getattr(A, "matrix", None)) and hasattr(A, "n_params")
     if not parametric:
         if theta is not None:
             raise InputError("theta= is only meaningful for a ParametricMatrix A")
-        return [A]
+        return lambda i: A
     if theta is None:
         raise InputError("A is a ParametricMatrix: pass its parameters as theta=")
     theta = _array(theta)
     if theta.ndim == 1:
-        return [A.matrix(theta)]
+        M = A.matrix(theta)
+        return lambda i: M
     if theta.ndim != 2 or len(theta) != rows:
         raise InputError(
             f"theta of shape {theta.shape} needs b of shape ({len(theta)}, n), one row per "
             f"operator; b has {rows} rows"
         )
-    return [A.matrix(t) for t in theta]
+    return lambda i: A.matrix(theta[i])
 
 
 def _solve(probe: KSPSolver, row: np.ndarray) -> int:
