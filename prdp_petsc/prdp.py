@@ -731,5 +731,5 @@ class PRDP:
         self._checks = [Certificate(**c) for c in state.get("checks", [])]
         self._scale = float(state.get("scale", 0.0))
         self._level_start = int(state.get("level_start", 0))
-        self._next_check = int(state.get("next_check", self.window))
+        self._next_check = float(state.get("next_check", self.window))  # inf: no recheck
         self._last_check = int(state.get("last_check", -self.window))

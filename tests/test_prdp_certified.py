@@ -283,3 +283,20 @@ def test_certify_at_k_full_evaluates_nothing():
     cert = ctrl.certify()
     assert cert.certified and cert.gap == 0.0 and calls == [] and not ctrl.checks
     assert "is K_full" in cert.describe()
+
+
+@pytest.mark.parametrize("rho", [0.6, 0.0])  # a fractional next check; an exact K (gap 0)
+def test_a_resumed_controller_checks_when_the_uninterrupted_one_does(rho):
+    """The next check's epoch (max(2, tol/gap) times the epochs run: fractional, or
+    infinite for a gap of 0) survives state_dict -> JSON -> load_state_dict."""
+    import json
+
+    ctrl = pp.PRDP.for_problem(64, check=gap_check(rho=rho))
+    for _ in range(7):
+        ctrl.update(1.0)
+    assert ctrl.checks and ctrl.checks[-1].certified
+    clone = pp.PRDP.for_problem(64, check=gap_check(rho=rho))
+    clone.load_state_dict(json.loads(json.dumps(ctrl.state_dict())))
+    for _ in range(60):
+        assert clone.update(1.0) == ctrl.update(1.0)
+    assert [c.epoch for c in clone.checks] == [c.epoch for c in ctrl.checks]
