@@ -42,6 +42,10 @@ a plain ``ValueError``) is not a solver outcome.
 
 from __future__ import annotations
 
+import os
+import sys
+from pathlib import Path
+
 __all__ = [
     "InputError",
     "MeshError",
@@ -52,6 +56,7 @@ __all__ = [
     "SolverError",
     "StructureError",
     "UnusedOptionWarning",
+    "caller_stacklevel",
     "plain",
 ]
 
@@ -157,3 +162,21 @@ def plain(value):
         return type(value)(plain(v) for v in value)
     tolist = getattr(value, "tolist", None)
     return tolist() if callable(tolist) and type(value).__module__ == "numpy" else value
+
+
+#: a warning points at the first frame outside this package: the caller's line
+_PACKAGE = str(Path(__file__).parent) + os.sep
+
+
+def caller_stacklevel() -> int:
+    """The ``stacklevel`` for a warning given in the function that calls this one: the
+    first frame outside prdp_petsc (and torch's autograd, which runs the bridge), so
+    that the warning names the caller's line."""
+    internal = (_PACKAGE,)
+    torch = sys.modules.get("torch")  # only its path: this module imports no torch
+    if torch is not None:
+        internal += (str(Path(torch.__file__).parent) + os.sep,)
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(internal):
+        frame, level = frame.f_back, level + 1
+    return level

@@ -16,18 +16,15 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import sys
 import time
 import warnings
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from ..errors import InputError, NonFiniteError, NotConvergedWarning
+from ..errors import InputError, NonFiniteError, NotConvergedWarning, caller_stacklevel
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
 from .fields import attach_fields
@@ -59,8 +56,6 @@ _NOTHING_PUSHED = PushedOptions([])  # a solve without a set-up reads no options
 _SYMMETRIC_PCS = frozenset({"none", "jacobi", "pbjacobi", "icc", "cholesky"})
 #: what `KSPSolver(not_converged=...)` does with a tolerance solve that hit max_it
 NOT_CONVERGED = ("warn", "raise", "ignore")
-# a warning points at the first frame outside these folders: the caller's line
-_INTERNAL = (str(Path(__file__).parents[1]) + os.sep,)
 
 
 class _Side:
@@ -750,7 +745,7 @@ class KSPSolver:
         if self.not_converged == "raise":
             raise SolverError(message, reason=info.reason)
         message += " (KSPSolver(not_converged='ignore') accepts such solves silently)"
-        warnings.warn(message, NotConvergedWarning, stacklevel=_caller_level())
+        warnings.warn(message, NotConvergedWarning, stacklevel=caller_stacklevel())
 
     def _step(self, side: _Side, mat: PETSc.Mat) -> SolveStep:
         """The `SolveStep` of this call: kept on its side while the operator (a Mat made
@@ -813,20 +808,6 @@ class KSPSolver:
             f"KSPSolver(options={self.options!r}, prefix={self.prefix!r}, max_it={self.max_it}, "
             f"rtol={self.rtol}, atol={self.atol}, adjoint_max_it={self.adjoint_max_it})"
         )
-
-
-def _caller_level() -> int:
-    """The ``stacklevel`` for a warning given in the function that calls this one: the
-    first frame outside prdp_petsc (and torch's autograd, which runs the bridge), so
-    that the warning names the caller's line."""
-    internal = _INTERNAL
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        internal += (str(Path(torch.__file__).parent) + os.sep,)
-    frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(internal):
-        frame, level = frame.f_back, level + 1
-    return level
 
 
 def _describe_space(spec) -> str | int | None:
