@@ -1,10 +1,11 @@
 """Provenance: what made a result file (versions, command line, commit, machine).
 
-The one implementation the lab has of it.  Every ``results.json`` and
-``summary.json`` the training harness writes carries a ``provenance`` object from
-`provenance`; the benchmarks record `machine` and `versions`; ``prdp-petsc pages
-record`` (`prdp_petsc.lab.reports.record`) records the command's `machine`,
-`versions` and `git_commit`.  A number can so be traced to the code and the
+The one implementation the lab has of it, machine facts included.  Every
+``results.json`` and ``summary.json`` the training harness writes carries a
+``provenance`` object from `provenance`; the benchmarks record `machine_info` (or
+`machine` and `versions`); ``prdp-petsc pages record``
+(`prdp_petsc.lab.reports.record`) records the command's `machine`, `versions` and
+`git_commit`.  A number can so be traced to the code and the
 libraries that produced it.
 """
 
@@ -27,6 +28,7 @@ __all__ = [
     "git_commit",
     "load_average",
     "machine",
+    "machine_info",
     "provenance",
     "versions",
 ]
@@ -81,6 +83,14 @@ def machine() -> dict:
         "cpu_count": os.cpu_count(),
         "load_average": load_average(),
     }
+
+
+def machine_info() -> dict:
+    """What a benchmark records about where it ran: `machine`, torch's threads
+    (``torch_threads``) and `versions` (``versions``)."""
+    import torch
+
+    return {**machine(), "torch_threads": torch.get_num_threads(), "versions": versions()}
 
 
 def cpu() -> str:

@@ -15,7 +15,8 @@ import pytest
 import torch
 
 import prdp_petsc as pp
-from prdp_petsc.lab.reports.bench import main, overhead_problem, raw_ksp
+from prdp_petsc.lab.reports.bench import main
+from prdp_petsc.lab.reports.bench_throughput import overhead_problem, raw_ksp
 from prdp_petsc.lab.reports.bench_unrolled import (
     bench_solver,
     handwritten_unrolled_cg,

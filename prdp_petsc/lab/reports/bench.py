@@ -63,8 +63,9 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
-from ..provenance import load_average, machine, versions, write_result
-from .bench_throughput import bench_throughput
+from ..provenance import load_average, machine_info, write_result
+from . import bench_elasticity, bench_jax, bench_mpi
+from .bench_throughput import bench_throughput, overhead_problem, raw_ksp
 from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
 
 __all__ = ["main"]
@@ -72,22 +73,6 @@ __all__ = ["main"]
 logger = logging.getLogger(__name__)
 
 RAW_KEYS = ("raw_forward", "raw_transpose", "raw_adjoint_as_solve")
-# P1 unknowns of plate_holes: 4851 at refine 0, about 4x per refinement.
-_PLATE_HOLES_N0 = 4851
-
-
-def overhead_problem(n: int, seed: int = 0):
-    """(A, θ, b, g, refine): plate_holes P1, κ per element plus unit reaction (SPD)."""
-    import skfem
-
-    from prdp_petsc import diffusion_operator, load_mesh
-
-    refine = max(0, round(float(np.log(n / _PLATE_HOLES_N0) / np.log(4.0))))
-    basis = skfem.Basis(load_mesh("plate_holes", refine=refine), skfem.ElementTriP1())
-    A = diffusion_operator(basis, "P0", reaction=1.0)
-    rng = np.random.default_rng(seed)
-    theta = 1.0 + 0.5 * rng.random(A.n_params)
-    return A, theta, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0]), refine
 
 
 def _median(values) -> float:
@@ -278,27 +263,6 @@ def traced_peaks(A, b, theta, g, solver) -> dict:
     }
 
 
-def raw_ksp(mat, ksp_type: str, pc_type: str, k: int):
-    """A bare petsc4py KSP on `mat` in fixed mode (K iterations), set up: the baseline."""
-    from petsc4py import PETSc
-
-    raw = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-    raw.setType(ksp_type)
-    raw.getPC().setType(pc_type)
-    raw.setOperators(mat)
-    raw.setTolerances(rtol=0.0, atol=0.0, max_it=k)
-    raw.setUp()
-    return raw
-
-
-def machine_info() -> dict:
-    """The machine, the library versions and torch's threads, for the JSON record
-    (`prdp_petsc.lab.provenance`)."""
-    import torch
-
-    return {**machine(), "torch_threads": torch.get_num_threads(), "versions": versions()}
-
-
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench", description=__doc__.split("\n")[0])
     p.add_argument(
@@ -342,18 +306,9 @@ def _route(text: str) -> tuple[str, str]:
 
 def main(argv: list[str]) -> int:
     """Run ``bench bridge``; write ``<out>/bench_bridge.json``; return an exit code."""
-    if argv and argv[0] == "mpi":
-        from .bench_mpi import main as bench_mpi
-
-        return bench_mpi(argv[1:])
-    if argv and argv[0] == "elasticity":
-        from .bench_elasticity import main as bench_elasticity
-
-        return bench_elasticity(argv[1:])
-    if argv and argv[0] == "jax":
-        from .bench_jax import main as bench_jax
-
-        return bench_jax(argv[1:])
+    others = {"mpi": bench_mpi, "elasticity": bench_elasticity, "jax": bench_jax}
+    if argv and argv[0] in others:
+        return others[argv[0]].main(argv[1:])
     args = _parser().parse_args(argv)
     ksp_type = args.ksp_type or args.routes[0]  # the deprecated --ksp-type/--pc-type first
     pc_type = args.pc_type or args.routes[1]

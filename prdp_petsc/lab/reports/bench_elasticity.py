@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, add_size_preset, positive
+from ..provenance import load_average, machine_info, write_result
 
 __all__ = ["VARIANTS", "format_report", "main", "run"]
 
@@ -185,9 +186,6 @@ def main(argv: list[str]) -> int:
     """Run ``bench elasticity``; write ``<out>/bench_elasticity.json``; return 0."""
     args = _parser().parse_args(argv)
     import torch
-
-    from ..provenance import load_average, write_result
-    from .bench import machine_info
 
     quick = args.preset == "quick"
     sizes = [2, 4] if quick else [int(v) for v in args.sizes.split(",")]

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
+from ..provenance import machine_info
 from .memory import peak_rss_mb
 
 __all__ = ["format_report", "main", "parse_arguments"]
@@ -368,8 +369,6 @@ def main(argv: list[str]) -> int:
         return _worker(args)
     if args.out is None:
         raise SystemExit("prdp-petsc bench mpi: --out is required")
-    from .bench import machine_info
-
     if args.preset == "quick":  # tiny sizes: a smoke test
         args.refine, args.k, args.repeats, args.epochs = 0, 20, 2, 2
     ranks = [int(r) for r in args.ranks.split(",")]

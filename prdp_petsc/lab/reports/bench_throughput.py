@@ -32,7 +32,37 @@ import time
 
 import numpy as np
 
-__all__ = ["bench_throughput"]
+__all__ = ["bench_throughput", "overhead_problem", "raw_ksp"]
+
+# P1 unknowns of plate_holes: 4851 at refine 0, about 4x per refinement.
+_PLATE_HOLES_N0 = 4851
+
+
+def overhead_problem(n: int, seed: int = 0):
+    """(A, θ, b, g, refine): plate_holes P1, κ per element plus unit reaction (SPD)."""
+    import skfem
+
+    from prdp_petsc import diffusion_operator, load_mesh
+
+    refine = max(0, round(float(np.log(n / _PLATE_HOLES_N0) / np.log(4.0))))
+    basis = skfem.Basis(load_mesh("plate_holes", refine=refine), skfem.ElementTriP1())
+    A = diffusion_operator(basis, "P0", reaction=1.0)
+    rng = np.random.default_rng(seed)
+    theta = 1.0 + 0.5 * rng.random(A.n_params)
+    return A, theta, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0]), refine
+
+
+def raw_ksp(mat, ksp_type: str, pc_type: str, k: int):
+    """A bare petsc4py KSP on `mat` in fixed mode (K iterations), set up: the baseline."""
+    from petsc4py import PETSc
+
+    raw = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    raw.setType(ksp_type)
+    raw.getPC().setType(pc_type)
+    raw.setOperators(mat)
+    raw.setTolerances(rtol=0.0, atol=0.0, max_it=k)
+    raw.setUp()
+    return raw
 
 
 def bench_throughput(
@@ -48,8 +78,6 @@ def bench_throughput(
     import torch
 
     import prdp_petsc as pp
-
-    from .bench import overhead_problem, raw_ksp
 
     A, theta_np, _, _, refine = overhead_problem(n)
     rng = np.random.default_rng(2)
