@@ -1,7 +1,9 @@
 """One training run: `run` trains a scene once under a schedule.
 
 `run` writes ``results.json`` after every epoch, so a run that stops early (a
-diverged solve, Ctrl-C) keeps everything measured so far, and ``checkpoint.pt``
+diverged solve, Ctrl-C) keeps everything measured so far, TensorBoard event files
+beside it (`prdp_petsc.lab.training.curves`: ``tensorboard --logdir DIR`` draws the
+run as it trains), and ``checkpoint.pt``
 (`prdp_petsc.lab.training.checkpoint`), from which ``run(resume=DIR)`` continues it
 exactly and `load_trained` loads the trained model.
 `prdp_petsc.lab.training.compare` builds the PRDP-against-K_full comparison on top of it.
@@ -12,6 +14,7 @@ needs:
 * `prdp_petsc.lab.training.building`: `build_scene` (seeded), `release`;
 * `prdp_petsc.lab.training.probe`: `find_k_full` and what the schedules take from it;
 * `prdp_petsc.lab.training.loop`: the epoch loop and its records;
+* `prdp_petsc.lab.training.curves`: the run's TensorBoard curves;
 * `prdp_petsc.lab.training.resume`: a run folder read back, `load_trained`;
 * `prdp_petsc.lab.training.records`: ``results.json``, `to_json`, `write_json`;
 * `prdp_petsc.lab.training.threads`: `torch_threads`;
@@ -125,7 +128,8 @@ def run(
         given, of torch: initial weights, batch order, training noise; `compare`'s
         ``twin`` changes only `torch_seed`).
     out : str or Path, optional
-        Output folder for ``results.json`` and ``checkpoint.pt``; with `resume`,
+        Output folder for ``results.json``, ``checkpoint.pt`` and the TensorBoard
+        event files (`prdp_petsc.lab.training.curves.Curves`); with `resume`,
         default: the `resume` folder.
     progress : bool
         Show a progress bar (epoch, K, validation metric).

@@ -20,6 +20,7 @@ from prdp_petsc import PRDP, InputError, SolverError
 from prdp_petsc.errors import NonFiniteError
 
 from .checkpoint import CHECKPOINT, restore, save_checkpoint
+from .curves import Curves
 from .parallel import Parallel
 from .records import RESULTS, to_json, write_json
 from .schedules import Schedule, gradient_check, rtol_from_level
@@ -56,7 +57,8 @@ def train(
     state: dict | None = None,
 ) -> None:
     """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place,
-    from a checkpoint's `state` if given, saving one every `every` epochs into `out`."""
+    from a checkpoint's `state` if given, saving one every `every` epochs into `out`,
+    with ``results.json`` and the TensorBoard curves (`Curves`) after every epoch."""
     from tqdm.auto import tqdm
 
     generator = torch.Generator().manual_seed(torch_seed)
@@ -80,6 +82,7 @@ def train(
         disable=None if progress else True,  # None: tqdm hides itself when not a terminal
         leave=False,
     )
+    curves = Curves(out, result, start) if out is not None else None
     try:
         for epoch in bar:
             rtol = None
@@ -154,8 +157,12 @@ def train(
                     )  # fmt: skip
                     result["checkpoint"] = {"file": CHECKPOINT, "epoch": done}
                 write_json(out / RESULTS, result)
+                gap = controller.history[-1].gap if controller is not None else None
+                curves.add(record, result["totals"], check_gap=gap)
     finally:
         bar.close()
+        if curves is not None:
+            curves.close()
 
 
 def _certify(controller: PRDP, result: dict) -> None:
