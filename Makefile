@@ -27,7 +27,7 @@ MPIEXEC ?= mpiexec
 # Open MPI refuses root without the first two, and more ranks than cores without the third
 MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1
 
-.PHONY: test demo setup lint bench docs pages clean
+.PHONY: test demo setup lint bench docs pages clean petsc-cuda
 
 test: $(STAMP)
 	$(PY) -m pytest -q
@@ -49,6 +49,13 @@ docs: $(STAMP)
 # docs/results/ and the README's generated fragments, from the recorded data in docs/data/
 pages: $(STAMP)
 	$(PY) -m prdp_petsc.lab.cli pages --out docs/results
+
+# PETSc with CUDA (sm_90) and petsc4py for Python 3.12, built on this machine (no GPU needed)
+# into build/petsc-cuda/: the folder a GPU machine gets, run there by .ci/device-run.sh.  The
+# build tree (several GB) stays in PETSC_CUDA_WORK.  Never part of `make test`.
+PETSC_CUDA_WORK ?= $(or $(TMPDIR),/tmp)/petsc-cuda-work
+petsc-cuda: $(STAMP)
+	bash .ci/petsc-cuda.sh build/petsc-cuda $(PETSC_CUDA_WORK)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check prdp_petsc tests demos meshes docs/examples
