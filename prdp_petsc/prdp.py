@@ -48,6 +48,9 @@ GROWTH = 2.0
 #: a certified K is checked again once it has run this many times the epochs it had run at
 #: its last check, or ``tol / gap`` times where that is more (a gap far inside the band)
 RECHECK_GROWTH = 2.0
+#: ... and only while the checks so far, that recheck and the certificate at the end stay
+#: within this share of every inner iteration of the run (else it waits until they do)
+CHECK_BUDGET = 0.1
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,9 @@ class Certificate:
         fraction of K's, so the two gaps agree).
     scale : float, optional
         The norm the gap is relative to (None: `at_full`).
+    cost : float, optional
+        What the check itself cost, as its ``spent()`` measures it (inner iterations for
+        `prdp_petsc.gradient_check`); None for a check that does not measure itself.
     """
 
     k: int
@@ -119,6 +125,7 @@ class Certificate:
     epoch: int
     reference: int | None = None
     scale: float | None = None
+    cost: float | None = None
 
     @property
     def against(self) -> int:
@@ -182,6 +189,16 @@ def _flat(value) -> np.ndarray:
         parts = [_flat(item) for item in value]
         return np.concatenate(parts) if parts else np.zeros(0)
     return np.asarray(value, dtype=np.float64).ravel()
+
+
+def _spent(check) -> tuple[float, float] | None:
+    """``check.spent()``: (the checks' cost, the run's whole cost so far), if the check
+    measures itself (`prdp_petsc.gradient_check` does, in inner iterations)."""
+    spent = getattr(check, "spent", None)
+    if spent is None:
+        return None
+    checks, total = spent()
+    return float(checks), float(total)
 
 
 def _norm(value) -> float:
@@ -304,8 +321,14 @@ class PRDP:
     specialises as it trains, so a K certified early is checked again, about log2(T)
     times over T epochs while its gap stays near the band, and not before the end when
     the gap is far inside it (a gap at a tenth of the band waits ten times as long).  A
-    check during training compares K with the next level (`Certificate.reference`)
-    while that is below K_full, with K_full otherwise and always in `certify`.
+    recheck also waits until it fits the budget: the checks so far, it, and the
+    certificate at the end within `CHECK_BUDGET` (10 %) of every inner iteration of the
+    run, as the check measures them (``check.spent()``: `prdp_petsc.gradient_check`
+    counts its solvers' iterations), else counting an epoch at K as K and a check as
+    ``k + reference``.  The first check at each K and the checks before K is certified
+    decide the refinements and are never postponed.  A check during training compares
+    K with the next level (`Certificate.reference`) while that is below K_full, with
+    K_full otherwise and always in `certify`.
 
     **Which metric.**  `update` takes the validation metric the user cares about (an
     error against ground truth, or the validation loss).  The ``check`` callable
@@ -568,7 +591,10 @@ class PRDP:
         plateau = self._refining and r > self.tau_step and epoch - self._last_check >= self.window
         if not (epoch >= self._next_check or plateau):
             return False, f"r={r:.4g}, next check at epoch {self._next_check:.0f}", None
-        cert = self._check(check, min(self.next_k(), self.k_full))
+        reference = min(self.next_k(), self.k_full)
+        if not self._refining and not self._affordable(reference):
+            return False, f"recheck of K={self._k} waits: checks at the budget", None
+        cert = self._check(check, reference)
         self._last_check = epoch
         if not cert.certified:
             return True, cert.describe(), cert.gap
@@ -585,10 +611,34 @@ class PRDP:
         ran = max(self.window, epoch - self._level_start)
         return self._level_start + ran * max(RECHECK_GROWTH, self.tol / gap)
 
+    def _affordable(self, reference: int) -> bool:
+        """Whether a recheck of the certified K against `reference` keeps the checks
+        within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
+
+        Costs are what the check's ``spent()`` measures (every check so far, and every
+        inner iteration of the solvers it runs through, training included), a check
+        estimated from the last one's cost per unit of ``k + reference``; for a check
+        without ``spent()``, an epoch at K costs K and a check ``k + reference``.
+        """
+        units = self._k + reference + self._k + self.k_full  # this recheck, and the end's
+        last = self._checks[-1] if self._checks else None
+        spent = _spent(self.check)
+        if spent is not None and last is not None and last.cost is not None:
+            checks, total = spent
+            estimate = units * last.cost / (last.k + last.against)
+        else:
+            checks = sum(c.k + c.against for c in self._checks)
+            total = sum(s.k for s in self._history) + self._k + checks
+            estimate = units
+        return checks + estimate <= CHECK_BUDGET * (total + estimate)
+
     def _check(self, check, reference: int) -> Certificate:
         """Evaluate `check` at K and at `reference` on the current weights; keep and
         return the `Certificate`, its gap relative to the largest reference norm at K."""
+        before = _spent(check)
         at_k, at_ref = check(self._k), check(reference)
+        after = _spent(check)
+        cost = None if before is None or after is None else after[0] - before[0]
         size = _norm if not isinstance(at_ref, float | int) else float
         relative = fidelity_gap(at_k, at_ref)  # raises on NaN / Inf / all zeros
         norm = _norm(at_ref)
@@ -596,7 +646,7 @@ class PRDP:
         cert = Certificate(
             k=self._k, k_full=self.k_full, at_k=size(at_k), at_full=size(at_ref),
             gap=relative * norm / self._scale, tol=self.tol, epoch=len(self._history),
-            reference=reference, scale=self._scale,
+            reference=reference, scale=self._scale, cost=cost,
         )  # fmt: skip
         self._checks.append(cert)
         return cert

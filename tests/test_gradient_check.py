@@ -112,3 +112,18 @@ def test_a_prdp_loop_with_the_shipped_check_counts_every_solve(problem):
     measured = 1 - (spent - metric_solves) / (epochs * per_epoch_full)
     assert prdp.checks  # checks ran and are in `spent`
     assert prdp.savings()["total"] == pytest.approx(measured, abs=1e-12)
+    checks, total = prdp.check.spent()  # what the controller's budget reads
+    assert total == spent and checks == sum(2 * (c.k + c.against) for c in prdp.checks)
+    assert all(c.cost == 2 * (c.k + c.against) for c in prdp.checks)
+
+
+def test_the_check_counts_on_across_a_stats_reset(problem):
+    A, b, solver = problem
+    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
+    check = pp.gradient_check(lambda: pp.solve(A, b, solver, theta=theta).sum(), [theta], solver)
+    pp.solve(A, b, solver, theta=theta.detach())  # 3 forward iterations of "training"
+    check(5)  # 5 forward + 5 adjoint
+    assert check.spent() == (10, 13)
+    solver.reset_stats()
+    pp.solve(A, b, solver, theta=theta.detach())
+    assert check.spent() == (10, 16)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import prdp_petsc as pp
-from prdp_petsc.prdp import ACCURACY_BAND, fidelity_gap
+from prdp_petsc.prdp import ACCURACY_BAND, CHECK_BUDGET, fidelity_gap
 
 
 def gap_check(rho=0.7, scale=1.0):
@@ -93,7 +93,9 @@ def test_refines_until_the_check_certifies_then_stays():
     assert ctrl.k == 8 and not ctrl.refining
     s = ctrl.savings()
     assert s["certified"] is True and s["gap"] < 0.05 and s["ic"] == pytest.approx(1 - 8 / 64)
-    assert 2 <= s["checks"] <= 10  # checks at doubling intervals, not every epoch
+    # one check certified K = 8; a recheck (24 + the end's 72 against K_full) would not fit
+    # the budget of a run whose epochs cost K = 8 each: 40 epochs are 320
+    assert s["checks"] == 1 and s["check_share"] <= CHECK_BUDGET
     # every check (one evaluation at K, one at the cap it is compared with) is counted,
     # as an epoch at its cap
     spent = 40 * 8 + sum(c.k + c.against for c in ctrl.checks)
@@ -216,19 +218,62 @@ def test_a_gap_far_inside_the_band_is_not_rechecked_every_doubling():
     assert ctrl.certify().certified and len(ctrl.checks) == 2
 
 
+class Metered:
+    """A check that measures itself as `prdp_petsc.gradient_check` does (``spent()``):
+    a check at cap k costs k, an epoch at K costs ``batches * K``."""
+
+    def __init__(self, check, batches):
+        self.check, self.batches = check, batches
+        self.checks = self.total = 0
+
+    def __call__(self, k):
+        self.checks += k
+        self.total += k
+        return self.check(k)
+
+    def epoch(self, k):
+        self.total += self.batches * k
+
+    def spent(self):
+        return self.checks, self.total
+
+
+def drifting(epoch):
+    """The bias grows with training (a model that specialises): 1 % at the start, 5 % by
+    epoch 20 at K = 8."""
+    return lambda k: np.array([1.0, 0.01 * (1 + epoch[0] / 5) * 0.5 ** (k - 8)])
+
+
 def test_a_gap_near_the_band_is_still_rechecked_and_a_drift_is_caught():
-    # the bias grows with training (a model that specialises): 1 % at the start, 5 % by
-    # epoch 20 at K = 8; the checks follow it and refine before the end
+    # epochs of 20 batches: rechecks fit the budget; they follow the drift and refine
     epoch = [0]
-
-    def check(k):
-        return np.array([1.0, 0.01 * (1 + epoch[0] / 5) * 0.5 ** (k - 8)])
-
+    check = Metered(drifting(epoch), batches=20)
     ctrl = pp.PRDP.for_problem(64, check=check)
     for epoch[0] in range(60):
+        check.epoch(ctrl.k)
         ctrl.update(1.0)
     assert ctrl.k >= 16
     assert [c.k for c in ctrl.checks][:1] == [8] and len(ctrl.checks) <= 6
+    assert all(c.cost == c.k + c.against for c in ctrl.checks)  # each check's own cost
+    ctrl.certify()
+    assert check.checks <= CHECK_BUDGET * check.total
+
+
+@pytest.mark.parametrize("batches", [1, 3])
+def test_rechecks_wait_for_the_budget(batches):
+    # epochs as cheap as a check: the same drift is rechecked only as the run's cost
+    # allows, and the checks, the end's certificate included, stay within the budget
+    epoch = [0]
+    check = Metered(drifting(epoch), batches=batches)
+    ctrl = pp.PRDP.for_problem(64, check=check)
+    for epoch[0] in range(200):
+        check.epoch(ctrl.k)
+        ctrl.update(1.0)
+    ctrl.certify()
+    rechecks = [c for c in ctrl.checks if 3 < c.epoch < 200]  # neither the first nor the end
+    assert rechecks, "a drift this large must be rechecked once the run can afford it"
+    assert check.checks <= CHECK_BUDGET * check.total
+    assert ctrl.k >= 16  # and the drift is still caught
 
 
 def test_a_gradient_that_vanishes_at_convergence_does_not_force_k_full():

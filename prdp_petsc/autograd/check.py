@@ -15,14 +15,14 @@ import torch
 from ..core.solver import KSPSolver
 from ..errors import InputError
 
-__all__ = ["gradient_check"]
+__all__ = ["GradientCheck", "gradient_check"]
 
 
 def gradient_check(
     loss: Callable[[], torch.Tensor],
     parameters: Iterable[torch.Tensor],
     solvers: KSPSolver | Sequence[KSPSolver],
-) -> Callable[[int], np.ndarray]:
+) -> GradientCheck:
     """The validation gradient through solves capped at k, as a `PRDP` check.
 
     Parameters
@@ -38,7 +38,7 @@ def gradient_check(
 
     Returns
     -------
-    callable ``k -> ndarray``
+    GradientCheck
         ``check(k)``: the gradient of ``loss()`` with respect to `parameters`,
         flattened and concatenated (float64), with every solver's ``max_it`` set to
         k for the call and restored after it (the adjoint follows ``max_it`` unless
@@ -49,7 +49,9 @@ def gradient_check(
     Notes
     -----
     A check costs one forward and one adjoint solve of the validation batch at k;
-    the controller calls it at K and at K_full.  ``PRDP.savings`` counts that cost.
+    the controller calls it at K and at a higher cap.  The check counts what it costs
+    (`GradientCheck.spent`), so the controller keeps its rechecks within
+    `prdp_petsc.prdp.CHECK_BUDGET` of the run's inner iterations.
 
     Examples
     --------
@@ -68,7 +70,45 @@ def gradient_check(
     if not callable(loss):
         raise InputError(f"loss must be a callable () -> tensor, got {loss!r}")
 
-    def check(k: int) -> np.ndarray:
+    return GradientCheck(loss, params, group)
+
+
+class GradientCheck:
+    """``check(k)``: the gradient of ``loss()`` with respect to `parameters` through
+    `solvers` capped at k (`gradient_check` builds it); it counts its own cost.
+
+    `spent` reads the solvers' `~prdp_petsc.core.results.SolverStats` (forward and
+    adjoint inner iterations): what the checks ran, and what every solve through
+    these solvers ran since the check was made (training, validation and checks), so
+    a controller can hold the checks to a share of the run.  A solver whose stats are
+    reset (`KSPSolver.reset_stats`) keeps counting from its new zero.
+    """
+
+    def __init__(self, loss, params: list[torch.Tensor], solvers: list[KSPSolver]) -> None:
+        self.loss, self.params, self.solvers = loss, params, solvers
+        self._counted = list({id(s): s for s in solvers}.values())  # each solver once
+        self._seen = [_iterations(s) for s in self._counted]
+        self._total = 0
+        self._checks = 0
+
+    def spent(self) -> tuple[int, int]:
+        """``(checks, total)``: inner iterations of the checks so far, and of every solve
+        through the solvers since this check was made (the checks included)."""
+        for i, solver in enumerate(self._counted):
+            now = _iterations(solver)
+            self._total += now - self._seen[i] if now >= self._seen[i] else now  # a reset
+            self._seen[i] = now
+        return self._checks, self._total
+
+    def __call__(self, k: int) -> np.ndarray:
+        before = self.spent()[1]
+        try:
+            return self._gradient(k)
+        finally:
+            self._checks += self.spent()[1] - before
+
+    def _gradient(self, k: int) -> np.ndarray:
+        group, loss, params = self.solvers, self.loss, self.params
         saved = [s.max_it for s in group]
         try:
             for s in group:
@@ -98,4 +138,6 @@ def gradient_check(
             ]
         )
 
-    return check
+
+def _iterations(solver: KSPSolver) -> int:
+    return solver.stats.forward_iterations + solver.stats.adjoint_iterations

@@ -73,6 +73,7 @@ import torch
 
 from prdp_petsc import Dirichlet, KSPSolver, diffusion_operator, gradient_check, load_mesh, solve
 from prdp_petsc import mass_matrix as fem_mass
+from prdp_petsc.autograd.check import GradientCheck
 
 from ..components.emulators import torch_sparse
 from ..components.networks import mlp
@@ -114,10 +115,11 @@ class Problem:
         """The final error reported for the run (default: the metric)."""
         return self.metric()
 
-    def check(self, k: int) -> np.ndarray:
-        """The gradient of `validation_loss` with the solver capped at `k` (the
-        controller's check, `prdp_petsc.gradient_check`): no training step."""
-        return gradient_check(self.validation_loss, self.trained(), self.solver)(k)
+    def check(self) -> GradientCheck:
+        """The controller's check, `prdp_petsc.gradient_check`: ``check(k)`` is the
+        gradient of `validation_loss` with the solver capped at `k` (no training step),
+        and ``check.spent()`` what the checks and the whole run cost so far."""
+        return gradient_check(self.validation_loss, self.trained(), self.solver)
 
 
 def _modes(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:

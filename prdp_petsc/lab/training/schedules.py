@@ -136,4 +136,5 @@ def gradient_check(scene):
             scene.optimizer.load_state_dict(state)
             scene.optimizer.zero_grad()
 
+    check.spent = gradient.spent  # what the checks and the run cost: the controller's budget
     return check
