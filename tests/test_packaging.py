@@ -73,6 +73,7 @@ def test_wheel_contents(wheel):
     assert [n for n in shipped if n.endswith(".msh")] == MESHES
     modules = {str(p.relative_to(ROOT)) for p in (ROOT / "prdp_petsc").rglob("*.py")}
     assert modules <= set(names)
+    assert "prdp_petsc/lab/reports/templates/page.md.j2" in names  # the results pages
     assert any(re.fullmatch(r"prdp_petsc-[^/]+\.dist-info/licenses/LICENSE", n) for n in names)
     metadata = next(n for n in names if n.endswith(".dist-info/METADATA"))
     text = zipfile.ZipFile(wheel).read(metadata).decode()

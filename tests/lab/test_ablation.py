@@ -6,9 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from prdp_petsc.lab.reports import kinds
-from prdp_petsc.lab.reports.ablation import ablation, format_ablation, lever_effect, main
-from prdp_petsc.lab.reports.pages import DataSet
+from prdp_petsc.lab.reports.ablation import KIND, ablation, format_ablation, lever_effect, main
+from prdp_petsc.lab.reports.kinds import DataSet
 from prdp_petsc.lab.training.seeds import format_seeds
 from prdp_petsc.lab.training.summary import format_table, solver_bound, speedup_vs_best_full
 
@@ -63,11 +62,11 @@ def test_ablation_runs_each_lever_and_divides_the_baselines_times(tmp_path):
     assert json.loads((tmp_path / "ablation.json").read_text())["effects"] == report["effects"]
     text = format_ablation(report)
     assert "k2" in text and "k_init=2" in text and "baseline time / lever time" in text
-    ds = DataSet("abl", "ablation", {}, {"ablation.json": report}, [])
-    rows = kinds.headline(ds)
+    ds = DataSet("abl", KIND, {}, {"ablation.json": report}, [])
+    rows = KIND.headline(ds)
     assert len(rows) == 1 and "lever `k2` (k_init=2)" in rows[0][0]
     assert "as fast as the baseline's: fastest reduced run" in rows[0][1]
-    assert "Which lever buys what" in kinds.title(ds)
+    assert "Which lever buys what" in KIND.title(ds)
 
 
 def test_lever_effect_skips_seeds_where_either_side_never_reached():

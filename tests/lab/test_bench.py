@@ -163,15 +163,15 @@ def test_the_mpi_scaling_model_recovers_the_law_it_was_fitted_to():
 
 
 def test_a_bench_mpi_record_gets_a_page_with_the_model(tmp_path):
-    from prdp_petsc.lab.reports import kinds, pages
+    from prdp_petsc.lab.reports import pages
 
     folder = tmp_path / "data" / "bench_mpi_cube10"
     folder.mkdir(parents=True)
     (folder / "bench_mpi.json").write_text(json.dumps(_owned_record()))
     (folder / "provenance.json").write_text(json.dumps({"command": ["prdp-petsc"]}))
     (ds,) = pages.load_data(tmp_path / "data", tmp_path / "images")
-    assert ds.kind == "bench-mpi"
-    ((what, figure),) = kinds.headline(ds)
+    assert ds.kind.name == "bench-mpi"
+    ((what, figure),) = ds.kind.headline(ds)
     assert "2 ranks against 1" in what and "backward 2.00×" in figure
     assert "0.93×" in figure  # the largest rank, rank 0: (200 + 50 + 30) / 300
 

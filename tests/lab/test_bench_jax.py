@@ -39,12 +39,12 @@ def test_bench_jax_page(tmp_path):
     """A recorded bench_jax.json becomes a results page (title, headline, body)."""
     pytest.importorskip("jax")
     pytest.importorskip("lineax")
-    from prdp_petsc.lab.reports.kinds import body, headline, title
-    from prdp_petsc.lab.reports.pages import DataSet, _kind
+    from prdp_petsc.lab.reports.kinds import DataSet
+    from prdp_petsc.lab.reports.pages import kind_of
 
     assert main(["jax", "--preset", "quick", "--out", str(tmp_path)]) == 0
     files = {"bench_jax.json": json.loads((tmp_path / "bench_jax.json").read_text())}
-    ds = DataSet("bench_jax", _kind(files), {}, files, [])
-    assert ds.kind == "bench-jax" and "JAX" in title(ds)
-    assert "jax_cg/prdp_petsc" in "\n".join(body(ds))
-    assert "lineax" in headline(ds)[0][0]
+    ds = DataSet("bench_jax", kind_of(files), {}, files, [])
+    assert ds.kind.name == "bench-jax" and "JAX" in ds.kind.title(ds)
+    assert "jax_cg/prdp_petsc" in ds.kind.output(ds)
+    assert "lineax" in ds.kind.headline(ds)[0][0]

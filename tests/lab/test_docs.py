@@ -14,7 +14,7 @@ import scipy.sparse.linalg as spla
 
 import prdp_petsc
 from prdp_petsc.lab import cli
-from prdp_petsc.lab.reports import kinds, pages
+from prdp_petsc.lab.reports import pages
 from prdp_petsc.lab.training import harness
 from prdp_petsc.lab.training.scene import load_scene
 
@@ -124,9 +124,23 @@ def test_every_results_page_is_in_the_site_navigation():
         assert f"results/{page.name}" in config
 
 
+def test_a_data_set_is_of_the_one_kind_whose_file_it_holds():
+    """Each report kind is declared once, in its report's module, and a recorded folder
+    is of the one kind whose result file it holds (a pattern for work-precision)."""
+    kinds = pages.report_kinds()
+    assert all(kind.name == name for name, kind in kinds.items())
+    assert kinds["bench-jax"].title.__module__ == "prdp_petsc.lab.reports.bench_jax"
+    assert pages.kind_of(["work_precision_heat3d.json"]) is kinds["work-precision"]
+    assert pages.kind_of(["unseen.json", "notes.json"]) is kinds["unseen"]
+    with pytest.raises(ValueError, match="compare, seeds among"):
+        pages.kind_of(["seeds.json", "summary.json"])
+    with pytest.raises(ValueError, match="no known result file"):
+        pages.kind_of(["notes.json"])
+
+
 def test_every_recorded_data_set_names_its_command_machine_and_versions():
     sets = pages.load_data(DOCS / "data", DOCS / "images")
-    assert {ds.name: ds.kind for ds in sets} == {
+    assert {ds.name: ds.kind.name for ds in sets} == {
         "bench_bridge": "bench",
         "bench_jax": "bench-jax",
         "heat2d": "compare",
@@ -207,7 +221,7 @@ def test_record_keeps_json_plots_and_provenance(tmp_path):
     assert p["exit_status"] == 0 and p["json"] == ["stability.json"] and p["images"] == []
     assert p["versions"]["prdp-petsc"] == prdp_petsc.__version__
     (ds,) = pages.load_data(data, images)
-    assert ds.kind == "stability" and len(ds.main["rows"]) == 9  # 3 sizes × 3 KSP/PC
+    assert ds.kind.name == "stability" and len(ds.main["rows"]) == 9  # 3 sizes × 3 KSP/PC
     assert "| rhs magnitude |" in pages.page(ds)
 
 
@@ -238,8 +252,8 @@ def test_py_typed_is_shipped():
 def test_a_seeds_data_set_headlines_its_error_ratio_and_savings():
     """The README row of a `compare --seeds` record gives PRDP's error ratio over full
     fidelity with its interval and the iterations saved, from seeds.json."""
-    ds = next(d for d in pages.load_data(DOCS / "data", DOCS / "images") if d.kind == "seeds")
-    rows = dict(kinds.headline(ds))
+    ds = next(d for d in pages.load_data(DOCS / "data", DOCS / "images") if d.kind.name == "seeds")
+    rows = dict(ds.kind.headline(ds))
     ((what, figure),) = [(w, f) for w, f in rows.items() if "error over full" in w]
     ratio = ds.main["prdp_ratio"]
     assert figure.startswith(f"{ratio['geometric_mean']:.3f} (95 % interval")

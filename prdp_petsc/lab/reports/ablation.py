@@ -31,8 +31,9 @@ import argparse
 from pathlib import Path
 
 from ..cli.arguments import add_debug, positive, routes, seeds
+from .kinds import DataSet, ReportKind
 
-__all__ = ["ablation", "format_ablation", "main"]
+__all__ = ["KIND", "ablation", "format_ablation", "main"]
 
 BASELINE = "baseline"
 
@@ -214,6 +215,48 @@ def main(argv: list[str]) -> int:
     print(format_ablation(report), end="")
     print(f"wrote {Path(args.out) / 'ablation.json'}")
     return 0
+
+
+# -- the page of a recorded ``ablation`` ----------------------------------------------------------
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    """One row per lever: its speed-up against the best full run, the baseline's, and
+    how fast its fastest reduced and full runs got there against the baseline's."""
+    d = ds.main
+    seeds = ", ".join(map(str, d["seeds"]))
+    base = (d["configs"]["baseline"]["result"].get("speedup") or {}).get("geometric_mean")
+    rows = []
+    for name, effect in d["effects"].items():
+        speed = (d["configs"][name]["result"].get("speedup") or {}).get("geometric_mean")
+        figure = "—" if speed is None else f"{speed:.2f}×"
+        figure += "" if base is None else f" (baseline {base:.2f}×)"
+        pace = [
+            f"fastest {kind} run {ratio:.2f}×"
+            for kind in ("reduced", "full")
+            if (ratio := effect[f"{kind}_vs_baseline"].get("geometric_mean")) is not None
+        ]
+        if pace:  # a speed-up can also rise because full fidelity got slower
+            figure += f"; as fast as the baseline's: {', '.join(pace)}"
+        rows.append(
+            (
+                f"{d['scene']} --preset {d['preset']} over seeds {seeds}, lever `{name}` "
+                f"({d['levers'][name]}): speed-up over the fastest full-fidelity run",
+                figure,
+            )
+        )
+    return rows
+
+
+KIND = ReportKind(
+    name="ablation",
+    reads="ablation.json",
+    title=lambda ds: f"Which lever buys what: {ds.main['scene']} {ds.main['preset']}",
+    headline=_headline,
+    intro="What `prdp-petsc ablation` printed: `compare --seeds` for the preset as given "
+    "(`baseline`) and once per lever, each lever's preset settings on their own; one "
+    "torch thread, configurations one after another. Each configuration's seeds "
+    "result (per seed: errors, times, the runs compared) is kept in `ablation.json`.",
+    output=lambda ds: format_ablation(ds.main).rstrip("\n"),
+)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -67,8 +67,9 @@ from ..provenance import load_average, machine_info, write_result
 from . import bench_elasticity, bench_jax, bench_mpi
 from .bench_throughput import bench_throughput, overhead_problem, raw_ksp
 from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
+from .kinds import DataSet, ReportKind, markdown_table
 
-__all__ = ["main"]
+__all__ = ["KIND", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -395,6 +396,135 @@ def main(argv: list[str]) -> int:
     result["machine"]["load_average_end"] = load_average()
     write_result(args.out, "bench_bridge.json", result)
     return 0
+
+
+# -- the page of a recorded ``bench bridge`` -----------------------------------------------------
+def _signed(value: float) -> str:
+    return f"{value:+.3f}"
+
+
+def _rows(d: dict) -> list[tuple[str, str, str]]:
+    t = d["throughput"]
+    targets = d.get("targets", {})
+    rows = [
+        (
+            f"overhead: bridge forward + backward (gradients for b and θ) over raw "
+            f"`KSPSolve` + `KSPSolve`, − 1; n = {d['n']}, K = {d['k']}",
+            _signed(d["overhead"]),
+            targets.get("overhead", ""),
+        ),
+        (
+            "same, over raw `KSPSolve` + `KSPSolveTranspose`",
+            _signed(d["overhead_vs_raw_solve_transpose"]),
+            "",
+        ),
+        (
+            "backward over forward (symmetric: the adjoint runs as a forward solve)",
+            f"{d['backward_over_forward_symmetric']:.2f}",
+            targets.get("backward_over_forward_symmetric", ""),
+        ),
+        (
+            f"small systems (n = {t['n']}, K = {t['k']}), gradient in b: 1 right-hand side",
+            _signed(t["overhead_1_rhs"]),
+            targets.get("throughput.overhead_1_rhs", ""),
+        ),
+        (
+            "same, a batch of 32 right-hand sides",
+            _signed(t["overhead_32_rhs"]),
+            targets.get("throughput.overhead_32_rhs", ""),
+        ),
+    ]
+    if "floor_1_rhs" in t:  # recorded since the bare-wrapper variant exists
+        rows.append(
+            (
+                "floor of any torch bridge: the raw loops in a bare `torch.autograd.Function` "
+                "(no checks), 1 / 32 right-hand sides",
+                f"{_signed(t['floor_1_rhs'])} / {_signed(t['floor_32_rhs'])}",
+                "",
+            )
+        )
+    rows += [
+        (
+            "bridge's extra cost per call / per right-hand side",
+            f"{t['extra_per_call_s'] * 1e6:.0f} µs / {t['extra_per_rhs_s'] * 1e6:.0f} µs",
+            "",
+        ),
+        (
+            f'`mode="unrolled"` CG over PETSc implicit, n = {d["unrolled_n"]}, '
+            f"K = {d['unrolled_k']}, forward + backward",
+            f"{d['unrolled_speedup']:.1f}×",
+            targets.get("unrolled_speedup", ""),
+        ),
+    ]
+    if d.get("handwritten_unrolled_speedup") is not None:
+        rows.append(
+            (
+                "same, against a hand-written torch CG",
+                f"{d['handwritten_unrolled_speedup']:.1f}×",
+                "",
+            )
+        )
+    rows.append(
+        (
+            f"peak memory increase at K = {d['unrolled_k']}: implicit / unrolled",
+            f"{d['implicit_peak_rss_mb']:.2f} MiB / {d['unrolled_peak_rss_mb']:.0f} MiB",
+            "",
+        )
+    )
+    traced = d.get("implicit_traced_peak_vectors")
+    if traced:
+        rows.append(
+            (
+                f"traced peak of one forward + backward on the `ParametricMatrix` (n = "
+                f"{d['n']}), in vectors of n: gradient in b / in b and θ / new θ each call",
+                f"{traced['b']:.1f} / {traced['b_theta']:.1f} / {traced['b_theta_new_theta']:.1f}",
+                "b: a few vectors",
+            )
+        )
+    return rows
+
+
+def _settings(ds: DataSet) -> str:
+    d = ds.main
+    s = d["settings"]
+    return (
+        f"`{s['ksp_type']}` + `{s['pc_type']}`, {s['mode']}; torch threads "
+        f"{s['torch_threads']}; every ratio is the {s['statistic']} ({s['repeats']} "
+        f"repeats after {s['warmup']} warm-up); timing noise (interquartile range over "
+        f"median of the raw forward time) {d['timing_noise']:.3f}."
+    )
+
+
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    t = d["throughput"]
+    return [
+        (
+            f"bridge overhead over raw PETSc, n = {d['n']}, K = {d['k']} (target ≤ 0.05)",
+            f"{_signed(d['overhead'])}; one small system {_signed(t['overhead_1_rhs'])}, "
+            f"32 right-hand sides {_signed(t['overhead_32_rhs'])}",
+        ),
+        (
+            f"implicit against unrolled gradients, K = {d['unrolled_k']}",
+            f"implicit {d['unrolled_speedup']:.1f}× faster; peak memory "
+            f"{d['implicit_peak_rss_mb']:.2f} MiB against {d['unrolled_peak_rss_mb']:.0f} MiB",
+        ),
+    ]
+
+
+KIND = ReportKind(
+    name="bench",
+    reads="bench_bridge.json",
+    title=lambda ds: "Bridge benchmark",
+    headline=_headline,
+    intro=_settings,
+    output=lambda ds: markdown_table(["figure", "measured", "target"], _rows(ds.main), "lrl"),
+    printed=False,
+    after=lambda ds: [
+        "What the rows mean is in the docstring of `prdp_petsc.lab.reports.bench`; every "
+        "single timing is in the JSON."
+    ],
+)
 
 
 if __name__ == "__main__":

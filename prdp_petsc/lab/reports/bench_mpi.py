@@ -46,9 +46,11 @@ import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
 from ..provenance import machine_info
+from .kinds import DataSet, ReportKind
 from .memory import peak_rss_mb
+from .scaling import format_scaling_model, scaling_model
 
-__all__ = ["format_report", "main", "parse_arguments"]
+__all__ = ["KIND", "format_report", "main", "parse_arguments"]
 
 logger = logging.getLogger(__name__)
 
@@ -449,6 +451,45 @@ def format_report(result: dict) -> str:
             + " |"
         )
     return "\n".join(lines)
+
+
+# -- the page of a recorded ``bench mpi`` ---------------------------------------------------------
+def _model(ds: DataSet) -> list[str]:
+    model = scaling_model(ds.main)
+    return [] if model is None else ["## Beyond this machine: a model", format_scaling_model(model)]
+
+
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    solve = d["solve"]
+    if "1" not in solve or "2" not in solve:
+        return []
+    one, two = solve["1"], solve["2"]
+    ratio = max(two["peak_rss_mb_per_rank"]) / max(one["peak_rss_mb_per_rank"])
+    return [
+        (
+            f"{d['mesh']} ({one['unknowns']} unknowns), {d.get('layout', 'replicated')} "
+            "layout: 2 ranks against 1",
+            f"peak memory per rank {ratio:.2f}× the one-rank peak; forward "
+            f"{two['speedup_forward']:.2f}×, backward {two['speedup_backward']:.2f}× faster",
+        )
+    ]
+
+
+KIND = ReportKind(
+    name="bench-mpi",
+    reads="bench_mpi.json",
+    title=lambda ds: (
+        f"One rank against several: {ds.main['mesh']}, {ds.main.get('layout', 'replicated')} layout"
+    ),
+    headline=_headline,
+    intro="What `prdp-petsc bench mpi` printed: one capped CG + Jacobi solve (forward) and its "
+    "adjoint with ∂L/∂θ (backward), medians of the repeats; 4 ranks on this 2-core "
+    "machine are oversubscribed, so their times say nothing, their memory does.",
+    output=lambda ds: format_report(ds.main).rstrip("\n"),
+    printed=False,
+    after=_model,
+)
 
 
 if __name__ == "__main__":

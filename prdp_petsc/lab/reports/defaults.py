@@ -17,7 +17,9 @@ import json
 import logging
 from pathlib import Path
 
-__all__ = ["SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
+from .kinds import DataSet, ReportKind
+
+__all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
 
 logger = logging.getLogger(__name__)
 
@@ -180,3 +182,44 @@ def main(argv: list[str]) -> int:
     (args.out / "defaults.json").write_text(json.dumps(result, indent=1))
     print(format_defaults(result))
     return 0
+
+
+# -- the page of a recorded ``defaults`` ----------------------------------------------------------
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    parts = []
+    for name in ("default", "tuned"):
+        s = d.get(name)
+        if s is None:
+            parts.append(f"{name}: no seed finished")
+            continue
+        saved = s["saved_at_equal_accuracy"]
+        parts.append(
+            f"{name} {s['ratio']['geometric_mean']:.3f} (equal accuracy on "
+            f"{s['equal_accuracy']} of {s['compared']}"
+            + (f", {fewer(saved)} there" if saved is not None else "")
+            + ")"
+        )
+    what = (
+        f"{d['scene']} --preset {d['preset']}, seeds {', '.join(map(str, d['seeds']))}: "
+        "final error over full fidelity's, default construction (PRDP.for_problem) "
+        "and tuned settings"
+    )
+    return [(what, "; ".join(parts))]
+
+
+KIND = ReportKind(
+    name="defaults",
+    reads="defaults.json",
+    title=lambda ds: (
+        f"Default construction against tuned settings: {ds.main['scene']} {ds.main['preset']}"
+    ),
+    headline=_headline,
+    intro="What `prdp-petsc defaults` printed: per seed, full fidelity (constant K_full), the "
+    "scene's tuned PRDP (its preset's settings) and the default construction "
+    "(`PRDP.for_problem(K_full)` with a gradient check on a fixed training batch; the "
+    "scene's PRDP settings unused). Ratios are final validation errors over full "
+    "fidelity's; savings count forward and adjoint inner iterations, the checks included.",
+    output=lambda ds: format_defaults(ds.main, with_notes=False),
+    after=lambda ds: notes(ds.main),
+)

@@ -33,9 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, positive
+from .kinds import DataSet, ReportKind
 from .memory import peak_rss_mb, reset_peak
 
-__all__ = ["format_horizon_report", "horizon_row", "main"]
+__all__ = ["KIND", "format_horizon_report", "horizon_row", "main"]
 
 
 def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: int, epochs: int):
@@ -149,3 +150,39 @@ def main(argv: list[str]) -> int:
         out.mkdir(parents=True, exist_ok=True)
         (out / "horizon.json").write_text(json.dumps(report, indent=1))
     return 0
+
+
+# -- the page of a recorded ``horizon`` run -------------------------------------------------------
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    rows = {(r["m"], r["checkpoint"]): r for r in d["rows"]}
+    ms = sorted({m for m, _ in rows})
+    lo, hi = ms[0], ms[-1]
+    if (lo, True) not in rows or (hi, True) not in rows:
+        return []
+    a, b = rows[lo, True], rows[hi, True]
+    growth = [r["peak_rss_mb"] - r["rss_at_start_mb"] for r in (a, b)]
+    return [
+        (
+            f"{d['scene']} {d['preset']}: peak memory of m = {hi} training against m = {lo}, "
+            "checkpointed",
+            f"{b['peak_rss_mb']:.0f} MB against {a['peak_rss_mb']:.0f} MB "
+            f"({b['peak_rss_mb'] / a['peak_rss_mb']:.2f}×; while training +{growth[1]:.0f} "
+            f"against +{growth[0]:.0f} MB)",
+        )
+    ]
+
+
+KIND = ReportKind(
+    name="horizon",
+    reads="horizon.json",
+    title=lambda ds: (
+        f"Memory and time against the unroll length: {ds.main['scene']} {ds.main['preset']}"
+    ),
+    headline=_headline,
+    intro="What `prdp-petsc horizon` printed: m-step training at a fixed K, each row in a "
+    "fresh process with one torch thread; `growth` is the peak resident size while "
+    "training minus the size when training started, `saved MB` what autograd kept "
+    "for one batch's backward pass:",
+    output=lambda ds: format_horizon_report(ds.main).rstrip("\n"),
+)

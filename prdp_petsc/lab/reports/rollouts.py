@@ -34,8 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from ..training.seeds import ratio_statistics
+from .kinds import DataSet, ReportKind
 
-__all__ = ["main", "rollout_report", "format_rollout_report"]
+__all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
 logger = logging.getLogger(__name__)
 
@@ -204,3 +205,44 @@ def main(argv: list[str]) -> int:
     rollouts_figure(report).savefig(out / "rollouts.png")
     print(format_rollout_report(report))
     return 0 if all(math.isfinite(e["geometric_mean"][-1]) for e in report["runs"].values()) else 1
+
+
+# -- the page of a recorded ``rollouts`` run ------------------------------------------------------
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    d = ds.main
+    out = []
+    for name, entry in list(d["runs"].items())[:1]:  # the first run: the one compared
+        below = entry.get("below_uncorrected_every_step")
+        if below is not None:
+            out.append(
+                (
+                    f"{ds.name}: `{name}` below the uncorrected solver at every one of "
+                    f"{d['steps']} rollout steps",
+                    f"on {below} of {len(entry['rollout'])} seeds",
+                )
+            )
+    for pair, stats in d["ratios"].items():
+        e = stats["error"]
+        interval = e["interval"]
+        ci = "" if interval is None else f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})"
+        out.append(
+            (
+                f"{ds.name}: error ratio {pair} at rollout step {d['step']}",
+                f"{e['geometric_mean']:.3f}{ci}, {e['n']} seeds",
+            )
+        )
+    return out
+
+
+KIND = ReportKind(
+    name="rollouts",
+    reads="rollouts.json",
+    title=lambda ds: f"Long rollouts against the uncorrected solver: {ds.name}",
+    headline=_headline,
+    intro="What `prdp-petsc rollouts` printed: the per-step error of each run's held-out "
+    "rollout (geometric mean over the seeds) and of the uncorrected solver, on how "
+    "many seeds each run stayed below the uncorrected solver at every step, and the "
+    "ratios of error, inner iterations and wall time per seed with their geometric "
+    "mean and 95 % interval:",
+    output=lambda ds: format_rollout_report(ds.main).rstrip("\n"),
+)

@@ -36,10 +36,12 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from .kinds import DataSet, ReportKind
 from .stability_rows import centroids, evaluate, poisson_problem, taylor_rate, to_markdown
 
 __all__ = [
     "CASES",
+    "KIND",
     "TAYLOR_RIGHT",
     "main",
     "run_cases",
@@ -411,6 +413,35 @@ def main(argv: list[str] | None = None) -> int:
     failed = [r for r in rows if r["nan_or_inf"]]
     print(f"stability: {len(rows)} rows in {meta['seconds']:.0f} s -> {args.out}/stability.md")
     return 1 if failed else 0
+
+
+# -- the page of a recorded ``stability`` run ----------------------------------------------------
+def _summary(ds: DataSet) -> str:
+    c = summary_counts(ds.main["rows"])
+    return f"{c['rows']} rows in {c['cases']} cases: {summary_line(c)}."
+
+
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    c = summary_counts(ds.main["rows"])
+    return [(f"stability suite: {c['rows']} stiff and extreme solves", summary_line(c))]
+
+
+KIND = ReportKind(
+    name="stability",
+    reads="stability.json",
+    title=lambda ds: "Stability on stiff and extreme cases",
+    headline=_headline,
+    intro="Each row solves `A(θ) x = b` through the torch bridge and reports the forward "
+    "residual, the iterations (forward/adjoint), the Taylor rate of the gradient of "
+    "`J(θ) = ⟨w, x(θ)⟩` (2 when the gradient is right) with the ε range of the fit, "
+    "whether anything became NaN/Inf, and the outcome; a case that must fail reports "
+    "the error and the PETSc reason. The cases are described in the docstring of "
+    "`prdp_petsc.lab.reports.stability`; `tests/lab/test_stability.py` runs them at "
+    "small sizes.",
+    output=_summary,
+    printed=False,
+    after=lambda ds: [to_markdown(ds.main["rows"]).rstrip("\n")],
+)
 
 
 if __name__ == "__main__":  # pragma: no cover

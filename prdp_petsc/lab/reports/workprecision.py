@@ -33,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "pairs_for", "summarize", "sweep", "to_markdown"]
+from .kinds import DataSet, ReportKind
+
+__all__ = ["KIND", "main", "pairs_for", "summarize", "sweep", "to_markdown"]
 
 logger = logging.getLogger(__name__)
 
@@ -408,6 +410,44 @@ def main(argv: list[str] | None = None) -> int:
         f"{result['seconds']:.0f} s -> {stem}.{{json,png,md}}"
     )
     return 0
+
+
+# -- the page of a recorded ``work-precision`` run ------------------------------------------------
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    """The cheapest gradient to the loosest level, against a direct solve."""
+    d = ds.main
+    level = min(LEVELS)
+    hits = sorted(
+        (e["levels"][str(level)]["t"], e["pair"], e["levels"][str(level)]["K"])
+        for e in summarize(d)
+        if str(level) in e["levels"]
+    )
+    direct = d["direct"]["t_solve_and_gradient"]
+    if not hits:
+        return [(f"{d['problem']}: gradient error ≤ {level:.0e}", "no pair reached it")]
+    t, pair, k = hits[0]
+    return [
+        (
+            f"{d['problem']} ({d['info']['unknowns']} unknowns): cheapest gradient "
+            f"to a relative error ≤ {level:.0e}",
+            f"{pair} at K = {k}: {t * 1e3:.1f} ms, against {direct * 1e3:.0f} ms "
+            "for a direct solve",
+        )
+    ]
+
+
+KIND = ReportKind(
+    name="work-precision",
+    reads="work_precision_*.json",
+    title=lambda ds: f"Error against run time: {ds.main['problem']}",
+    headline=_headline,
+    intro="Every KSP/PC pair runs in fixed mode (`rtol = atol = 0`) for K = 1, 2, 4, …; "
+    "each point has the forward error against a direct (SuperLU) solve and the "
+    "gradient error against the converged adjoint gradient, against the wall time of "
+    "one gradient (PC setup + forward + adjoint). The JSON holds every point.",
+    output=lambda ds: to_markdown(ds.main).rstrip("\n"),
+    printed=False,
+)
 
 
 if __name__ == "__main__":  # pragma: no cover
