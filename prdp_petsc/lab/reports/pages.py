@@ -25,7 +25,7 @@ Two sub-commands:
 A data set's kind is read from its files: each report module declares its kind, a
 `prdp_petsc.lab.reports.kinds.ReportKind` (what a page of that kind says, and its rows
 in the headline table), and `report_kinds` collects them.  Every page is rendered from
-one template, ``templates/page.md.j2``.
+one template, ``templates/page.md.j2``, the index from ``templates/index.md.j2``.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from pathlib import Path
 import jinja2
 
 from ..training.summary import format_table
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, markdown_table
 from .record import record
 
 __all__ = [
@@ -198,18 +198,18 @@ README_HEADLINE = (
 )
 
 
-def _headline_table(sets: list, link: str, names: tuple[str, ...] | None = None) -> list[str]:
+def _headline_table(sets: list, link: str, names: tuple[str, ...] | None = None) -> str:
     """The headline rows of `sets` (all of them), or the first row of each data set
     named in `names`, in that order (a name not recorded is skipped)."""
-    lines = ["| result | measured | data |", "|---|---|---|"]
     if names is not None:
         by_name = {ds.name: ds for ds in sets}
         sets = [by_name[n] for n in names if n in by_name]
-    for ds in sets:
-        rows = ds.kind.headline(ds)
-        for what, figure in rows if names is None else rows[:1]:
-            lines.append(f"| {what} | {figure} | [{ds.name}]({link}{ds.name}.md) |")
-    return lines
+    rows = [
+        (what, figure, f"[{ds.name}]({link}{ds.name}.md)")
+        for ds in sets
+        for what, figure in ds.kind.headline(ds)[: None if names is None else 1]
+    ]
+    return markdown_table(["result", "measured", "data"], rows)
 
 
 def _machines(sets: list) -> str:
@@ -232,45 +232,24 @@ def _earlier(data: Path) -> dict | None:
 
 
 def index(sets: list, earlier: dict | None) -> str:
-    """The Results index page: the recorded data sets, then the unrecorded experiments."""
-    lines = [
-        GENERATED.format(name="*"),
-        "",
-        "# Results",
-        "",
-        "Every number on these pages is written by `prdp-petsc pages` from a JSON file "
-        "under `docs/data/` that a command wrote (`prdp-petsc pages record`), together "
-        "with the command, the machine and the versions; `tests/lab/test_docs.py` checks that "
-        "the pages and the README's headline table equal what the data gives.",
-        "",
-        _machines(sets),
-        "",
-        *_headline_table(sets, ""),
-        "",
-        "## Recorded runs",
-        "",
-        "| page | command | recorded |",
-        "|---|---|---|",
+    """The Results index page (``templates/index.md.j2``): the recorded data sets, then
+    the unrecorded experiments."""
+    runs = [
+        (f"[{ds.kind.title(ds)}]({ds.name}.md)", f"`{ds.provenance['command']}`",
+         f"{ds.provenance['started'][:10]}, {_minutes(ds.provenance['wall_s'])}")
+        for ds in sets
+    ]  # fmt: skip
+    experiments = [
+        (e["title"], f"`{e['command']}`") for e in (earlier or {}).get("experiments", [])
     ]
-    for ds in sets:
-        p = ds.provenance
-        lines.append(
-            f"| [{ds.kind.title(ds)}]({ds.name}.md) | `{p['command']}` | "
-            f"{p['started'][:10]}, {_minutes(p['wall_s'])} |"
-        )
-    if earlier:
-        commit = earlier["readme_commit"]
-        lines += [
-            "",
-            "## Experiments without recorded data",
-            "",
-            earlier["note"].format(commit=commit),
-            "",
-            "| experiment | command |",
-            "|---|---|",
-        ]
-        lines += [f"| {e['title']} | `{e['command']}` |" for e in earlier["experiments"]]
-    return "\n".join(lines) + "\n"
+    return _TEMPLATES.get_template("index.md.j2").render(
+        generated=GENERATED.format(name="*"),
+        machines=_machines(sets),
+        headline=_headline_table(sets, ""),
+        runs=markdown_table(["page", "command", "recorded"], runs),
+        earlier=earlier,
+        experiments=markdown_table(["experiment", "command"], experiments),
+    )
 
 
 # -- README fragments --------------------------------------------------------------------------
@@ -285,7 +264,7 @@ def fragments(sets: list, link: str = "docs/results/") -> dict[str, str]:
     chosen = [ds for ds in sets if ds.name in README_HEADLINE]
     table = _headline_table(sets, link, README_HEADLINE)
     index = f"Every other result, with all of these: [the results index]({link}index.md)."
-    out = {"results": "\n".join([_machines(chosen), "", *table, "", index])}
+    out = {"results": "\n\n".join([_machines(chosen), table, index])}
     demo = next((ds for ds in sets if ds.name == "heat2d" and ds.kind.name == "compare"), None)
     if demo is not None:
         out["demo-output"] = "\n".join(["```text", format_table(demo.main).rstrip("\n"), "```"])
