@@ -38,7 +38,7 @@ import numpy as np
 
 from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import load_average, machine_info, write_result
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, markdown_table
 
 __all__ = ["KIND", "VARIANTS", "format_report", "main", "run"]
 
@@ -142,32 +142,26 @@ def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
 def format_report(d: dict) -> str:
     """The table `main` prints (and the results page shows)."""
     s = d["settings"]
-    lines = [
-        f"{d['problem']}; {s['ksp_type'].upper()} + {s['pc_type'].upper()} to rtol {s['rtol']:g}",
-        "",
-        f"| cells | unknowns | declared | iterations | set-up s | solve s | true residual "
-        f"| error at K = {s['k']} |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+    header = ["cells", "unknowns", "declared", "iterations", "set-up s", "solve s"]
+    header += ["true residual", f"error at K = {s['k']}"]
+    rows = []
     for r in d["rows"]:
         declared = {
             "scalar": "nothing",
             "block": f"block size {r['block_size']}",
             "modes": f"block size {r['block_size']}, {r['near_nullspace']} modes",
         }[r["variant"]]
-        lines.append(
-            f"| {r['cells']}³ | {r['unknowns']} | {declared} | {r['iterations']} | "
-            f"{r['setup_s']:.2f} | {r['solve_s']:.2f} | {r['relative_residual']:.1e} | "
-            f"{r['error_at_k']:.1e} |"
-        )
+        rows.append((f"{r['cells']}³", r["unknowns"], declared, r["iterations"],
+                     f"{r['setup_s']:.2f}", f"{r['solve_s']:.2f}",
+                     f"{r['relative_residual']:.1e}", f"{r['error_at_k']:.1e}"))  # fmt: skip
     sizes = d["sizes"]
     growth = ", ".join(f"{v} {g:.2f}×" for v, g in d["growth"].items())
-    lines += [
-        "",
+    return (
+        f"{d['problem']}; {s['ksp_type'].upper()} + {s['pc_type'].upper()} to rtol "
+        f"{s['rtol']:g}\n\n{markdown_table(header, rows)}\n\n"
         f"Iterations on {sizes[-1]}³ over {sizes[0]}³ cells: {growth} "
-        f"(target for the modes: ≤ {TARGET_GROWTH}×).",
-    ]
-    return "\n".join(lines) + "\n"
+        f"(target for the modes: ≤ {TARGET_GROWTH}×).\n"
+    )
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -46,7 +46,7 @@ import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
 from ..provenance import machine_info
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb
 from .scaling import format_scaling_model, scaling_model
 
@@ -415,23 +415,17 @@ def format_report(result: dict) -> str:
         f"3D solve: {mesh} P1, {first['unknowns']} unknowns, CG + Jacobi, K = {first['k']}, "
         f"{layout} layout",
         "",
-        "| ranks | forward s | backward s | speed-up fwd / bwd | rows per rank | "
-        f"PETSc Mat MB per rank | {layout} arrays MB per rank | peak RSS MB per rank |",
-        "|---|---|---|---|---|---|---|---|",
     ]
+    header = ["ranks", "forward s", "backward s", "speed-up fwd / bwd", "rows per rank"]
+    header += ["PETSc Mat MB per rank", f"{layout} arrays MB per rank", "peak RSS MB per rank"]
+    rows = []
     for p, r in solve.items():
         arrays = r.get("owned_arrays_mb_per_rank") or r["replicated_arrays_mb_per_rank"][:1]
-        lines.append(
-            f"| {p} | {r['forward_s']:.3f} | {r['backward_s']:.3f} | "
-            f"{r['speedup_forward']:.2f} / {r['speedup_backward']:.2f} | "
-            f"{', '.join(map(str, r['rows_per_rank']))} | "
-            + ", ".join(f"{m:.0f}" for m in r["petsc_mat_mb_per_rank"])
-            + " | "
-            + ", ".join(f"{m:.0f}" for m in arrays)
-            + " | "
-            + ", ".join(f"{m:.0f}" for m in r["peak_rss_mb_per_rank"])
-            + " |"
-        )
+        rows.append((p, f"{r['forward_s']:.3f}", f"{r['backward_s']:.3f}",
+                     f"{r['speedup_forward']:.2f} / {r['speedup_backward']:.2f}",
+                     ", ".join(map(str, r["rows_per_rank"])), _mb(r["petsc_mat_mb_per_rank"]),
+                     _mb(arrays), _mb(r["peak_rss_mb_per_rank"])))  # fmt: skip
+    lines.append(markdown_table(header, rows))
     epoch = result["epoch"]
     if not epoch:
         return "\n".join(lines)
@@ -440,17 +434,19 @@ def format_report(result: dict) -> str:
         "",
         f"Training epoch: {first['scene']} {first['preset']}, {first['schedule']}",
         "",
-        "| run | epoch s | solver s | speed-up | val metric | peak RSS MB per rank |",
-        "|---|---|---|---|---|---|",
     ]
-    for name, r in epoch.items():
-        lines.append(
-            f"| {name} | {r['epoch_s']:.3f} | {r['solver_s']:.3f} | {r['speedup']:.2f} | "
-            f"{r['val_metric']:.6g} | "
-            + ", ".join(f"{m:.0f}" for m in r["peak_rss_mb_per_rank"])
-            + " |"
-        )
-    return "\n".join(lines)
+    header = ["run", "epoch s", "solver s", "speed-up", "val metric", "peak RSS MB per rank"]
+    rows = [
+        (name, f"{r['epoch_s']:.3f}", f"{r['solver_s']:.3f}", f"{r['speedup']:.2f}",
+         f"{r['val_metric']:.6g}", _mb(r["peak_rss_mb_per_rank"]))
+        for name, r in epoch.items()
+    ]  # fmt: skip
+    return "\n".join([*lines, markdown_table(header, rows)])
+
+
+def _mb(values) -> str:
+    """Megabytes per rank: ``"310, 295"``."""
+    return ", ".join(f"{m:.0f}" for m in values)
 
 
 # -- the page of a recorded ``bench mpi`` ---------------------------------------------------------

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .kinds import markdown_table
+
 __all__ = ["MODEL_RANKS", "format_scaling_model", "scaling_model"]
 
 
@@ -90,15 +92,14 @@ def format_scaling_model(model: dict) -> str:
         f"{model['rank0_mb']:.0f} MB above the other ranks' (it also read and partitioned "
         "the whole mesh).",
         "",
-        "| ranks P | N | peak MB per rank | ghost vertices per rank | halo kB per CG iteration "
-        "| weak scaling: N | peak MB per rank | halo kB per iteration |",
-        "|---|---|---|---|---|---|---|---|",
     ]
-    n = model["unknowns"]
-    for p, r in model["rows"].items():
-        lines.append(
-            f"| {p} | {n} | {r['peak_mb_per_rank']:.0f} | {r['ghost_vertices_per_rank']:.0f} | "
-            f"{r['halo_kb_per_iteration']:.1f} | {r['weak_unknowns']:.3g} | "
-            f"{r['weak_peak_mb_per_rank']:.0f} | {r['weak_halo_kb_per_iteration']:.1f} |"
-        )
-    return "\n".join(lines)
+    header = ["ranks P", "N", "peak MB per rank", "ghost vertices per rank"]
+    header += ["halo kB per CG iteration", "weak scaling: N", "peak MB per rank"]
+    rows = [
+        (p, model["unknowns"], f"{r['peak_mb_per_rank']:.0f}",
+         f"{r['ghost_vertices_per_rank']:.0f}", f"{r['halo_kb_per_iteration']:.1f}",
+         f"{r['weak_unknowns']:.3g}", f"{r['weak_peak_mb_per_rank']:.0f}",
+         f"{r['weak_halo_kb_per_iteration']:.1f}")
+        for p, r in model["rows"].items()
+    ]  # fmt: skip
+    return "\n".join([*lines, markdown_table([*header, "halo kB per iteration"], rows)])

@@ -12,6 +12,8 @@ import time
 
 import numpy as np
 
+from .kinds import markdown_table
+
 __all__ = ["CONVERGED", "centroids", "evaluate", "poisson_problem", "taylor_rate", "to_markdown"]
 
 logger = logging.getLogger(__name__)
@@ -191,11 +193,9 @@ def _eps_range(row: dict) -> str:
 
 def to_markdown(rows: list[dict]) -> str:
     """The rows as a markdown table."""
-    lines = [
-        "| case | setting | KSP/PC | n | its fwd/adj | reason | ‖b−Ax‖/‖b‖ | Taylor rate "
-        "| Taylor ε | NaN/Inf | outcome |",
-        "|---|---|---|---:|---:|---|---:|---:|---|---|---|",
-    ]
+    header = ["case", "setting", "KSP/PC", "n", "its fwd/adj", "reason", "‖b−Ax‖/‖b‖"]
+    header += ["Taylor rate", "Taylor ε", "NaN/Inf", "outcome"]
+    cells = []
     for r in rows:
         its = "—"
         if r["iterations"] is not None:
@@ -206,11 +206,7 @@ def to_markdown(rows: list[dict]) -> str:
             outcome += f"; J rounding noise {r['taylor_noise']:.0e} (relative): ε ≥ {lo:.0e}"
         if "projection_error" in r:
             outcome += f" (vs compatible: {r['projection_error']:.1e})"
-        lines.append(
-            f"| {r['case']} | {r['setting']} | {r['solver']} | {r['n']} | {its} | "
-            f"{r['reason'] or '—'} | {_fmt(r['residual'], '.1e')} | "
-            f"{_fmt(r['taylor_rate'], '.2f')} | {_eps_range(r)} | "
-            f"{'yes' if r['nan_or_inf'] else 'no'} | "
-            f"{outcome} |"
-        )
-    return "\n".join(lines) + "\n"
+        cells.append((r["case"], r["setting"], r["solver"], r["n"], its, r["reason"] or "—",
+                      _fmt(r["residual"], ".1e"), _fmt(r["taylor_rate"], ".2f"), _eps_range(r),
+                      "yes" if r["nan_or_inf"] else "no", outcome))  # fmt: skip
+    return markdown_table(header, cells, "lllrrlrrlll") + "\n"

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, markdown_table
 
 __all__ = ["KIND", "main", "pairs_for", "summarize", "sweep", "to_markdown"]
 
@@ -265,11 +265,10 @@ def to_markdown(result: dict) -> str:
         + "/".join(f"{v:.1f}" for v in result.get("load_average", []))
         + " on this machine.",
         "",
-        "| KSP/PC | setup ms | "
-        + " | ".join(f"≤ {lv:.0e}" for lv in LEVELS)
-        + " | best grad. err | best fwd err | note |",
-        "|---|---:|" + "---:|" * len(LEVELS) + "---:|---:|---|",
     ]
+    header = ["KSP/PC", "setup ms", *(f"≤ {lv:.0e}" for lv in LEVELS)]
+    header += ["best grad. err", "best fwd err", "note"]
+    rows = []
     for e in summary:
         cells = []
         for lv in LEVELS:
@@ -279,10 +278,8 @@ def to_markdown(result: dict) -> str:
         best_g = f"{e['best_gradient_error']:.1e}" if "best_gradient_error" in e else "—"
         best_f = f"{e['best_forward_error']:.1e}" if "best_forward_error" in e else "—"
         note = f"stopped: {e['error']}" if e["error"] else ""
-        head.append(
-            f"| {e['pair']} | {setup} | " + " | ".join(cells) + f" | {best_g} | {best_f} | {note} |"
-        )
-    head.append("")
+        rows.append((e["pair"], setup, *cells, best_g, best_f, note))
+    head += [markdown_table(header, rows, "l" + "r" * (len(LEVELS) + 3)), ""]
     for lv in LEVELS:
         ranked = sorted(
             (e["levels"][str(lv)]["t"], e["pair"]) for e in summary if str(lv) in e["levels"]
