@@ -28,6 +28,7 @@ from ..core.solver import KSPSolver
 from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
+from .device import device_matvec, device_solve
 from .implicit import ImplicitSolve, MatVec, SolveOperator
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
@@ -162,6 +163,13 @@ def solve(
     marked once-differentiable: a double backward raises instead of dropping
     the solve's second-order term.  Dirichlet values enter through the
     right-hand side; see `prdp_petsc.autograd.dirichlet`.
+
+    A solver whose options name ``vec_type``/``mat_type`` (its `KSPSolver.vec_type`
+    is not None) runs the device path, `prdp_petsc.autograd.device`: b, x and the
+    gradients stay in the memory of its types (the GPU for ``cuda`` /
+    ``aijcusparse``), shared with PETSc by DLPack, and a tensor in other memory
+    raises `InputError`.  Without such options CUDA tensors are solved on the host,
+    one copy each way per call (a documented copy, not the device path).
     """
     if mode not in ("implicit", "unrolled"):
         raise InputError(f"mode must be 'implicit' or 'unrolled', got {mode!r}")
@@ -182,6 +190,8 @@ def _solve(A, b, solver, theta, mode, x0, outcome: AdjointSlot) -> LinearSolutio
             raise InputError(f"x0 must have the shape of b {tuple(b.shape)}, got {tuple(x0.shape)}")
         sol = _solve(A, b - matvec(A, x0, theta=theta), solver, theta, mode, None, outcome)
         return replace(sol, value=x0 + sol.value)
+    if solver.vec_type is not None:  # the device path: torch memory shared with PETSc
+        return _device_solve(A, b, solver, theta, mode, x0, outcome)
     P, csr = _operator(A, theta)
     check_vector(as_numpy(b, "b"), csr[3][0], "b")
     if P is not None:
@@ -204,6 +214,32 @@ def _solve(A, b, solver, theta, mode, x0, outcome: AdjointSlot) -> LinearSolutio
     operator = SolveOperator(P, csr, known_symmetric)
     x = ImplicitSolve.apply(b, theta, operator, solver, outcome)
     return LinearSolution(x, operator.forward, outcome)
+
+
+def _device_solve(A, b, solver, theta, mode, x0, outcome) -> LinearSolution:
+    """`_solve` on a solver's device path (`prdp_petsc.autograd.device`)."""
+    if mode == "unrolled":
+        raise InputError(
+            "mode='unrolled' runs the iteration in torch, not in the solver: give it a "
+            "solver without vec_type/mat_type options"
+        )
+    if x0 is not None:
+        if not isinstance(A, ParametricMatrix):
+            raise InputError(
+                "x0 on the device path (vec_type/mat_type options) needs a ParametricMatrix "
+                "A, whose product A(θ) x0 torch computes on the device; for a constant "
+                "matrix pass ParametricMatrix with no parameters, or solve for b - A x0 "
+                "yourself"
+            )
+        if not isinstance(x0, torch.Tensor) or x0.shape != b.shape:
+            shape = tuple(x0.shape) if isinstance(x0, torch.Tensor) else type(x0).__name__
+            raise InputError(f"x0 must have the shape of b {tuple(b.shape)}, got {shape}")
+        if theta is None:
+            raise InputError("A is a ParametricMatrix: pass its parameters as theta=")
+        residual = b - device_matvec(A, x0, theta)
+        sol = device_solve(A, residual, solver, theta, outcome)
+        return replace(sol, value=x0 + sol.value)
+    return device_solve(A, b, solver, theta, outcome)
 
 
 def _frozen_matrix(csr: tuple) -> sp.csr_matrix:

@@ -21,6 +21,7 @@ from .results import Side
 from .settings import AdjointSettings, check_tolerances
 
 __all__ = [
+    "TYPE_KEYS",
     "Configuration",
     "UnusedOptionWarning",
     "refuse_tolerance_options",
@@ -31,6 +32,8 @@ __all__ = [
 KEEP = object()
 _TOLERANCE_KEYS = ("ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_divtol")
 _OFF = ("0", "false", "no")
+#: options that choose the solver's Mat and Vec types (`prdp_petsc.core.device`)
+TYPE_KEYS = ("vec_type", "mat_type")
 
 
 class Configuration:
@@ -66,6 +69,11 @@ class Configuration:
         refuse_tolerance_options(
             self.adjoint_own, "adjoint options", "AdjointSettings(max_it=, ...)"
         )
+        if typed := [k for k in self.adjoint_own if k in TYPE_KEYS]:
+            raise InputError(
+                f"{typed} in the adjoint options: the adjoint solves with the forward's Mat "
+                "and Vecs, so their types are the forward options' (KSPSolver options)"
+            )
         self.adjoint_options = {**self.options, **self.adjoint_own}
         self.prefix = prefix
         self.adjoint_prefix = adjoint.prefix if adjoint.prefix is not None else prefix + "adj_"

@@ -3,8 +3,17 @@
 One class per operator layout, behind one interface (`OperatorLayout`: `update`
 returns a `Change`; ``mat``, ``csr``, ``norm``, ``symmetric``, ``arrays``,
 ``destroy``): `ReplicatedCSR` (a CSR matrix every rank holds in full), `CallerMat` (a
-caller's PETSc Mat, used as given) and `OwnedRows` (this rank's rows, `OwnedCSR`).
-`layout_for` picks the class once per operator kind.
+caller's PETSc Mat, used as given), `OwnedRows` (this rank's rows, `OwnedCSR`) and
+`DeviceCSR` (a CSR pattern with values in DLPack memory, `DLPackCSR`, set on a Mat of
+the solver's ``mat_type`` by COO assembly).  `layout_for` picks the class once per
+operator kind.
+
+On the device path (a solver whose options name ``vec_type``/``mat_type``,
+`prdp_petsc.core.device`) every Mat made here is of the solver's ``mat_type`` with
+its ``vec_type``: a scipy operator's values are host memory and reach such a Mat once
+per change of values (PETSc copies them to the device at assembly); a `DLPackCSR`'s
+values are set from the memory they are in, device memory included, so a new θ
+never crosses to the host.
 
 A scipy CSR matrix (or a tuple ``(indptr, indices, data, shape)``) becomes a
 ``MATAIJ`` once (sequential, or on a larger communicator an MPIAIJ that holds
@@ -53,6 +62,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
+from .device import DeviceTypes, set_values_coo, wrap
 from .ownership import immutable, own
 from .parallel import ownership_range
 from .safeguards import operator_norm
@@ -62,6 +72,8 @@ __all__ = [
     "LAYOUTS",
     "CallerMat",
     "Change",
+    "DLPackCSR",
+    "DeviceCSR",
     "OperatorLayout",
     "OwnedCSR",
     "OwnedRows",
@@ -236,9 +248,13 @@ class OperatorLayout:
     replicated: bool = True
     made_here: bool = True
 
-    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
+    def __init__(
+        self, comm=None, block_size: int = 1, version: int = 0, types: DeviceTypes | None = None
+    ):
         self.comm = PETSc.COMM_SELF if comm is None else comm
         self.block_size = int(block_size)
+        #: the solver's Mat and Vec types on the device path (None: PETSc's default AIJ)
+        self.types = types
         self.mat: PETSc.Mat | None = None
         self.symmetric: bool | None = False
         self.version = version
@@ -283,6 +299,13 @@ class OperatorLayout:
         """The numpy arrays kept here (values, pattern, transpose permutation)."""
         return []
 
+    def _typed(self, mat: PETSc.Mat) -> PETSc.Mat:
+        """`mat` (made here) of the solver's types on the device path, as it is otherwise."""
+        if self.types is not None:
+            mat.convert(self.types.mat_type, out=mat)  # in place; the same type: nothing
+            mat.setVecType(self.types.vec_type)
+        return mat
+
     def destroy(self) -> None:
         """Free a Mat made here (a caller's Mat is left alone) and forget the operator."""
         if self.made_here and self.mat is not None:
@@ -312,8 +335,8 @@ class _KeptCSR(OperatorLayout):
     """What the layouts whose Mat is made here from CSR arrays share: the kept values
     and pattern, and the caller's pattern arrays recognised by identity."""
 
-    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
-        super().__init__(comm, block_size, version)
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0, types=None):
+        super().__init__(comm, block_size, version, types)
         self._indptr: np.ndarray | None = None  # the pattern as kept, PETSc ints
         self._indices: np.ndarray | None = None
         self._source: tuple | None = None  # the caller's (indptr, indices), for an `is` test
@@ -334,8 +357,8 @@ class ReplicatedCSR(_KeptCSR):
     holding this rank's rows (split by whole blocks; `prdp_petsc.core.parallel`).
     Symmetry is declared or tested entry against mirror."""
 
-    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
-        super().__init__(comm, block_size, version)
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0, types=None):
+        super().__init__(comm, block_size, version, types)
         self._shape: tuple | None = None
         self._tperm: np.ndarray | None = None
 
@@ -409,6 +432,8 @@ class ReplicatedCSR(_KeptCSR):
             size=size, bsize=self.block_size, csr=(ip, ix, local), comm=self.comm
         )
         self.mat.assemble()
+        if self.types is not None:
+            self._typed(self.mat)
 
     def _set_values(self, data: np.ndarray) -> None:
         ip, ix, local = self._local_rows(data)
@@ -489,8 +514,8 @@ class OwnedRows(_KeptCSR):
 
     replicated = False
 
-    def __init__(self, comm=None, block_size: int = 1, version: int = 0):
-        super().__init__(comm, block_size, version)
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0, types=None):
+        super().__init__(comm, block_size, version, types)
         self._sizes: tuple | None = None  # (shape, local_shape) of the pattern held
 
     @classmethod
@@ -553,31 +578,140 @@ class OwnedRows(_KeptCSR):
         return self.mat.isSymmetric(DIAGONAL_RTOL * scale)
 
 
+@dataclass(frozen=True, eq=False)
+class DLPackCSR:
+    """A CSR operator whose values live in DLPack memory (host or device): the device
+    layout's operator.
+
+    Parameters
+    ----------
+    indptr, indices : ndarray
+        The CSR pattern on the host (sorted column indices per row), kept by identity:
+        the same arrays again are the same pattern at no cost.
+    data : array with ``__dlpack__``, shape (nnz,)
+        The values, C-contiguous float64, in the memory of the solver's types (a torch
+        tensor on the GPU for ``mat_type aijcusparse``).  Never edited by the solver;
+        the caller must not edit them either while a solve may need them again (the
+        same object again is taken as unchanged values, without a comparison).
+    shape : tuple of int
+
+    Notes
+    -----
+    `prdp_petsc.solve` makes these from a `~prdp_petsc.fem.parametric.ParametricMatrix`
+    on the device path: values ``a0 + G θ`` computed by torch where θ lives.
+    """
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: object
+    shape: tuple
+
+
+class DeviceCSR(OperatorLayout):
+    """A `DLPackCSR` as a Mat of the solver's ``mat_type`` (``aij`` without device
+    types) made here by COO assembly: ``MatSetPreallocationCOO`` once per pattern (host
+    index arrays), then ``MatSetValuesCOO`` from the values' own memory for every new
+    values object (`prdp_petsc.core.device.set_values_coo`), so values on the GPU stay
+    there.
+
+    Which values are new is decided by identity: the same `data` object is unchanged
+    values (`Change.NONE`, no PC set-up), another one is new values (`Change.VALUES`),
+    with no comparison of entries (that would cost a pass over device memory per
+    call; the caller keeps one values object per θ).  NaN or Inf values are refused
+    from one PETSc norm of the values (`NonFiniteError`).  Symmetry is declared, or
+    asked of PETSc (``MatIsSymmetric``) whenever the values change.  One process.
+    """
+
+    def __init__(self, comm=None, block_size: int = 1, version: int = 0, types=None):
+        super().__init__(comm, block_size, version, types)
+        self._pattern: tuple | None = None  # (indptr, indices, shape) of the Mat held
+        self._data = None  # the values object set last
+
+    @classmethod
+    def accepts(cls, A) -> bool:
+        return isinstance(A, DLPackCSR)
+
+    def _update(self, A: DLPackCSR, known_symmetric: bool | None) -> Change:
+        shape = tuple(int(n) for n in A.shape)
+        held = self._pattern
+        same_pattern = held is not None and (
+            (held[0] is A.indptr and held[1] is A.indices and held[2] == shape)
+            or (held[2] == shape and equal(held[0], A.indptr) and equal(held[1], A.indices))
+        )
+        if same_pattern and A.data is self._data:
+            return self._redeclare(known_symmetric)
+        memory = self.types.memory if self.types is not None else "cpu"
+        values = wrap(A.data, len(A.indices), "the operator's values", memory)
+        try:
+            if not np.isfinite(values.norm(PETSc.NormType.INFINITY)):
+                raise NonFiniteError("A has NaN or Inf entries")
+            if not same_pattern:
+                self._make_mat(A, shape)
+            set_values_coo(self.mat, values)
+        finally:
+            values.destroy()
+        self._data = A.data
+        self._mark_symmetry(known_symmetric)
+        self.version += 1
+        return Change.VALUES if same_pattern else Change.NEW
+
+    def _make_mat(self, A: DLPackCSR, shape: tuple) -> None:
+        if shape[0] != shape[1]:
+            raise InputError(f"A must be square, got shape {shape}")
+        if shape[0] % self.block_size:
+            raise InputError(
+                f"the operator has {shape[0]} rows, not a multiple of block_size={self.block_size}"
+            )
+        if self.comm.getSize() > 1:
+            raise InputError("values in DLPack memory (the device path) run on one process")
+        self.destroy()
+        indptr = np.asarray(A.indptr)
+        rows = np.repeat(np.arange(shape[0], dtype=PETSc.IntType), np.diff(indptr))
+        mat = PETSc.Mat().create(comm=self.comm)
+        mat.setSizes(shape, bsize=self.block_size)
+        mat.setType(self.types.mat_type if self.types is not None else "aij")
+        if self.types is not None:
+            mat.setVecType(self.types.vec_type)
+        mat.setPreallocationCOO(rows, np.asarray(A.indices, dtype=PETSc.IntType))
+        self.mat = mat
+        self._pattern = (A.indptr, A.indices, shape)
+
+    def destroy(self) -> None:
+        super().destroy()
+        self._pattern = self._data = None
+
+    def _tested_symmetric(self) -> bool:
+        """PETSc's ``MatIsSymmetric`` on the values set."""
+        scale = self.mat.norm(PETSc.NormType.INFINITY)
+        return self.mat.isSymmetric(DIAGONAL_RTOL * scale)
+
+
 #: the operator layouts, each taking one kind of operator (`OperatorLayout.accepts`)
-LAYOUTS: tuple[type[OperatorLayout], ...] = (ReplicatedCSR, CallerMat, OwnedRows)
+LAYOUTS: tuple[type[OperatorLayout], ...] = (ReplicatedCSR, CallerMat, OwnedRows, DeviceCSR)
 
 
 def layout_for(
-    A, held: OperatorLayout | None = None, *, comm=None, block_size: int = 1
+    A, held: OperatorLayout | None = None, *, comm=None, block_size: int = 1, types=None
 ) -> OperatorLayout:
     """The layout that holds operator `A`: `held` if it is of A's kind (or holds A's
     Mat), else a new one of the kind that accepts A, continuing `held`'s version (the
-    old one destroyed).  `TypeError` for an operator no layout takes."""
-    if held is not None and (A is held.mat or held.accepts(A)):
+    old one destroyed).  `TypeError` for an operator no layout takes.  `types`: the
+    solver's `~prdp_petsc.core.device.DeviceTypes` (None: the default path)."""
+    if held is not None and held.types == types and (A is held.mat or held.accepts(A)):
         return held
     for kind in LAYOUTS:
         if kind.accepts(A):
             break
     else:
         raise TypeError(
-            "A must be a scipy sparse matrix, a CSR tuple, a PETSc.Mat or an OwnedCSR, "
-            f"got {type(A)}"
+            "A must be a scipy sparse matrix, a CSR tuple, a PETSc.Mat, an OwnedCSR or a "
+            f"DLPackCSR, got {type(A)}"
         )
     version = 0
     if held is not None:
         version = held.version
         held.destroy()
-    return kind(comm, block_size, version)
+    return kind(comm, block_size, version, types)
 
 
 def _all_ranks(comm: PETSc.Comm, *flags: bool) -> list[bool]:

@@ -91,6 +91,7 @@ __all__ = [
     "STALLED",
     "Residual",
     "backward_error",
+    "exponent_of",
     "check_transpose_ksp",
     "judge",
     "looks_singular",
@@ -163,6 +164,14 @@ def rhs_exponents(batch: np.ndarray) -> np.ndarray:
     biggest = np.maximum(batch.max(axis=1), -batch.min(axis=1))  # no |batch| temporary
     safe = (biggest == 0.0) | ((SAFE_RANGE[0] <= biggest) & (biggest <= SAFE_RANGE[1]))
     return np.where(safe, 0, np.frexp(biggest)[1])
+
+
+def exponent_of(biggest: float) -> int:
+    """`rhs_exponent` of a right-hand side whose largest entry is `biggest` (``‖b‖_∞``,
+    finite): 0 for 0 or a size in `SAFE_RANGE`."""
+    if biggest == 0.0 or SAFE_RANGE[0] <= biggest <= SAFE_RANGE[1]:
+        return 0
+    return int(np.frexp(biggest)[1])
 
 
 def rhs_exponent(row: np.ndarray) -> int:

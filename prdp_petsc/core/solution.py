@@ -45,7 +45,9 @@ class LinearSolution:
     value : numpy.ndarray or torch.Tensor
         The solution, shape of the right-hand side: x of ``A x = b`` (λ of
         ``Aᵀ λ = g`` from `KSPSolver.solve_transpose`).  An ndarray from a
-        `KSPSolver`, a differentiable tensor from `prdp_petsc.solve`.
+        `KSPSolver`, a differentiable tensor from `prdp_petsc.solve`; on a solver's
+        device path the ``out`` it was given (an array, or a sequence of rows: a
+        batch).
     info : CallInfo
         The solve that made `value`, every sample in batch order: iterations, PETSc
         reason, residual norm (None where PETSc computed none), PC age.  Its
@@ -72,20 +74,25 @@ class LinearSolution:
         return self.slot.info
 
     @property
+    def _single(self) -> bool:
+        """One right-hand side of shape (n,), not a batch (a sequence of rows is one)."""
+        return getattr(self.value, "ndim", 2) == 1
+
+    @property
     def iterations(self) -> int | np.ndarray:
         """Iterations of the solve (``(B,)`` for a batch)."""
-        return self.info[0].iterations if self.value.ndim == 1 else self.info.iterations
+        return self.info[0].iterations if self._single else self.info.iterations
 
     @property
     def reason(self) -> str | list[str]:
         """PETSc's ``KSPConvergedReason`` name of the solve (a list for a batch)."""
-        return self.info[0].reason if self.value.ndim == 1 else self.info.reasons
+        return self.info[0].reason if self._single else self.info.reasons
 
     @property
     def residual_norm(self) -> float | None | np.ndarray:
         """PETSc's last residual norm of the solve: None (NaN in a batch's ``(B,)``
         array) where PETSc computed none."""
-        if self.value.ndim == 1:
+        if self._single:
             return self.info[0].residual_norm
         return self.info.residual_norms
 

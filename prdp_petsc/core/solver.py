@@ -27,6 +27,7 @@ from petsc4py import PETSc
 from ..errors import InputError, NonFiniteError, NotConvergedWarning, caller_stacklevel
 from . import safeguards
 from .configuration import Configuration, UnusedOptionWarning, rejected_options_message
+from .device import DeviceTypes, WrappedRows
 from .fields import attach_fields
 from .lag import PCLag
 from .nullspace import (
@@ -34,7 +35,7 @@ from .nullspace import (
     attach_nullspaces,
     check_nullspaces,
 )
-from .operator import Change, OperatorLayout, OwnedCSR, ReplicatedCSR, layout_for
+from .operator import Change, DLPackCSR, OperatorLayout, OwnedCSR, ReplicatedCSR, layout_for
 from .options import PushedOptions
 from .parallel import RowLayout, as_petsc_comm
 from .results import CallInfo, Side, SolveInfo, SolverError, SolverStats
@@ -221,6 +222,16 @@ class KSPSolver:
     transpose": True})`` solves such an adjoint with an explicit Aᵀ instead.
     Free the PETSc objects with `destroy` or a ``with`` block.
 
+    Options that name a ``vec_type`` or ``mat_type`` (``{"vec_type": "cuda",
+    "mat_type": "aijcusparse"}``, or ``-{prefix}vec_type`` on the command line) put
+    the solver on the *device path* (`prdp_petsc.core.device`; `vec_type` says which
+    path): every Mat it makes is of that type, `solve` and `solve_transpose` take
+    DLPack arrays in that memory and write into ``out=``, and a
+    `~prdp_petsc.core.operator.DLPackCSR` operator's values are set from their own
+    memory.  The types are read from the forward options only (the adjoint shares
+    the Mat); one process.  Host types (``standard`` / ``aij``) run the same path on
+    the CPU.
+
     With ``pc_lag > 1`` the solver sets PETSc's reuse flag before every solve
     (``-{prefix}ksp_reuse_preconditioner`` is then overridden); with 1 it leaves
     the flag alone.  A reused PC changes the iterates of a capped solve, not the
@@ -274,6 +285,7 @@ class KSPSolver:
             raise TypeError(f"structure must be a pp.Structure, got {type(structure).__name__}")
         self.check_structure = bool(check_structure)
         self.stats = SolverStats()
+        self._types: DeviceTypes | None = None  # set by `_build` from the options
         #: the operator's layout (`prdp_petsc.core.operator`), chosen by its kind
         self._op: OperatorLayout = ReplicatedCSR(self.comm, self.structure.block_size)
         self._x: PETSc.Vec | None = None
@@ -304,6 +316,19 @@ class KSPSolver:
         if self._op.mat is None:
             raise RuntimeError("no operator yet: call set_operator(A) first")
         return self._op.mat
+
+    @property
+    def vec_type(self) -> str | None:
+        """The PETSc Vec type of the device path, None on the default path.
+
+        Options (with the solver's prefix, or on the command line) that name a
+        ``vec_type`` or ``mat_type`` put the solver on the device path
+        (`prdp_petsc.core.device`): its Mats are of that type, and `solve` and
+        `solve_transpose` take DLPack arrays in that memory (``solve(b, out=x)``)
+        and solve in them, no vector copied.  Without them (None) they take and
+        return numpy arrays.
+        """
+        return None if self._types is None else self._types.vec_type
 
     @property
     def is_symmetric(self) -> bool | None:
@@ -358,10 +383,21 @@ class KSPSolver:
             with pushed:
                 ksp.setFromOptions()
                 adj.setFromOptions()
-        except PETSc.Error as err:
+                opts = PETSc.Options()  # read as PETSc reads them: the command line wins
+                names = [self.prefix + k for k in ("vec_type", "mat_type")]
+                types = [opts.getString(n) if opts.hasName(n) else None for n in names]
+            self._types = DeviceTypes.resolve(*types)
+            if self._types is not None and comm.getSize() > 1:
+                raise InputError(
+                    "vec_type/mat_type options (the device path) run on one process; "
+                    "drop them for a solve on several ranks"
+                )
+        except (PETSc.Error, InputError) as err:
             for obj in (ksp, adj):
                 if obj is not None:
                     obj.destroy()
+            if isinstance(err, InputError):
+                raise
             raise InputError(rejected_options_message(self._items, err)) from err
         self._used = set(pushed.used)
         for obj in (ksp, adj):  # read by safeguards.rescue
@@ -543,7 +579,7 @@ class KSPSolver:
 
     def set_operator(
         self,
-        A: sp.spmatrix | PETSc.Mat | OwnedCSR | tuple,
+        A: sp.spmatrix | PETSc.Mat | OwnedCSR | DLPackCSR | tuple,
         *,
         known_symmetric: bool | None = None,
     ) -> None:
@@ -552,10 +588,12 @@ class KSPSolver:
 
         Parameters
         ----------
-        A : scipy.sparse matrix, PETSc.Mat, OwnedCSR or tuple ``(indptr, indices, data, shape)``
+        A : scipy.sparse matrix, PETSc.Mat, OwnedCSR, DLPackCSR or tuple ``(indptr, ..., shape)``
             A PETSc Mat is used as given (any communicator, e.g. distributed); an
             `~prdp_petsc.core.operator.OwnedCSR` (this rank's rows only) becomes an
-            MPIAIJ Mat of those rows.  Both give the owned layout.
+            MPIAIJ Mat of those rows.  Both give the owned layout.  A
+            `~prdp_petsc.core.operator.DLPackCSR` (values in DLPack memory, the device
+            path) becomes a Mat of the solver's ``mat_type`` by COO assembly.
         known_symmetric : bool, optional
             Whether A = Aᵀ, if the caller knows (e.g. `ParametricMatrix.is_symmetric`,
             which the bridge passes: it spares the test); the declared
@@ -567,7 +605,9 @@ class KSPSolver:
         structure = self.structure
         if structure.symmetric is not None:
             known_symmetric = structure.symmetric
-        self._op = layout_for(A, self._op, comm=self.comm, block_size=structure.block_size)
+        self._op = layout_for(
+            A, self._op, comm=self.comm, block_size=structure.block_size, types=self._types
+        )
         change = self._op.update(A, known_symmetric)
         if change is Change.NEW:
             self._attach(self._op.mat)
@@ -622,20 +662,27 @@ class KSPSolver:
         return self.adjoint.symmetric_pc or self._adj.ksp.getPC().getType() in _SYMMETRIC_PCS
 
     # -- solves ---------------------------------------------------------------------
-    def solve(self, b: np.ndarray) -> LinearSolution:
+    def solve(self, b, *, out=None) -> LinearSolution:
         """Solve ``A x = b`` from a zero initial guess; `b` is ``(n,)`` or ``(B, n)``.
+
+        On the device path (`vec_type` not None) `b` is an array with ``__dlpack__``
+        of shape ``(n,)``, or a sequence of them (the rows of a batch), in the
+        memory of the solver's types, and `out` (required) the same for x: PETSc
+        reads b and writes x in place, no copy (`prdp_petsc.core.device`).
 
         Returns
         -------
         LinearSolution
-            x as ``.value`` (an ndarray, shape of `b`) with this call's outcome:
-            ``.iterations``, ``.reason``, ``.residual_norm``, ``.converged`` and
-            ``.info``, every sample's `SolveInfo`.
+            x as ``.value`` (an ndarray, shape of `b`; on the device path `out`
+            itself) with this call's outcome: ``.iterations``, ``.reason``,
+            ``.residual_norm``, ``.converged`` and ``.info``, every sample's
+            `SolveInfo`.
         """
-        return self._run(b, self._fwd)
+        return self._run(b, self._fwd, out)
 
-    def solve_transpose(self, g: np.ndarray) -> LinearSolution:
-        """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``.
+    def solve_transpose(self, g, *, out=None) -> LinearSolution:
+        """Solve ``Aᵀ λ = g`` with the adjoint settings; `g` is ``(n,)`` or ``(B, n)``
+        (on the device path DLPack arrays and `out`, as in `solve`).
 
         Returns
         -------
@@ -644,24 +691,52 @@ class KSPSolver:
             ``"adjoint"``).
         """
         safeguards.check_transpose_ksp(self.adjoint_ksp)
-        return self._run(g, self._adj)
+        return self._run(g, self._adj, out)
 
-    def _run(self, rhs: np.ndarray, side: _Side) -> LinearSolution:
+    def _run(self, rhs, side: _Side, out=None) -> LinearSolution:
         self._alive()
         mat = self.mat
-        rhs = np.asarray(rhs, dtype=np.float64)
-        batch = rhs.reshape(-1, rhs.shape[-1])
         layout = self._layout
         kind = side.kind
-        if batch.shape[1] != layout.size:
-            rows = "rows" if layout.replicated or not layout.distributed else "local rows"
+        if self._types is not None:
+            rows = WrappedRows(rhs, out, layout.size, self._types.memory, kind)
+            try:
+                return self._run_rows(side, mat, rows, None, None, None)
+            finally:
+                rows.destroy()
+        if out is not None:
             raise InputError(
-                f"right-hand side has {batch.shape[1]} entries, operator has {layout.size} {rows}"
+                "out= is the device path's (options naming vec_type/mat_type); this "
+                "solver returns a new array"
+            )
+        rhs = np.asarray(rhs, dtype=np.float64)
+        batch = rhs.reshape(-1, rhs.shape[-1])
+        if batch.shape[1] != layout.size:
+            where = "rows" if layout.replicated or not layout.distributed else "local rows"
+            raise InputError(
+                f"right-hand side has {batch.shape[1]} entries, operator has {layout.size} {where}"
             )
         self._check_finite(batch, kind)
+        out = np.empty_like(batch)
+        return self._run_rows(side, mat, None, batch, out, rhs.shape)
+
+    def _run_rows(
+        self,
+        side: _Side,
+        mat: PETSc.Mat,
+        rows: WrappedRows | None,
+        batch: np.ndarray | None,
+        out: np.ndarray | None,
+        shape: tuple | None,
+    ) -> LinearSolution:
+        """Solve every row: the caller's wrapped Vecs (`rows`), or numpy rows of `batch`
+        into `out`; value of the result: ``rows.value()``, or `out` in `shape`."""
+        layout = self._layout
+        kind = side.kind
+        if rows is not None:
+            batch = rows
         ksp = side.ksp
         step = self._step(side, mat)
-        out = np.empty_like(batch)
         check = side.unchecked
         slot = Side.FORWARD if self._shared_pc else kind  # a shared PC has one age
         age = self._lag.before_solve(slot, ksp, self.stats)
@@ -679,7 +754,9 @@ class KSPSolver:
                     self._check_structure(ksp, kind)
                 try:
                     for i in range(len(batch)):
-                        iterations += step(batch[i], out[i])
+                        iterations += (
+                            rows.solve(step, i) if rows is not None else step(batch[i], out[i])
+                        )
                 except SolverError as err:
                     if age == 0:
                         raise
@@ -699,7 +776,9 @@ class KSPSolver:
                         ksp, mat, self._b, self._x, layout, kind, step.transpose, self._op.norm
                     )
                     for i in range(len(batch)):
-                        iterations += step(batch[i], out[i])
+                        iterations += (
+                            rows.solve(step, i) if rows is not None else step(batch[i], out[i])
+                        )
                 finally:
                     infos = self._lag.after_solve(slot, kind, step.infos, age)
         except SolverError as err:
@@ -709,9 +788,12 @@ class KSPSolver:
             raise
         side.setup_version = self._op.version
         if check and (unused := self._unused_after(side, pushed)):
-            warnings.warn(unused, UnusedOptionWarning, stacklevel=3)
+            warnings.warn(unused, UnusedOptionWarning, stacklevel=4)
         # the step saw a finite ‖x‖ of every row (so no NaN/Inf), or a sum: fast path
-        finite = step.finite or bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))
+        if rows is not None:
+            finite = step.finite or rows.finite()  # one PETSc norm per row
+        else:
+            finite = step.finite or bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))
         if layout.distributed and not layout.replicated:
             finite = bool(layout.agree_max(np.array([not finite]))[0] == 0)
         if not finite:
@@ -720,7 +802,8 @@ class KSPSolver:
         self.stats.record(kind, len(batch), iterations, elapsed)
         if step.unconverged and self.not_converged != "ignore":
             self._report_unconverged(side, step, len(batch))
-        return LinearSolution(out.reshape(rhs.shape), CallInfo(kind.value, tuple(infos)))
+        value = rows.value() if rows is not None else out.reshape(shape)
+        return LinearSolution(value, CallInfo(kind.value, tuple(infos)))
 
     def _report_unconverged(self, side: _Side, step: SolveStep, rows: int) -> None:
         """`NotConvergedWarning` (or `SolverError`) for the rows of this call that had a

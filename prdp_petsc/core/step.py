@@ -145,6 +145,33 @@ class SolveStep:
             np.ldexp(out, exponent, out=out)
         return ksp.getIterationNumber() + rescued
 
+    def solve_vecs(self, b_vec: PETSc.Vec, x_vec: PETSc.Vec) -> int:
+        """Solve for the Vec `b_vec` into the Vec `x_vec` (the device path: both wrap a
+        caller's memory, `prdp_petsc.core.device`); return the iterations run.
+
+        As `__call__`, without reading an entry on the host: the scaling exponent comes
+        from ``‖b‖_∞`` (a PETSc norm, asked only when ``‖b‖₂`` is outside the safe
+        range), a scaled b is a copy in the step's own work Vec (the caller's b is never
+        written), and x is scaled back in place.
+        """
+        exponent = 0
+        if not self.safe_norms[0] <= b_vec.norm() <= self.safe_norms[1]:
+            exponent = safeguards.exponent_of(b_vec.norm(PETSc.NormType.INFINITY))
+            if exponent:
+                work = self.b_vec
+                b_vec.copy(work)
+                work.scale(math.ldexp(1.0, -exponent))
+                b_vec = work
+        saved = self.b_vec, self.x_vec
+        self.b_vec, self.x_vec = b_vec, x_vec
+        try:
+            rescued = self._solve(exponent)
+        finally:
+            self.b_vec, self.x_vec = saved
+        if exponent:
+            x_vec.scale(math.ldexp(1.0, exponent))
+        return self.ksp.getIterationNumber() + rescued
+
     def _solve(self, exponent: int) -> int:
         """Solve for the b set in `b_vec` (scaled by 2^-exponent) into `x_vec`, check the
         outcome; return the iterations of a discarded run (0 unless rescued)."""
