@@ -110,7 +110,7 @@ class DeviceParametric:
     ) -> torch.Tensor:
         """``−Gᵀ(λ[rows] ⊙ x[cols])`` (`ParametricMatrix.theta_gradient`) by torch on the
         device: (p,) summed over a batch, or (B, p) with `per_sample`."""
-        dA = lam[..., self.rows] * x[..., self.cols]
+        dA = lam.index_select(-1, self.rows) * x.index_select(-1, self.cols)
         if per_sample:
             return -(self.Gt @ dA.T).T
         if dA.ndim == 2:
