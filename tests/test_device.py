@@ -323,3 +323,40 @@ def test_default_path_unchanged_types(symmetric):
     assert isinstance(solver.solve(np.ones(symmetric.shape[0])).value, np.ndarray)
     with pytest.raises(InputError, match="out="):
         solver.solve(np.ones(symmetric.shape[0]), out=np.empty(symmetric.shape[0]))
+
+
+def test_numpy_on_host_types_and_the_k_full_probe(symmetric):
+    """numpy rows on host types return a new array, so find_k_full probes such a solver."""
+    M = symmetric.matrix(random_theta(symmetric.n_params).numpy())
+    default, device = pair(METHODS["cg_jacobi"], max_it=30)
+    b = randn(BATCH, M.shape[0], seed=22).numpy()
+    for solver in (default, device):
+        solver.set_operator(M)
+    np.testing.assert_array_equal(device.solve(b).value, default.solve(b).value)
+    np.testing.assert_array_equal(device.solve(b[0]).value, default.solve(b[0]).value)
+    k = [pp.find_k_full(M, b[:1], solver, rtol=1e-8) for solver in (default, device)]
+    assert k[0] == k[1] > 0
+
+
+def test_wrapped_vec_norms_are_computed_not_cached_zeros():
+    """PETSc's norm cache on a Vec of state 0 would answer ‖v‖_∞ = 0 after ‖v‖₂."""
+    v = wrap(torch.tensor([1.0, -5.0, 2.0], dtype=torch.float64), 3, "v", "cpu")
+    assert v.norm() == pytest.approx(30**0.5)
+    assert v.norm(PETSc.NormType.INFINITY) == 5.0
+    assert v.norm(PETSc.NormType.NORM_1) == 8.0
+
+
+def test_dirichlet_solve_on_the_device_path():
+    """Lifting (A_IB g, by the bridge's matvec) then the interior solve on the device path."""
+    D = interior_operator(unit_square(3), "P1")
+    default, device = pair(METHODS["cg_jacobi"], max_it=8)
+    results = []
+    for solver in (default, device):
+        f = randn(D.n, seed=23, requires_grad=True)
+        g = randn(len(D.boundary), seed=24, requires_grad=True)
+        theta = random_theta(D.A_II.n_params, seed=25).requires_grad_(True)
+        u = D.solve(f, g, solver, theta=theta)
+        (u * randn(D.n, seed=26)).sum().backward()
+        results.append((u.detach(), f.grad, g.grad, theta.grad))
+    for e, got in zip(*results, strict=True):
+        assert (got - e).abs().max() <= 1e-12 * e.abs().max()

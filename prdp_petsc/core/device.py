@@ -135,7 +135,9 @@ def wrap(array, size: int, name: str, memory: str) -> PETSc.Vec:
     """A sequential Vec whose array is `array`'s memory (no copy), checked.
 
     `array` is a C-contiguous float64 array with ``__dlpack__`` of `size` entries in
-    `memory`; `name` says what it is in an error.  The Vec keeps the array alive.
+    `memory`; `name` says what it is in an error.  The Vec keeps a reference to the
+    array (petsc4py's ``createWithDLPack`` releases the DLPack capsule's own at once,
+    so without it a temporary array's memory would be freed under the Vec).
     """
     where = dlpack_memory(array)
     if where != memory:
@@ -167,6 +169,7 @@ def wrap(array, size: int, name: str, memory: str) -> PETSc.Vec:
         vec.destroy()
         raise InputError(f"{name} has {n} entries, the operator {size}")
     vec.stateIncrease()  # state 0 would make PETSc's cache report unknown norms as 0.0
+    vec.setAttr("__wrapped__", array)  # petsc4py frees the DLPack manager at once
     return vec
 
 
@@ -227,6 +230,8 @@ class WrappedRows:
         Memory of the solver's types; every array must be in it.
     kind : Side
         Which solve, named in errors.
+    value : optional
+        What `value` returns (default `out`): the array whose rows `out` lists.
 
     Notes
     -----
@@ -237,7 +242,7 @@ class WrappedRows:
     where the solve did not already see a finite ``‖x‖``.
     """
 
-    def __init__(self, rhs, out, size: int, memory: str, kind) -> None:
+    def __init__(self, rhs, out, size: int, memory: str, kind, value=None) -> None:
         what = "cotangent" if kind.value == "adjoint" else "right-hand side"
         if out is None:
             raise InputError(
@@ -252,7 +257,7 @@ class WrappedRows:
             )
         self.b: list[PETSc.Vec] = []
         self.x: list[PETSc.Vec] = []
-        self._out = out
+        self._out = out if value is None else value
         try:
             for i, (row, target) in enumerate(zip(rhs_rows, out_rows, strict=True)):
                 name = what if len(rhs_rows) == 1 else f"row {i} of the {what}"
@@ -287,7 +292,7 @@ class WrappedRows:
         return all(math.isfinite(vec.norm(PETSc.NormType.INFINITY)) for vec in self.x)
 
     def value(self):
-        """`out`, as the caller gave it."""
+        """`out` as the caller gave it (or the `value` given)."""
         return self._out
 
     def destroy(self) -> None:

@@ -667,8 +667,9 @@ class KSPSolver:
 
         On the device path (`vec_type` not None) `b` is an array with ``__dlpack__``
         of shape ``(n,)``, or a sequence of them (the rows of a batch), in the
-        memory of the solver's types, and `out` (required) the same for x: PETSc
-        reads b and writes x in place, no copy (`prdp_petsc.core.device`).
+        memory of the solver's types, and `out` the same for x: PETSc reads b and
+        writes x in place, no copy (`prdp_petsc.core.device`).  `out` is required
+        except for a numpy `b` on host types, whose x is a new array as by default.
 
         Returns
         -------
@@ -699,7 +700,13 @@ class KSPSolver:
         layout = self._layout
         kind = side.kind
         if self._types is not None:
-            rows = WrappedRows(rhs, out, layout.size, self._types.memory, kind)
+            value = None
+            if out is None and isinstance(rhs, np.ndarray) and self._types.memory == "cpu":
+                # numpy on host types (the K_full probe): x in a new array, as by default
+                rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+                value = np.empty_like(rhs)
+                rhs, out = (rhs, value) if rhs.ndim == 1 else (list(rhs), list(value))
+            rows = WrappedRows(rhs, out, layout.size, self._types.memory, kind, value)
             try:
                 return self._run_rows(side, mat, rows, None, None, None)
             finally:
