@@ -101,3 +101,19 @@ def test_compare_writes_one_tensorboard_run_per_schedule(tmp_path):
         assert [e.value for e in runs.Scalars(name, "loss/train")] == _float32(
             e["train_loss"] for e in result["epochs"]
         )
+
+
+def test_checks_are_counted_once_in_their_epoch(tmp_path):
+    result = run(HEAT1D, "auto", out=tmp_path, progress=False)
+    curves = _curves(tmp_path)
+    steps, checks = curves["prdp/check_iterations"]
+    checks = dict(zip(steps, checks, strict=True))
+    inner = np.diff([0, *curves["solver/inner_iterations"][1]])
+    k = curves["solver/K"][1]
+    per_k = inner[0] / k[0]  # epoch 0 makes no check: training alone, per unit of K
+    assert 0 not in checks and len(curves["prdp/check_gap"][0]) >= 1
+    for epoch in range(len(k)):  # what an epoch ran beyond training is its checks' cost
+        made = checks.get(epoch, 0) - checks.get(epoch - 1, 0)
+        assert inner[epoch] - made == per_k * k[epoch]
+    assert result["certificate"]["cost"] > 0  # the certificate at the end, last epoch's
+    assert made == result["certificate"]["cost"]

@@ -14,7 +14,9 @@ The step is the epoch (``results.json``'s ``epoch``, from 0):
 * ``time/wall``: seconds of training since the run began (as ``results.json``'s
   ``wall_time``: checkpoint saves and these writes not counted);
 * ``prdp/check_gap``: the fidelity gap of a check (the ``auto`` schedule), in the
-  epochs that made one.
+  epochs that made one, and ``prdp/check_iterations``: the inner iterations of the
+  controller's checks so far (`prdp_petsc.Certificate`'s ``cost``; they are part of
+  ``solver/inner_iterations`` too).
 
 The run's scene, preset, schedule, route (the KSP/PC types of its solvers) and seeds
 are its hparams (TensorBoard's HPARAMS tab).  A resumed run purges the steps from its
@@ -67,9 +69,10 @@ class Curves:
             writer.add_summary(summary)
         self._writer.flush()
 
-    def add(self, record: dict, totals: dict, check_gap: float | None = None) -> None:
+    def add(self, record: dict, totals: dict, controller=None) -> None:
         """One epoch: its `record` (an entry of ``results.json``'s ``epochs``), the run's
-        `totals` after it and the `check_gap` of a check it made; flushed to disk."""
+        `totals` after it and its `controller` (a `prdp_petsc.PRDP`, None for a constant
+        K), whose checks it reports; flushed to disk."""
         step = record["epoch"]
         scalars = {
             "loss/train": record["train_loss"],
@@ -80,8 +83,13 @@ class Curves:
         }
         if "rtol" in record:
             scalars["solver/rtol"] = record["rtol"]
-        if check_gap is not None:
-            scalars["prdp/check_gap"] = check_gap
+        if controller is not None:
+            gap = controller.history[-1].gap
+            if gap is not None:
+                scalars["prdp/check_gap"] = gap
+            costs = [c.cost for c in controller.checks if c.cost is not None]
+            if costs:
+                scalars["prdp/check_iterations"] = sum(costs)
         for tag, value in scalars.items():
             self._writer.add_scalar(tag, value, step)
         self._writer.flush()

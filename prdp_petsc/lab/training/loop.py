@@ -157,8 +157,7 @@ def train(
                     )  # fmt: skip
                     result["checkpoint"] = {"file": CHECKPOINT, "epoch": done}
                 write_json(out / RESULTS, result)
-                gap = controller.history[-1].gap if controller is not None else None
-                curves.add(record, result["totals"], check_gap=gap)
+                curves.add(record, result["totals"], controller)
     finally:
         bar.close()
         if curves is not None:
