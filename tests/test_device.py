@@ -360,3 +360,25 @@ def test_dirichlet_solve_on_the_device_path():
         results.append((u.detach(), f.grad, g.grad, theta.grad))
     for e, got in zip(*results, strict=True):
         assert (got - e).abs().max() <= 1e-12 * e.abs().max()
+
+
+def test_device_matvec_equals_the_host_product():
+    """A(θ) v by torch (what a GPU θ uses, here on the CPU) equals the bridge's matvec, and
+    so do its gradients in v and θ, single and per-sample θ."""
+    from prdp_petsc.autograd.bridge import matvec
+    from prdp_petsc.autograd.device import device_matvec
+
+    A = interior_operator(unit_square(2), "P1").A_IB  # rectangular
+    for theta in (
+        random_theta(A.n_params, seed=27),
+        torch.stack([random_theta(A.n_params, seed=28 + i) for i in range(BATCH)]),
+    ):
+        results = []
+        for product in (matvec, lambda A, v, theta: device_matvec(A, v, theta)):
+            t = theta.clone().requires_grad_(True)
+            v = randn(BATCH, A.shape[1], seed=31, requires_grad=True)
+            y = product(A, v, theta=t)
+            (y * randn(BATCH, A.shape[0], seed=32)).sum().backward()
+            results.append((y.detach(), v.grad, t.grad))
+        for e, got in zip(*results, strict=True):
+            assert (got - e).abs().max() <= 1e-13 * e.abs().max()

@@ -32,7 +32,7 @@ from .device import device_matvec, device_solve
 from .implicit import ImplicitSolve, MatVec, SolveOperator
 from .once import once_differentiable
 from .owned import owned_matvec, owned_solve
-from .tensors import as_numpy, check_vector
+from .tensors import as_numpy, check_tensor, check_vector
 
 __all__ = ["matvec", "solve"]
 
@@ -295,12 +295,25 @@ def matvec(
     v is (m,) or (B, m) with one θ (p,); with θ of shape (B, p) (one operator per
     sample) v must be (B, m) and sample i gives ``A(θ_i) v_i``.  For a
     `~prdp_petsc.fem.distributed.DistributedParametricMatrix` v holds this rank's
-    entries of the column space and the result its rows (collective).
+    entries of the column space and the result its rows (collective).  With θ on a
+    GPU the product is computed by torch there (`prdp_petsc.autograd.device.device_matvec`,
+    differentiable by torch's own autograd), without a host copy.
     """
     if isinstance(A, DistributedParametricMatrix):
         return owned_matvec(A, v, theta)
     if not isinstance(A, ParametricMatrix):
         raise TypeError("matvec expects a ParametricMatrix; for a constant matrix use torch")
+    if isinstance(theta, torch.Tensor) and theta.device.type != "cpu":
+        # θ on a GPU: torch computes A(θ) v there (`device_matvec`), nothing crosses
+        check_tensor(v, A.shape[1], "v")
+        if v.device != theta.device:
+            raise InputError(f"v is on {v.device} and theta on {theta.device}: use one device")
+        if theta.ndim == 2 and (v.ndim != 2 or len(v) != len(theta)):
+            raise InputError(
+                f"theta of shape {tuple(theta.shape)} is a batch of operators and needs v of "
+                f"shape ({len(theta)}, {A.shape[1]}), got {tuple(v.shape)}"
+            )
+        return device_matvec(A, v, theta)
     values = A.values(as_numpy(theta, "theta"))  # validates θ
     check_vector(as_numpy(v, "v"), A.shape[1], "v")
     _check_pairing(A, values, v.shape, "v")

@@ -31,7 +31,7 @@ from ..errors import InputError
 from ..fem.distributed import DistributedParametricMatrix
 from ..fem.parametric import ParametricMatrix
 from .bridge import ConstMatVec, matvec, solve
-from .tensors import as_numpy, check_vector
+from .tensors import check_tensor
 
 __all__ = ["Dirichlet"]
 
@@ -69,6 +69,7 @@ class Dirichlet:
         self, A: ParametricMatrix | DistributedParametricMatrix | sp.spmatrix, boundary: np.ndarray
     ) -> None:
         boundary = _indices(boundary, A.shape[0])
+        self._indices: dict = {}  # (which, device) -> index tensor, made once (`_index`)
         if isinstance(A, DistributedParametricMatrix):  # collective
             if np.any(np.diff(boundary) < 0):
                 raise InputError(
@@ -101,9 +102,9 @@ class Dirichlet:
         result is (B, n_I): row i is ``f_I − A_IB(θ_i) g_i``.
         """
         self._check_theta(theta)
-        check_vector(as_numpy(f, "f"), self.n, "f")
-        check_vector(as_numpy(g, "g"), len(self.boundary), "g")
-        f_i = f[..., torch.from_numpy(self.interior).to(f.device)]
+        check_tensor(f, self.n, "f")  # where it lives: no host copy of a GPU tensor
+        check_tensor(g, len(self.boundary), "g")
+        f_i = f[..., self._index("interior", f.device)]
         if not isinstance(self.A_IB, ParametricMatrix | DistributedParametricMatrix):
             return f_i - ConstMatVec.apply(g, self.A_IB).to(f.device)
         if isinstance(theta, torch.Tensor) and theta.ndim == 2:  # one operator per sample
@@ -128,8 +129,15 @@ class Dirichlet:
     def expand(self, u_i: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """Full vector with ``u[I] = u_i`` and ``u[B] = g``."""
         u = torch.zeros(*u_i.shape[:-1], self.n, dtype=u_i.dtype, device=u_i.device)
-        u = _scatter(u, self.interior, u_i)
-        return _scatter(u, self.boundary, g.expand(*u_i.shape[:-1], -1))
+        u = _scatter(u, self._index("interior", u.device), u_i)
+        return _scatter(u, self._index("boundary", u.device), g.expand(*u_i.shape[:-1], -1))
+
+    def _index(self, which: str, device: torch.device) -> torch.Tensor:
+        """`interior` or `boundary` as an index tensor on `device`, made once per device."""
+        key = (which, device)
+        if key not in self._indices:
+            self._indices[key] = torch.from_numpy(getattr(self, which)).to(device)
+        return self._indices[key]
 
     def solve(
         self,
@@ -175,6 +183,5 @@ def _indices(boundary, n: int) -> np.ndarray:
     return idx
 
 
-def _scatter(u: torch.Tensor, idx: np.ndarray, values: torch.Tensor) -> torch.Tensor:
-    index = torch.from_numpy(idx).to(u.device).expand(*values.shape[:-1], -1)
-    return u.scatter(-1, index, values)
+def _scatter(u: torch.Tensor, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    return u.scatter(-1, index.expand(*values.shape[:-1], -1), values)

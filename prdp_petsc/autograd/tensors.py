@@ -20,7 +20,7 @@ import torch
 
 from ..errors import InputError, NonFiniteError
 
-__all__ = ["as_numpy", "check_finite", "check_vector"]
+__all__ = ["as_numpy", "check_finite", "check_tensor", "check_vector"]
 
 
 def as_numpy(t: torch.Tensor, name: str, *, finite: bool = True) -> np.ndarray:
@@ -60,3 +60,18 @@ def check_vector(arr: np.ndarray, n: int, name: str) -> None:
     """`InputError` unless `arr` has shape ``(n,)`` or ``(batch, n)``."""
     if arr.ndim not in (1, 2) or arr.shape[-1] != n:
         raise InputError(f"{name} must have shape ({n},) or (batch, {n}), got {tuple(arr.shape)}")
+
+
+def check_tensor(t: torch.Tensor, n: int, name: str) -> None:
+    """`check_vector` of a float64 tensor, finite, where it lives: a CPU tensor as a numpy
+    view (`as_numpy`), a GPU tensor by torch on its device (one boolean crosses to the
+    host, no copy of the entries)."""
+    if not isinstance(t, torch.Tensor) or t.device.type == "cpu":
+        check_vector(as_numpy(t, name), n, name)
+        return
+    if t.dtype != torch.float64:
+        raise TypeError(f"{name} must be float64 (got {t.dtype}); call .double() first")
+    if t.ndim not in (1, 2) or t.shape[-1] != n:
+        raise InputError(f"{name} must have shape ({n},) or (batch, {n}), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise NonFiniteError(f"{name} contains NaN or Inf")

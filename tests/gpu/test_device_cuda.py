@@ -136,3 +136,20 @@ def test_batch_of_sixteen_operators_trains_on_the_device(problems):
             theta.clamp_(min=0.1)
         losses.append(loss.item())
     assert losses[-1] < losses[0]
+
+
+def test_dirichlet_on_the_device():
+    """Lifting by torch on the GPU (matvec with a CUDA θ) and the interior solve there."""
+    D = interior_operator(unit_square(3), "P1")
+    host = pp.KSPSolver(METHODS["cg_jacobi"], max_it=10)
+    device = pp.KSPSolver({**METHODS["cg_jacobi"], **CUDA_TYPES}, max_it=10)
+    results = []
+    for solver, where in ((host, "cpu"), (device, "cuda")):
+        f = randn(D.n, seed=23).to(where).requires_grad_(True)
+        g = randn(len(D.boundary), seed=24).to(where).requires_grad_(True)
+        theta = random_theta(D.A_II.n_params, seed=25).to(where).requires_grad_(True)
+        u = D.solve(f, g, solver, theta=theta)
+        (u * randn(D.n, seed=26).to(where)).sum().backward()
+        results.append([t.detach().cpu() for t in (u, f.grad, g.grad, theta.grad)])
+    for e, got in zip(*results, strict=True):
+        assert (got - e).abs().max() <= 1e-10 * e.abs().max()
