@@ -267,12 +267,15 @@ def test_declared_structure_is_on_the_device_mat():
     ref = pp.KSPSolver(METHODS["cg_jacobi"], max_it=500, rtol=1e-12, structure=structure)
     np.testing.assert_allclose(x.numpy(), pp.solve(P, b, ref, theta=theta).numpy(), atol=1e-12)
     blocked = pp.KSPSolver(options, max_it=3, structure=pp.Structure(block_size=2))
-    vector = interior_operator(unit_square(2), "P1").A_II
-    if vector.shape[0] % 2 == 0:
-        blocked.set_operator(
-            DLPackCSR(vector.indptr, vector.indices, torch.as_tensor(vector.a0), vector.shape)
-        )
-        assert blocked.mat.getBlockSize() == 2
+    M = sp.kron(sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(6, 6)), sp.eye(2)).tocsr()
+    M.sort_indices()
+    blocked.set_operator(DLPackCSR(M.indptr, M.indices, torch.as_tensor(M.data), M.shape))
+    assert blocked.mat.getBlockSize() == 2 and blocked.mat.getType() == "seqaij"
+    x = torch.empty(12, dtype=torch.float64)
+    blocked.solve(torch.ones(12, dtype=torch.float64), out=x)
+    reference = pp.KSPSolver(METHODS["cg_jacobi"], max_it=3)
+    reference.set_operator(M)
+    np.testing.assert_array_equal(x.numpy(), reference.solve(np.ones(12)).value)
 
 
 def test_types_from_the_command_line(symmetric):
