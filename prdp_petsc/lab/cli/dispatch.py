@@ -58,7 +58,7 @@ COMMANDS = {
     "run": Command("train a scene once", own=_training),
     "compare": Command("PRDP against full fidelity, over seeds and routes", own=_training),
     "scene": Command("a scene file's own commands (its COMMANDS)", own=_scene),
-    "bench": Command("benchmarks: bridge, mpi, elasticity, jax", f"{_REPORTS}.bench"),
+    "bench": Command("benchmarks: bridge, mpi, elasticity, jax, gpu", f"{_REPORTS}.bench"),
     "work-precision": Command("error against time per KSP/PC and K", f"{_REPORTS}.workprecision"),
     "stability": Command("stiff and extreme cases", f"{_REPORTS}.stability"),
     "pages": Command("the results pages, or record a run for them", f"{_REPORTS}.pages"),

@@ -64,7 +64,7 @@ import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
 from ..provenance import load_average, machine_info, write_result
-from . import bench_elasticity, bench_jax, bench_mpi
+from . import bench_elasticity, bench_gpu, bench_jax, bench_mpi
 from .bench_throughput import bench_throughput, overhead_problem, raw_ksp
 from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
 from .kinds import DataSet, ReportKind, markdown_table
@@ -268,8 +268,9 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench", description=__doc__.split("\n")[0])
     p.add_argument(
         "which",
-        choices=["bridge", "mpi", "elasticity", "jax"],
-        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity, jax: bench_jax)",
+        choices=["bridge", "mpi", "elasticity", "jax", "gpu"],
+        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity, jax: bench_jax, "
+        "gpu: bench_gpu)",
     )
     p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
     add_size_preset(p, "tiny sizes (a smoke test)")
@@ -307,7 +308,12 @@ def _route(text: str) -> tuple[str, str]:
 
 def main(argv: list[str]) -> int:
     """Run ``bench bridge``; write ``<out>/bench_bridge.json``; return an exit code."""
-    others = {"mpi": bench_mpi, "elasticity": bench_elasticity, "jax": bench_jax}
+    others = {
+        "mpi": bench_mpi,
+        "elasticity": bench_elasticity,
+        "jax": bench_jax,
+        "gpu": bench_gpu,
+    }
     if argv and argv[0] in others:
         return others[argv[0]].main(argv[1:])
     args = _parser().parse_args(argv)
