@@ -74,7 +74,8 @@ def missing_lab_packages() -> list[str]:
     """The packages of the ``lab`` extra that are not installed."""
     import importlib.util
 
-    return [name for name in ("matplotlib", "tqdm") if importlib.util.find_spec(name) is None]
+    names = ("matplotlib", "tqdm", "jinja2")
+    return [name for name in names if importlib.util.find_spec(name) is None]
 
 
 def _usage() -> str:
