@@ -175,3 +175,39 @@ def test_cpu_gpu_agreement_compares_two_runs():
                           rng.standard_normal(A.shape[0]), env)  # fmt: skip
     same = bench_gpu.cpu_gpu_agreement(case, 10, devices=("cpu", "cpu"))
     assert same["x"] == 0.0 and same["grad"] == 0.0 and same["target"] == 1e-10
+
+
+def _ratio(r):
+    return {"median": r, "q1": r, "q3": r, "noise": 0.0}
+
+
+def test_verdicts_judge_each_target_from_the_json():
+    """The issue's bounds, on a made-up GPU result: 3.5x at 12 k, 2x from 59 k up, 1.3x
+    at 784 k, the bridge within 15 % of raw petsc4py, GAMG before every GPU peer."""
+    cells = [
+        {"problem": "lshape6", "n": 12033, "k": 10,
+         "ratios": {"prdp_petsc/raw_petsc": _ratio(1.10), "prdp_petsc/jax_cg": _ratio(3.0)}},
+        {"problem": "lshape9", "n": 784385, "k": 300,
+         "ratios": {"prdp_petsc/raw_petsc": _ratio(1.20), "prdp_petsc/jax_cg": _ratio(1.4)}},
+    ]  # fmt: skip
+    tol = {"tol": 1e-6, "contenders": {"jax_cg": {"median_s": 0.5}, "torch_pcg": {"median_s": 0.9}},
+           "gamg": {"k": 20, "median_s": 0.1, "setup_s": 0.6}}  # fmt: skip
+    d = {
+        "device": {"kind": "cuda", "name": "a GPU"},
+        "cells": cells,
+        "cpu_gpu_agreement": {"lshape6": {"k": 10, "x": 1e-14, "grad": 3e-12}},
+        "time_to_tolerance": {"lshape9": tol},
+    }
+    got = {target: (measured, met) for target, measured, met in bench_gpu.verdicts(d)}
+    assert got["bridge over raw petsc4py <= 1.15"] == ("worst 1.20 (lshape9, K = 300)", False)
+    assert got["prdp_petsc / jax_cg <= 3.5 at 12 k"][1] is True
+    assert got["prdp_petsc / jax_cg <= 2.0 at >= 59 k"][1] is True
+    assert got["prdp_petsc / jax_cg <= 1.3 at 784 k"][1] is False
+    assert got["prdp_petsc_sr / jax_cg <= 2.0 at >= 59 k"] == ("not measured", None)
+    assert got["CPU and GPU paths agree to 1e-10 at K = 10"] == ("worst 3.0e-12", True)
+    assert got["GAMG first to 1e-06 on lshape9"][1] is True  # 0.1 s against jax's 0.5 s
+    assert got["GAMG first to 1e-06 on lshape9, its setup counted"] == ("700.0 ms", False)
+    cpu = {**d, "device": {"kind": "cpu", "name": "AMD EPYC"}}
+    assert bench_gpu.verdicts(cpu) == [
+        ("the GPU targets", "not judged: measured on AMD EPYC", None)
+    ]
