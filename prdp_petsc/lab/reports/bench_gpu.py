@@ -55,9 +55,12 @@ Figures
     is reported as ``setup_s``, beside the per-call time).
 
 ``--budget-s`` bounds the run: a step that would start after that many seconds is
-skipped and listed in ``skipped``.  PETSc command-line options reach the contenders'
-KSPs by prefix (``-prdp_petsc_ksp_view``, ``-raw_petsc_ksp_norm_type none``).  Never
-assert these times in tests; they describe one machine.
+skipped and listed in ``skipped``.  Where the lab's plotting packages are not
+installed, ``python -m prdp_petsc.lab.reports.bench_gpu --out DIR`` runs the same
+benchmark (PETSc options then through ``PETSC_OPTIONS``).  PETSc command-line options
+reach the contenders' KSPs by prefix (``-prdp_petsc_ksp_view``,
+``-raw_petsc_ksp_norm_type none``).  Never assert these times in tests; they describe
+one machine.
 """
 
 from __future__ import annotations
