@@ -43,6 +43,11 @@ logger = logging.getLogger(__name__)
 ACCURACY_BAND = 0.05
 #: `PRDP.for_problem`: the first K is this fraction of K_full (rounded up) ...
 START_FRACTION = 1 / 8
+#: ... or, where the probe measured the capped solve's error (`find_k_full`'s
+#: ``KFull.errors``), the first probed cap whose solve is within this relative error of
+#: the converged one (K_full if none is): training through a solve that is further off
+#: can take the model where no later refinement brings it back
+START_ERROR = 0.2
 #: ... and every refinement multiplies K by this factor (capped at K_full)
 GROWTH = 2.0
 #: a certified K is checked again once it has run this many times the epochs it had run at
@@ -189,6 +194,17 @@ def _flat(value) -> np.ndarray:
         parts = [_flat(item) for item in value]
         return np.concatenate(parts) if parts else np.zeros(0)
     return np.asarray(value, dtype=np.float64).ravel()
+
+
+def _start(k_full: int, errors: dict | None) -> int:
+    """`PRDP.for_problem`'s first K: ``ceil(k_full / 8)``, or with the probe's `errors`
+    (``{k: relative error of the solve capped at k}``) the first probed k from there
+    whose error is within `START_ERROR` (`k_full` if none is)."""
+    start = max(1, math.ceil(k_full * START_FRACTION))
+    if not errors:
+        return start
+    within = [k for k, e in sorted(errors.items()) if k >= start and e <= START_ERROR]
+    return min(within[0] if within else k_full, k_full)
 
 
 def _spent(check) -> tuple[float, float] | None:
@@ -435,14 +451,20 @@ class PRDP:
         refinement (`GROWTH`) up to `k_full`: one decade of residual reduction at the
         start for a solve that needs eight to converge, and at most four levels
         (1/8, 1/4, 1/2, 1 of K_full) whatever the size of K_full, so that the
-        refinement tests run often enough at every scale.  The plateau test restarts
+        refinement tests run often enough at every scale.  Where `k_full` comes from
+        `prdp_petsc.find_k_full` it carries the error of the probe's solve capped at
+        those levels (``k_full.errors``), and K starts at the first level within
+        `START_ERROR` (20 %) of the converged solve instead: a solve that converges
+        slowly at first (the error still large after an eighth of K_full) starts
+        higher, so that the first epochs do no damage.  The plateau test restarts
         after every refinement (``restart_window``).  With a `check`, each plateau is
         decided by a certified check against `k_full`.
 
         Parameters
         ----------
         k_full : int
-            Iterations a converged solve needs (`prdp_petsc.find_k_full`).
+            Iterations a converged solve needs (`prdp_petsc.find_k_full`, whose
+            ``errors`` choose the start).
         check : callable ``k -> array or float``, optional
             The validation gradient through the solve capped at k
             (`prdp_petsc.gradient_check`); without it nothing is certified.
@@ -451,11 +473,12 @@ class PRDP:
         **settings
             Any other `PRDP` argument, overriding these defaults.
         """
+        errors = getattr(k_full, "errors", None)
         k_full = operator.index(k_full)
         if k_full < 1:
             raise ValueError(f"k_full must be >= 1, got {k_full}")
         defaults = {
-            "k_init": max(1, math.ceil(k_full * START_FRACTION)),
+            "k_init": _start(k_full, errors),
             "k_step": 1,
             "growth": GROWTH,
             "restart_window": True,

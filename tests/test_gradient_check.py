@@ -127,3 +127,28 @@ def test_the_check_counts_on_across_a_stats_reset(problem):
     solver.reset_stats()
     pp.solve(A, b, solver, theta=theta.detach())
     assert check.spent() == (10, 16)
+
+
+def test_find_k_full_measures_the_capped_solves_error(problem):
+    import math
+    import pickle
+
+    import scipy.sparse.linalg as spla
+
+    A, b, solver = problem
+    M = A.matrix(np.ones(A.n_params))
+    k_full = pp.find_k_full(M, b.numpy(), solver)
+    caps = sorted(k_full.errors)
+    assert caps == sorted({math.ceil(k_full / 8), math.ceil(k_full / 4), math.ceil(k_full / 2)})
+    x = spla.spsolve(M.tocsc(), b.numpy())
+    for k in caps:  # the error of the solve capped at k, against a direct solve
+        capped = solver.clone(max_it=k, rtol=0.0, atol=0.0)
+        capped.set_operator(M)
+        x_k = capped.solve(b.numpy()).value
+        capped.destroy()
+        expected = np.linalg.norm(x_k - x) / np.linalg.norm(x)
+        assert k_full.errors[k] == pytest.approx(expected, rel=1e-6)
+    assert k_full.errors[caps[0]] > k_full.errors[caps[-1]]  # CG: the error falls with k
+    clone = pickle.loads(pickle.dumps(k_full))
+    assert clone == k_full and clone.errors == k_full.errors
+    assert type(k_full + 1) is int  # arithmetic gives plain ints

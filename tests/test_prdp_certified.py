@@ -345,3 +345,15 @@ def test_a_resumed_controller_checks_when_the_uninterrupted_one_does(rho):
     for _ in range(60):
         assert clone.update(1.0) == ctrl.update(1.0)
     assert [c.epoch for c in clone.checks] == [c.epoch for c in ctrl.checks]
+
+
+def test_the_start_is_the_first_level_where_the_probe_solve_is_close():
+    from prdp_petsc.core.probe import KFull
+
+    assert pp.PRDP.for_problem(90).k_init == 12  # a plain count: an eighth of it
+    assert pp.PRDP.for_problem(KFull(90, {12: 0.15, 23: 0.03, 45: 0.001})).k_init == 12
+    assert pp.PRDP.for_problem(KFull(90, {12: 0.42, 23: 0.11, 45: 0.006})).k_init == 23
+    assert pp.PRDP.for_problem(KFull(90, {12: 0.9, 23: 0.7, 45: 0.3})).k_init == 90
+    assert pp.PRDP.for_problem(KFull(90, {12: 0.42}), k_init=5).k_init == 5  # overrides win
+    ctrl = pp.PRDP.for_problem(KFull(90, {12: 0.42, 23: 0.11, 45: 0.006}))
+    assert (ctrl.next_k(), ctrl.next_k(46), ctrl.k_full) == (46, 90, 90)

@@ -54,7 +54,7 @@ def val_loss():
 check = pp.gradient_check(val_loss, net.parameters(), solver)
 k_full = pp.find_k_full(bc.A_II, b, solver, theta=np.ones(mesh.t.shape[1]))
 prdp = pp.PRDP.for_problem(k_full, check=check)
-for _epoch in range(12):
+for _epoch in range(40):
     solver.max_it = prdp.k
     opt.zero_grad()
     loss_fn(physics(net(train_obs)), train_obs).backward()

@@ -1,11 +1,16 @@
 """K_full: the iterations a solver needs to converge on a representative system.
 
-PRDP's start, step and cap come from this one number (`prdp_petsc.PRDP.for_problem`),
-and full fidelity means "capped at K_full".  The probe runs on a clone of the
-caller's solver, so its options (and the command line's, under its prefix) apply.
+PRDP's start, step and cap come from this probe (`prdp_petsc.PRDP.for_problem`), and
+full fidelity means "capped at K_full".  The probe runs on a clone of the caller's
+solver, so its options (and the command line's, under its prefix) apply.  Besides the
+count it measures how far the solve capped at a fraction of K_full lands from the
+converged one (`KFull.errors`): where a capped solve is far off, training at that cap
+can do damage that no later refinement undoes, so PRDP does not start there.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -13,7 +18,34 @@ from ..errors import InputError
 from .results import SolverError
 from .solver import KSPSolver
 
-__all__ = ["find_k_full"]
+__all__ = ["PROBED_FRACTIONS", "KFull", "find_k_full"]
+
+#: the caps, as fractions of K_full (rounded up), at which the probe measures the error of
+#: the capped solve (`KFull.errors`): PRDP's levels below K_full
+PROBED_FRACTIONS = (1 / 8, 1 / 4, 1 / 2)
+
+
+class KFull(int):
+    """K_full, as `find_k_full` measured it: an ``int`` that also carries `errors`.
+
+    Attributes
+    ----------
+    errors : dict of int to float
+        ``{k: ‖x_k − x‖ / ‖x‖}`` at the caps ``ceil(f K_full)`` of `PROBED_FRACTIONS`:
+        the relative error of the solve capped at k (fixed mode, from the problem's
+        start) against the converged x, the largest over the probed right-hand sides.
+        Arithmetic on a `KFull` gives a plain ``int``.
+    """
+
+    errors: dict[int, float]
+
+    def __new__(cls, value: int, errors: dict[int, float] | None = None) -> KFull:
+        self = super().__new__(cls, value)
+        self.errors = dict(errors or {})
+        return self
+
+    def __reduce__(self):
+        return (KFull, (int(self), self.errors))
 
 
 def find_k_full(
@@ -54,8 +86,10 @@ def find_k_full(
 
     Returns
     -------
-    int
-        K_full.
+    KFull
+        K_full (an ``int``), with the relative error of the solve capped at K_full/8,
+        /4 and /2 (`KFull.errors`, one more capped solve at each; `PRDP.for_problem`
+        starts where that error is small).
 
     Raises
     ------
@@ -72,7 +106,7 @@ def find_k_full(
     b = np.atleast_2d(_array(b))
     x0 = None if x0 is None else np.atleast_2d(_array(x0))
     operator_of = _operators(A, theta, len(b))
-    iterations, M = [], None
+    iterations, M, solved = [], None, []
     # a probe that stops short raises its own error below: no NotConvergedWarning first
     with solver.clone(max_it=max_it, rtol=rtol, atol=0.0, not_converged="ignore") as probe:
         for i, row in enumerate(b):
@@ -81,17 +115,45 @@ def find_k_full(
                 probe.set_operator(M)
             if x0 is not None:
                 probe.ksp.setConvergenceHistory(max_it + 1, reset=True)
-            count = _solve(probe, row)
+            count, x = _solve(probe, row)
+            start = None
             if x0 is not None:  # ‖b‖ in the KSP's norm, then the history from x0
                 target = rtol * probe.ksp.getConvergenceHistory()[0]
                 probe.rtol = rtol * 1e-3
-                _solve(probe, row - M @ x0[i])
+                start = row - M @ x0[i]
+                _, dx = _solve(probe, start)
+                x = x0[i] + dx
                 history = probe.ksp.getConvergenceHistory()
                 probe.rtol = rtol
                 reached = np.flatnonzero(history <= target)
                 count = int(reached[0]) if len(reached) else count
             iterations.append(count)
-    return max(iterations)
+            solved.append((M, row if start is None else start, x))
+        k_full = max(iterations)
+        errors = _capped_errors(probe, solved, k_full, x0)
+    return KFull(k_full, errors)
+
+
+def _capped_errors(probe: KSPSolver, solved: list, k_full: int, x0) -> dict[int, float]:
+    """``{k: largest ‖x_k − x‖ / ‖x‖}`` over the probed rows, k = ceil(f K_full) for f in
+    `PROBED_FRACTIONS` (below K_full), x_k the solve capped at k in fixed mode."""
+    caps = sorted({max(1, math.ceil(k_full * f)) for f in PROBED_FRACTIONS} - {k_full})
+    errors = dict.fromkeys(caps, 0.0)
+    probe.rtol, probe.atol = 0.0, 0.0
+    M = None
+    for i, (operator, rhs, x) in enumerate(solved):
+        if operator is not M:
+            M = operator
+            probe.set_operator(M)
+        scale = float(np.linalg.norm(x))
+        if scale == 0:
+            continue
+        converged = x if x0 is None else x - x0[i]  # what the solve from the start reaches
+        for k in caps:
+            probe.max_it = k
+            x_k = probe.solve(rhs).value
+            errors[k] = max(errors[k], float(np.linalg.norm(x_k - converged)) / scale)
+    return errors
 
 
 def _array(value) -> np.ndarray:
@@ -123,7 +185,7 @@ def _operators(A, theta, rows: int):
     return lambda i: A.matrix(theta[i])
 
 
-def _solve(probe: KSPSolver, row: np.ndarray) -> int:
+def _solve(probe: KSPSolver, row: np.ndarray) -> tuple[int, np.ndarray]:
     sol = probe.solve(row)
     if not sol.converged:
         raise SolverError(
@@ -131,4 +193,4 @@ def _solve(probe: KSPSolver, row: np.ndarray) -> int:
             f"({sol.reason}); K_full is undefined",
             reason=sol.reason,
         )
-    return sol.iterations
+    return sol.iterations, sol.value
