@@ -223,6 +223,10 @@ class Case:
     def n(self) -> int:
         return self.A.shape[0]
 
+    def release(self) -> None:
+        """Drop the device copies (the next problem's need the memory)."""
+        self._cache.clear()
+
     def torch(self):
         """(A as a torch sparse CSR tensor, 1/diag(A), b, x_ref) on the device."""
         if "torch" not in self._cache:
@@ -277,7 +281,7 @@ class Run:
 
     call: object
     result: object
-    info: dict = field(default_factory=dict)
+    info: object  # info() -> dict
     set_k: object = None  # move K without building again (prdp_petsc only)
 
 
@@ -524,7 +528,7 @@ class TorchPCG:
         def result():
             return out["x"].cpu().numpy(), out["g"].cpu().numpy()
 
-        return Run(call, result, {"matvec": "torch sparse CSR @ x"})
+        return Run(call, result, lambda: {"matvec": "torch sparse CSR @ x"})
 
 
 def pcg(A, inv_diag, rhs, k: int, *, rtol: float | None = None, every: int = 100):
@@ -667,15 +671,11 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
         "reference": reference,
         "agreement": agreement,
         "setup_s": setup,
-        "info": {name: _info(runs[name]) for name in names},
+        "info": {name: runs[name].info() for name in names},
         "notes": notes,
         "round_medians_s": {name: med[name].tolist() for name in names},
         "timings_s": timings,
     }
-
-
-def _info(run: Run) -> dict:
-    return run.info() if callable(run.info) else dict(run.info)
 
 
 def cpu_gpu_agreement(case: Case, k: int, devices=("cuda", "cpu")) -> dict:
@@ -837,7 +837,7 @@ def _gamg(case: Case, tol: float, calls: int, error_of, k_max: int, notes: dict)
         "first_call_s": first,
         "times_s": times,
         "search": trace,
-        "info": _info(run),
+        "info": run.info(),
     }
 
 
@@ -877,7 +877,7 @@ def device_info(env: Env) -> dict:
         from ..provenance import cpu
 
         info["name"] = cpu()
-    info["petsc_arch"] = PETSc.Sys.getVersionInfo()
+    info["petsc_version"] = PETSc.Sys.getVersionInfo()
     if env.jax_note is None:
         import jax
 
@@ -919,7 +919,7 @@ def bench_gpu(args, env: Env, budget: Budget) -> dict:
             tolerance[name] = time_to_tolerance(
                 case, contenders, args.tol, args.tol_calls, args.direct_max_n, args.k_max, budget
             )
-        case._cache.clear()
+        case.release()
         if env.cuda:
             torch.cuda.empty_cache()
     if not env.cuda:
