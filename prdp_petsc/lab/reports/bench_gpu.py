@@ -31,10 +31,10 @@ Contenders (each optional: one that cannot run here is skipped with its note)
     ``KSPSolve`` (what the bridge runs for a symmetric operator and a symmetric PC), no
     autograd, no checks; ``raw_petsc_transpose`` runs the adjoint as
     ``KSPSolveTranspose``.  ``jax_cg``: ``jax.jit(jax.grad(loss))`` around
-    ``jax.scipy.sparse.linalg.cg`` (``M = d⁻¹``, BCOO matvec, or BCSR with ``--jax-matrix
-    bcsr``; jax differentiates it
-    implicitly, a second CG).  ``lineax_cg``: ``lineax.linear_solve`` with ``lx.CG``
-    and the diagonal preconditioner, also implicit.  ``torch_pcg``: a hand-written
+    ``jax.scipy.sparse.linalg.cg`` (``M = d⁻¹``, BCOO matvec, or BCSR with
+    ``--jax-matrix bcsr``; jax differentiates it implicitly, a second CG).
+    ``lineax_cg``: ``lineax.linear_solve`` with ``lx.CG`` and the diagonal
+    preconditioner, also implicit.  ``torch_pcg``: a hand-written
     Jacobi PCG on a torch sparse CSR tensor; its gradient is a second PCG on the
     cotangent (implicit: A is SPD), not autograd through the iterations.
 Figures
@@ -81,7 +81,29 @@ import scipy.sparse as sp
 
 from ..provenance import machine, provenance, versions, write_result
 
-__all__ = ["CONTENDERS", "HeatStep", "LShape", "format_report", "main", "problem"]
+__all__ = [
+    "CONTENDERS",
+    "GAMG",
+    "Case",
+    "Env",
+    "HeatStep",
+    "JaxCG",
+    "LShape",
+    "PrdpPetsc",
+    "RawPetsc",
+    "Run",
+    "TorchPCG",
+    "bench_cell",
+    "cpu_gpu_agreement",
+    "format_report",
+    "main",
+    "pcg",
+    "problem",
+    "reference_gradient",
+    "tight_cg",
+    "time_to_tolerance",
+    "verdicts",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -903,11 +925,12 @@ def bench_gpu(args, env: Env, budget: Budget) -> dict:
         if not budget.allows(f"problem {name}"):
             continue
         t = time.perf_counter()
-        A = problem(name).matrix()
+        spec = problem(name)
+        A = spec.matrix()
         rng = np.random.default_rng(args.seed)
         b, x_ref = rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
         case = Case(name, A, b, x_ref, env, args.jax_matrix)
-        problems[name] = {"label": problem(name).label, "n": case.n, "nnz": int(A.nnz),
+        problems[name] = {"label": spec.label, "n": case.n, "nnz": int(A.nnz),
                           "build_s": time.perf_counter() - t}  # fmt: skip
         logger.info("%s: n = %d, nnz = %d", name, case.n, A.nnz)
         for k in args.k:
