@@ -5,12 +5,13 @@
 #   bash .ci/device-run.sh build/petsc-cuda python -m pytest -q tests/gpu
 #   bash .ci/device-run.sh build/petsc-cuda                  (the checks alone)
 #
-# It puts the folder's libraries and the CUDA 13 libraries of the Python's own torch wheels
-# (site-packages/nvidia/*/lib) on LD_LIBRARY_PATH, and the folder's packages and the
-# repository on PYTHONPATH; points petsc4py's petsc.cfg at wherever the folder now lies; checks
-# that every library libpetsc and petsc4py need resolves, that the petsc4py imported is the
-# folder's, and that its PETSc has CUDA; prints the GPU nvidia-smi sees; then runs the command
-# and returns its exit status.  Any failed check stops it before the command, saying why.
+# It unpacks the folder's petsc-cuda.tar.gz (once, into FOLDER-unpacked); puts the folder's libraries and the CUDA 13
+# libraries of the Python's own torch wheels (site-packages/nvidia/*/lib) on LD_LIBRARY_PATH,
+# and the folder's packages and the repository on PYTHONPATH; points petsc4py's petsc.cfg at
+# wherever the folder now lies; checks that every library libpetsc and petsc4py need resolves,
+# that the petsc4py imported is the folder's, that its PETSc has CUDA and that prdp_petsc
+# imports; prints the GPU nvidia-smi sees; then runs the command and returns its exit status.
+# Any failed check stops it before the command, saying why.
 #
 #   PYTHON=python3            the interpreter of the checks (default: python, else python3);
 #                             the command should use the same one
@@ -21,13 +22,28 @@ set -euo pipefail
 
 DIR=${1:?usage: device-run.sh FOLDER [COMMAND...]}
 shift
-[ -d "$DIR/lib" ] && [ -d "$DIR/site/petsc4py" ] ||
-  { echo "!! $DIR is not a folder made by .ci/petsc-cuda.sh (no lib/ or site/petsc4py/)" >&2; exit 2; }
-DIR=$(cd "$DIR" && pwd)
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 PYTHON=${PYTHON:-$(command -v python || command -v python3)}
 NEED_CUDA=${DEVICE_RUN_NEED_CUDA:-1}
 say() { echo ">> device-run: $*"; }
+
+# the folder arrives packed (petsc-cuda.tar.gz): unpack it once per archive into FOLDER-unpacked,
+# beside it, so that FOLDER stays what is carried
+archive=$DIR/petsc-cuda.tar.gz
+if [ -f "$archive" ]; then
+  into=${DIR%/}-unpacked
+  if [ ! -e "$into/.unpacked" ] || [ "$archive" -nt "$into/.unpacked" ]; then
+    say "unpacking $archive into $into"
+    rm -rf "$into" && mkdir -p "$into"
+    "$PYTHON" -c 'import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter="tar")' \
+      "$archive" "$into"
+    touch "$into/.unpacked"
+  fi
+  DIR=$into
+fi
+[ -d "$DIR/lib" ] && [ -d "$DIR/site/petsc4py" ] ||
+  { echo "!! $DIR is not a folder made by .ci/petsc-cuda.sh (no lib/ or site/petsc4py/)" >&2; exit 2; }
+DIR=$(cd "$DIR" && pwd)
 
 # the CUDA 13 libraries that torch's wheels installed (nvidia/cu13/lib, or nvidia/<lib>/lib),
 # or the folders DEVICE_RUN_CUDA_LIBS names (a system toolkit's lib64, say)
@@ -74,9 +90,15 @@ version = ".".join(map(str, PETSc.Sys.getVersion()))
 print(f">> device-run: PETSc {version} from {where}, cuda={cuda}, Python {sys.version.split()[0]}")
 if need_cuda and not cuda:
     sys.exit("!! this PETSc was built without CUDA (set DEVICE_RUN_NEED_CUDA=0 to go on)")
-import prdp_petsc  # numpy, scipy, torch and the carried packages, all found
+import meshio, numpy, scipy, skfem, torch  # the machine's own, and the carried ones
+from prdp_petsc import KSPSolver, load_mesh  # the library's modules load on first use
 
-print(f">> device-run: prdp_petsc from {os.path.dirname(prdp_petsc.__file__)}")
+print(
+    f">> device-run: prdp_petsc from {os.path.dirname(sys.modules['prdp_petsc'].__file__)},"
+    f" torch {torch.__version__} (cuda available: {torch.cuda.is_available()}),"
+    f" numpy {numpy.__version__}, scipy {scipy.__version__}, scikit-fem from"
+    f" {os.path.dirname(skfem.__file__)}"
+)
 EOF
 
 if command -v nvidia-smi >/dev/null; then

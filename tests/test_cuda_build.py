@@ -5,7 +5,8 @@
 can be checked on a CPU: both scripts parse, ``make petsc-cuda`` calls the build, the
 toolkit pins are all CUDA 13.0 (what the GPU machines' driver runs), the packages carried
 are enough to import the library beside numpy, scipy and torch alone, and the run
-script's own logic, on a folder made from the CPU build of petsc4py.
+script's own logic (unpacking, paths, its refusals), on a folder made from the CPU build
+of petsc4py.
 """
 
 import importlib.metadata
@@ -14,6 +15,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tarfile
 import textwrap
 from pathlib import Path
 
@@ -200,3 +202,21 @@ def test_device_run_names_a_library_that_does_not_resolve(cpu_folder, tmp_path):
     out = device_run(folder, "touch", str(marker), DEVICE_RUN_NEED_CUDA="0")
     assert out.returncode == 3 and not marker.exists()
     assert "needs libpetsc.so" in out.stderr
+
+
+def test_device_run_unpacks_the_archive_beside_the_carried_folder(cpu_folder, tmp_path):
+    name = re.search(r"^ARCHIVE=(\S+)", BUILD.read_text(), re.MULTILINE).group(1)
+    assert f"archive=$DIR/{name}" in RUN.read_text()  # the name the build packs under
+    carried = tmp_path / "petsc-cuda"
+    carried.mkdir()
+    with tarfile.open(carried / name, "w:gz") as tar:
+        tar.add(cpu_folder / "lib", "lib")
+        tar.add(cpu_folder / "site", "site")
+    code = "import petsc4py; print('loaded', petsc4py.__file__)"
+    out = device_run(carried, sys.executable, "-c", code, DEVICE_RUN_NEED_CUDA="0")
+    assert out.returncode == 0, out.stdout + out.stderr
+    unpacked = tmp_path / "petsc-cuda-unpacked"
+    assert f"loaded {unpacked / 'site' / 'petsc4py' / '__init__.py'}" in out.stdout
+    assert [p.name for p in carried.iterdir()] == [name]  # what is carried stays as it came
+    again = device_run(carried, sys.executable, "-c", code, DEVICE_RUN_NEED_CUDA="0")
+    assert again.returncode == 0 and "unpacking" not in again.stdout  # once per archive
