@@ -53,8 +53,9 @@ GROWTH = 2.0
 #: a certified K is checked again once it has run this many times the epochs it had run at
 #: its last check, or ``tol / gap`` times where that is more (a gap far inside the band)
 RECHECK_GROWTH = 2.0
-#: ... and only while the checks so far, that recheck and the certificate at the end stay
-#: within this share of every inner iteration of the run (else it waits until they do)
+#: ... and, where its gap was within half the band, only while the checks so far, that
+#: recheck and the certificate at the end stay within this share of every inner iteration
+#: of the run (else it waits until they do)
 CHECK_BUDGET = 0.1
 
 
@@ -337,12 +338,15 @@ class PRDP:
     specialises as it trains, so a K certified early is checked again, about log2(T)
     times over T epochs while its gap stays near the band, and not before the end when
     the gap is far inside it (a gap at a tenth of the band waits ten times as long).  A
-    recheck also waits until it fits the budget: the checks so far, it, and the
-    certificate at the end within `CHECK_BUDGET` (10 %) of every inner iteration of the
-    run, as the check measures them (``check.spent()``: `prdp_petsc.gradient_check`
-    counts its solvers' iterations), else counting an epoch at K as K and a check as
-    ``k + reference``.  The first check at each K and the checks before K is certified
-    decide the refinements and are never postponed.  A check during training compares
+    recheck of a K certified with a gap within half the band also waits until it fits
+    the budget: the checks so far, it, and the certificate at the end within
+    `CHECK_BUDGET` (10 %) of every inner iteration of the run, as the check measures
+    them (``check.spent()``: `prdp_petsc.gradient_check` counts its solvers'
+    iterations), else counting an epoch at K as K and a check as ``k + reference``.  A
+    gap nearer the band is rechecked on time whatever it costs (a model that drifts out
+    of the band there is trained at too small a K for the rest of the run), and the
+    first check at each K and the checks before K is certified decide the refinements
+    and are never postponed.  A check during training compares
     K with the next level (`Certificate.reference`) while that is below K_full, with
     K_full otherwise and always in `certify`.
 
@@ -615,7 +619,9 @@ class PRDP:
         if not (epoch >= self._next_check or plateau):
             return False, f"r={r:.4g}, next check at epoch {self._next_check:.0f}", None
         reference = min(self.next_k(), self.k_full)
-        if not self._refining and not self._affordable(reference):
+        last = self._checks[-1] if self._checks else None
+        inside = last is not None and last.k == self._k and last.gap <= self.tol / 2
+        if not self._refining and inside and not self._affordable(reference):
             return False, f"recheck of K={self._k} waits: checks at the budget", None
         cert = self._check(check, reference)
         self._last_check = epoch
