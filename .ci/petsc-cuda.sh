@@ -14,7 +14,7 @@
 #   BUILD-INFO.txt   versions, the configure line, and the newest glibc symbols required
 # The same, unpacked, stays in WORK/carry.
 # WORK (default ${TMPDIR:-/tmp}/petsc-cuda-work) holds the toolkit, the sources and the build
-# tree, several GB; a second run reuses a finished PETSc build there.  About 45 minutes on two
+# tree, several GB; a second run reuses a finished PETSc build there.  30 to 45 minutes on two
 # busy cores, most of it PETSc's make; run it niced where the machine is shared.
 #
 # The choices, and why:
@@ -191,7 +191,8 @@ glibc=$(objdump -T "$STAGE"/lib/*.so* "$STAGE"/site/petsc4py/lib/PETSc.*.so 2>/d
 glibcxx=$(objdump -T "$STAGE"/lib/*.so* "$STAGE"/site/petsc4py/lib/PETSc.*.so 2>/dev/null |
   grep -oE 'GLIBCXX_[0-9.]+' | sort -uV | tail -1)
 {
-  echo "PETSc $PETSC_VERSION with CUDA (sm_$CUDA_ARCH), petsc4py for $("$PY" -V)"
+  echo "PETSc $PETSC_VERSION with CUDA (sm_$CUDA_ARCH), petsc4py for $("$PY" -V)," \
+    "built against numpy $("$VENV/bin/python" -c 'import numpy; print(numpy.__version__)')"
   echo "built $(date -u +%Y-%m-%dT%H:%MZ) on $(. /etc/os-release && echo "$PRETTY_NAME"), $(gcc --version | head -1)"
   echo "project commit $(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)"
   echo "configure: ${CONFIGURE[*]}"
