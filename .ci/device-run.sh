@@ -5,10 +5,10 @@
 #   bash .ci/device-run.sh build/petsc-cuda python -m pytest -q tests/gpu
 #   bash .ci/device-run.sh build/petsc-cuda                  (the checks alone)
 #
-# It unpacks the folder's petsc-cuda.tar.gz (once, into FOLDER-unpacked); puts the folder's libraries and the CUDA 13
-# libraries of the Python's own torch wheels (site-packages/nvidia/*/lib) on LD_LIBRARY_PATH,
-# and the folder's packages and the repository on PYTHONPATH; points petsc4py's petsc.cfg at
-# wherever the folder now lies; checks that every library libpetsc and petsc4py need resolves,
+# It unpacks the folder's petsc-cuda.tar.gz (once, into FOLDER-unpacked); puts its libraries
+# and the CUDA 13 libraries of the Python's own torch wheels (site-packages/nvidia/*/lib) on
+# LD_LIBRARY_PATH, and its packages and the repository on PYTHONPATH; points petsc4py's
+# petsc.cfg at wherever it was unpacked; checks that every library libpetsc and petsc4py need resolves,
 # that the petsc4py imported is the folder's, that its PETSc has CUDA and that prdp_petsc
 # imports; prints the GPU nvidia-smi sees; then runs the command and returns its exit status.
 # Any failed check stops it before the command, saying why.
