@@ -120,6 +120,15 @@ class Certificate:
     cost : float, optional
         What the check itself cost, as its ``spent()`` measures it (inner iterations for
         `prdp_petsc.gradient_check`); None for a check that does not measure itself.
+    descent : float, optional
+        ``⟨check(k), check(reference)⟩ / ‖check(reference)‖²`` for array checks: the share
+        of the reference gradient's descent that a step along the gradient at K makes.
+        Certified needs it ≥ ``1 − tol`` as well: a solve error that only adds a small
+        bias beside the reference gradient passes, but a gradient at K that misses
+        the reference one (training at K has stalled where full fidelity still
+        moves, the gradient at K near zero at the optimum of the capped problem)
+        does not, however small the reference gradient has become.  None for a
+        number.
     """
 
     k: int
@@ -132,6 +141,7 @@ class Certificate:
     reference: int | None = None
     scale: float | None = None
     cost: float | None = None
+    descent: float | None = None
 
     @property
     def against(self) -> int:
@@ -140,8 +150,9 @@ class Certificate:
 
     @property
     def certified(self) -> bool:
-        """``gap ≤ tol`` (never for a NaN gap)."""
-        return bool(self.gap <= self.tol)
+        """``gap ≤ tol`` and ``descent ≥ 1 − tol`` (never for a NaN gap)."""
+        descends = self.descent is None or self.descent >= 1.0 - self.tol
+        return bool(self.gap <= self.tol and descends)
 
     def describe(self) -> str:
         """One line for logs and savings reports."""
@@ -152,9 +163,10 @@ class Certificate:
         scale = ""
         if self.scale is not None and self.scale != self.at_full:
             scale = f" of the largest {self.scale:.4g} at this K"
+        descent = "" if self.descent is None else f", descent {100 * self.descent:.1f} %"
         return (
             f"{verdict}: check at K={self.k} {self.at_k:.4g}, at {name}={self.against} "
-            f"{self.at_full:.4g} (gap {100 * self.gap:.2f} %{scale}, band "
+            f"{self.at_full:.4g} (gap {100 * self.gap:.2f} %{scale}{descent}, band "
             f"{100 * self.tol:.3g} %)"
         )
 
@@ -672,10 +684,13 @@ class PRDP:
         relative = fidelity_gap(at_k, at_ref)  # raises on NaN / Inf / all zeros
         norm = _norm(at_ref)
         self._scale = max(self._scale, norm)
+        descent = None
+        if not isinstance(at_ref, float | int):
+            descent = float(np.dot(_flat(at_k), _flat(at_ref))) / norm**2
         cert = Certificate(
             k=self._k, k_full=self.k_full, at_k=size(at_k), at_full=size(at_ref),
             gap=relative * norm / self._scale, tol=self.tol, epoch=len(self._history),
-            reference=reference, scale=self._scale, cost=cost,
+            reference=reference, scale=self._scale, cost=cost, descent=descent,
         )  # fmt: skip
         self._checks.append(cert)
         return cert

@@ -127,6 +127,13 @@ def test_the_check_counts_on_across_a_stats_reset(problem):
     solver.reset_stats()
     pp.solve(A, b, solver, theta=theta.detach())
     assert check.spent() == (10, 16)
+    solver.reset_stats()  # reset every epoch, as a training loop may do: each epoch counts
+    for _ in range(2):
+        check.spent()
+        solver.reset_stats()
+        pp.solve(A, b, solver, theta=theta.detach())
+        pp.solve(A, b, solver, theta=theta.detach())  # 6 >= the 3 seen before the reset
+    assert check.spent() == (10, 28)
 
 
 def test_find_k_full_measures_the_capped_solves_error(problem):
@@ -149,6 +156,9 @@ def test_find_k_full_measures_the_capped_solves_error(problem):
         expected = np.linalg.norm(x_k - x) / np.linalg.norm(x)
         assert k_full.errors[k] == pytest.approx(expected, rel=1e-6)
     assert k_full.errors[caps[0]] > k_full.errors[caps[-1]]  # CG: the error falls with k
+    import copy
+
+    assert copy.deepcopy({"k": k_full})["k"].errors == k_full.errors
     clone = pickle.loads(pickle.dumps(k_full))
     assert clone == k_full and clone.errors == k_full.errors
     assert type(k_full + 1) is int  # arithmetic gives plain ints

@@ -87,7 +87,7 @@ class GradientCheck:
     def __init__(self, loss, params: list[torch.Tensor], solvers: list[KSPSolver]) -> None:
         self.loss, self.params, self.solvers = loss, params, solvers
         self._counted = list({id(s): s for s in solvers}.values())  # each solver once
-        self._seen = [_iterations(s) for s in self._counted]
+        self._seen = [(s.stats, _iterations(s)) for s in self._counted]
         self._total = 0
         self._checks = 0
 
@@ -95,9 +95,11 @@ class GradientCheck:
         """``(checks, total)``: inner iterations of the checks so far, and of every solve
         through the solvers since this check was made (the checks included)."""
         for i, solver in enumerate(self._counted):
+            stats, seen = self._seen[i]
             now = _iterations(solver)
-            self._total += now - self._seen[i] if now >= self._seen[i] else now  # a reset
-            self._seen[i] = now
+            # `reset_stats` gives the solver new stats: all of theirs is new
+            self._total += now - seen if solver.stats is stats else now
+            self._seen[i] = (solver.stats, now)
         return self._checks, self._total
 
     def __call__(self, k: int) -> np.ndarray:

@@ -34,7 +34,8 @@ class KFull(int):
         ``{k: ‖x_k − x‖ / ‖x‖}`` at the caps ``ceil(f K_full)`` of `PROBED_FRACTIONS`:
         the relative error of the solve capped at k (fixed mode, from the problem's
         start) against the converged x, the largest over the probed right-hand sides.
-        Arithmetic on a `KFull` gives a plain ``int``.
+        Arithmetic on a `KFull` gives a plain ``int`` (``int(k_full)`` for storage where
+        only plain types may go, such as a ``torch.load(weights_only=True)`` checkpoint).
     """
 
     errors: dict[int, float]
@@ -46,6 +47,12 @@ class KFull(int):
 
     def __reduce__(self):
         return (KFull, (int(self), self.errors))
+
+    def __copy__(self) -> KFull:
+        return self
+
+    def __deepcopy__(self, memo) -> KFull:
+        return self  # immutable, as an int is
 
 
 def find_k_full(

@@ -28,7 +28,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from prdp_petsc import InputError
+from prdp_petsc import PRDP, InputError
 
 from ..parsing import check_epochs, positive_int
 from ..provenance import provenance
@@ -36,7 +36,7 @@ from .building import build_scene, release
 from .checkpoint import CHECKPOINT, load_checkpoint
 from .loop import interrupted, totals, train
 from .parallel import Parallel
-from .probe import find_k_full, k_cap, rtol_plan
+from .probe import find_k_full, k_cap, probe, rtol_plan
 from .records import RESULTS, to_json, write_json
 from .resume import check_resume, continue_result, load_trained, recorded_run
 from .scene import load_scene, preset_config
@@ -282,10 +282,14 @@ def run(
                         "the 'auto' schedule's gradient check runs on one rank; use 'prdp' "
                         "with --parallel"
                     )
-                known = (prdp or {}).get("k_full") or ((recorded or {}).get("prdp") or {}).get(
-                    "k_full"
-                )  # compare's probe, or the resumed run's
-                scene.prdp = {"k_full": known or find_k_full(scene)}
+                before = (recorded or {}).get("prdp") or {}  # the resumed run's
+                k_full = (prdp or {}).get("k_full") or before.get("k_full")  # or compare's
+                start = before.get("k_init")
+                if k_full is None or start is None:  # the start comes from the probe's errors
+                    measured = probe(scene)
+                    k_full = k_full or int(measured)
+                    start = start or PRDP.for_problem(measured).k_init
+                scene.prdp = {"k_full": int(k_full), "k_init": int(start)}
             if plan.kind == "rtol":
                 with ranks.solvers():
                     result["rtol"] = rtol_plan(scene, recorded)

@@ -64,7 +64,8 @@ def train(
     generator = torch.Generator().manual_seed(torch_seed)
     check = gradient_check(scene) if plan.kind == "auto" else None
     if plan.kind == "auto":
-        controller = PRDP.for_problem(scene.prdp["k_full"], check=check)
+        start = {"k_init": scene.prdp["k_init"]} if "k_init" in scene.prdp else {}
+        controller = PRDP.for_problem(scene.prdp["k_full"], check=check, **start)
     else:
         controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
     levels = result.get("rtol") if plan.kind == "rtol" else None

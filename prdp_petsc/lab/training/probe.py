@@ -1,6 +1,6 @@
-"""K_full of a scene (`find_k_full`, one converged solve of its probe) and what the
-schedules take from it: PRDP's cap on K (`k_cap`) and the ``rtol`` schedule's plan
-(`rtol_plan`)."""
+"""K_full of a scene (`find_k_full`, one converged solve of its probe; `probe` with the
+capped solves' errors that choose PRDP's start) and what the schedules take from it:
+PRDP's cap on K (`k_cap`) and the ``rtol`` schedule's plan (`rtol_plan`)."""
 
 from __future__ import annotations
 
@@ -8,17 +8,19 @@ import logging
 
 from prdp_petsc import SolverError
 from prdp_petsc import find_k_full as probe_k_full
+from prdp_petsc.core.probe import KFull
 
 from .schedules import RTOL_FACTOR, RTOL_INIT, RTOL_MAX_IT_FACTOR, rtol_levels
 
-__all__ = ["find_k_full", "k_cap", "rtol_plan"]
+__all__ = ["find_k_full", "k_cap", "probe", "rtol_plan"]
 
 logger = logging.getLogger(__name__)
 
 
-def find_k_full(scene, max_it: int = 100_000) -> int:
+def probe(scene, max_it: int = 100_000) -> KFull:
     """`prdp_petsc.find_k_full` of the scene's first solver on its probe, at
-    ``scene.rtol_full``."""
+    ``scene.rtol_full``: K_full with the capped solves' errors that choose
+    `PRDP.for_problem`'s start."""
     system = scene.probe()
     if not (isinstance(system, tuple) and len(system) == 3):
         got = f"a {len(system)}-tuple" if isinstance(system, tuple) else type(system).__name__
@@ -31,6 +33,11 @@ def find_k_full(scene, max_it: int = 100_000) -> int:
         return probe_k_full(A, b, scene.solvers[0], rtol=scene.rtol_full, x0=x0, max_it=max_it)
     except SolverError as err:
         raise SolverError(f"the scene's solver: {err}", reason=err.reason) from err
+
+
+def find_k_full(scene, max_it: int = 100_000) -> int:
+    """K_full of the scene (`probe`) as a plain ``int``, as results and checkpoints keep it."""
+    return int(probe(scene, max_it))
 
 
 def k_cap(scene) -> int | None:
