@@ -182,7 +182,7 @@ def _ratio(r):
     return {"median": r, "q1": r, "q3": r, "noise": 0.0}
 
 
-def test_verdicts_judge_each_target_from_the_json():
+def _gpu_result() -> dict:
     """The issue's bounds, on a made-up GPU result: 3.5x at 12 k, 2x from 59 k up, 1.3x
     at 784 k, the bridge within 15 % of raw petsc4py, GAMG before every GPU peer."""
     cells = [
@@ -193,12 +193,16 @@ def test_verdicts_judge_each_target_from_the_json():
     ]  # fmt: skip
     tol = {"tol": 1e-6, "contenders": {"jax_cg": {"median_s": 0.5}, "torch_pcg": {"median_s": 0.9}},
            "gamg": {"k": 20, "median_s": 0.1, "setup_s": 0.6}}  # fmt: skip
-    d = {
+    return {
         "device": {"kind": "cuda", "name": "a GPU"},
         "cells": cells,
         "cpu_gpu_agreement": {"lshape6": {"k": 10, "x": 1e-14, "grad": 3e-12}},
         "time_to_tolerance": {"lshape9": tol},
     }
+
+
+def test_verdicts_judge_each_target_from_the_json():
+    d = _gpu_result()
     got = {target: (measured, met) for target, measured, met in bench_gpu.verdicts(d)}
     assert got["bridge over raw petsc4py <= 1.15"] == ("worst 1.20 (lshape9, K = 300)", False)
     assert got["prdp_petsc / jax_cg <= 3.5 at 12 k"][1] is True
@@ -212,3 +216,31 @@ def test_verdicts_judge_each_target_from_the_json():
     assert bench_gpu.verdicts(cpu) == [
         ("the GPU targets", "not judged: measured on AMD EPYC", None)
     ]
+
+
+def test_a_recorded_run_becomes_a_results_page(quick):
+    """The kind is found by its file, and its page carries the table and the verdicts."""
+    from prdp_petsc.lab.reports import pages
+    from prdp_petsc.lab.reports.kinds import DataSet
+
+    kind = pages.kind_of(["bench_gpu.json"])
+    assert kind is bench_gpu.KIND and pages.report_kinds()["bench-gpu"] is kind
+    ds = DataSet("bench_gpu", kind, {}, {"bench_gpu.json": quick}, [])
+    assert "GPU" in kind.title(ds)
+    assert kind.headline(ds) == [
+        ("prdp_petsc against jax, lineax and torch CG on one GPU", "not judged: measured on "
+         + quick["device"]["name"])
+    ]  # fmt: skip
+    parts = kind.parts(ds)
+    assert "| L-shape P1 (161) | 2 / 5 |" in parts["output"]
+    assert "| the GPU targets | not judged: measured on" in "\n".join(parts["after"])
+    gpu = DataSet("bench_gpu", kind, {}, {"bench_gpu.json": _gpu_result()}, [])
+    assert kind.headline(gpu) == [
+        ("GPU, fwd + bwd of capped Jacobi CG: bridge over raw petsc4py <= 1.15",
+         "worst 1.20 (lshape9, K = 300)"),
+        ("GPU, fwd + bwd of capped Jacobi CG: prdp_petsc / jax_cg <= 2.0 at >= 59 k",
+         "worst 1.40 (lshape9, K = 300)"),
+    ]  # fmt: skip
+    assert "| bridge over raw petsc4py <= 1.15 | worst 1.20 (lshape9, K = 300) | **not met** |" in (
+        "\n".join(kind.after(gpu))
+    )

@@ -80,6 +80,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..provenance import machine, provenance, versions, write_result
+from .kinds import DataSet, ReportKind, markdown_table
 
 __all__ = [
     "CONTENDERS",
@@ -88,6 +89,7 @@ __all__ = [
     "Env",
     "HeatStep",
     "JaxCG",
+    "KIND",
     "LShape",
     "PrdpPetsc",
     "RawPetsc",
@@ -1206,6 +1208,39 @@ def main(argv: list[str]) -> int:
     write_result(args.out, "bench_gpu.json", result)
     print(format_report(result), end="")
     return 0
+
+
+def _headline(ds: DataSet) -> list[tuple[str, str]]:
+    """The index's rows: the bridge over raw petsc4py, prdp_petsc over jax's CG."""
+    judged = {target: measured for target, measured, _ in verdicts(ds.main)}
+    if "the GPU targets" in judged:
+        return [
+            ("prdp_petsc against jax, lineax and torch CG on one GPU", judged["the GPU targets"])
+        ]
+    rows = ("bridge over raw petsc4py <= 1.15", "prdp_petsc / jax_cg <= 2.0 at >= 59 k")
+    return [(f"GPU, fwd + bwd of capped Jacobi CG: {row}", judged[row]) for row in rows]
+
+
+def _verdict_table(ds: DataSet) -> list[str]:
+    rows = [(target, measured, {True: "met", False: "**not met**", None: "not judged"}[met])
+            for target, measured, met in verdicts(ds.main)]  # fmt: skip
+    return ["Each target of issue 36, read from this run:",
+            markdown_table(("target", "measured", "verdict"), rows)]  # fmt: skip
+
+
+KIND = ReportKind(
+    name="bench-gpu",
+    reads="bench_gpu.json",
+    title=lambda ds: "Capped CG gradients on one GPU: prdp_petsc against jax, lineax and torch",
+    headline=_headline,
+    intro="What `prdp-petsc bench gpu` printed: the gradient in b of ½‖x_K(b) − x_ref‖², K "
+    "capped Jacobi-CG iterations forward and K on the adjoint, every contender in one process "
+    "on one device, paired rounds; the time to a gradient within 1e-6 of the direct one with "
+    "Jacobi CG and with GAMG. Exactly what each contender runs is in the docstring of "
+    "`prdp_petsc.lab.reports.bench_gpu`.",
+    output=lambda ds: format_report(ds.main).rstrip("\n"),
+    after=_verdict_table,
+)
 
 
 if __name__ == "__main__":
