@@ -141,13 +141,14 @@ def notes(result: dict) -> list[str]:
     notes = []
     if at_full:
         notes.append(
-            "The default construction ended at K_full on every seed: no smaller K passed its "
-            "check, so what it saved is the cheap early epochs, less the checks' solves."
+            "The default construction ended at K_full on every seed: no smaller K kept passing "
+            "its check, so what it saved is the epochs it trained below K_full, less the "
+            "checks' solves."
         )
     if behind and all(r["default"]["k_final"] >= r["k_full"] for r in behind):
         notes.append(
             f"On {len(behind)} of {len(rows)} seeds it ended behind full fidelity although its "
-            "final K was K_full: the accuracy was lost in its early epochs at small K, and "
+            "final K was K_full: the accuracy was lost in its epochs below K_full, and "
             "training did not win it back in the epochs left; a certificate speaks of the "
             "final K, not of the path (see Known limitations in the guide)."
         )
