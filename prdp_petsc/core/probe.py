@@ -48,12 +48,6 @@ class KFull(int):
     def __reduce__(self):
         return (KFull, (int(self), self.errors))
 
-    def __copy__(self) -> KFull:
-        return self
-
-    def __deepcopy__(self, memo) -> KFull:
-        return self  # immutable, as an int is
-
 
 def find_k_full(
     A,
@@ -143,9 +137,10 @@ def find_k_full(
 
 def _capped_errors(probe: KSPSolver, solved: list, k_full: int, x0) -> dict[int, float]:
     """``{k: largest ‖x_k − x‖ / ‖x‖}`` over the probed rows, k = ceil(f K_full) for f in
-    `PROBED_FRACTIONS` (below K_full), x_k the solve capped at k in fixed mode."""
+    `PROBED_FRACTIONS` (below K_full), x_k the solve capped at k in fixed mode; empty
+    where every converged x is zero (nothing to measure an error against)."""
     caps = sorted({max(1, math.ceil(k_full * f)) for f in PROBED_FRACTIONS} - {k_full})
-    errors = dict.fromkeys(caps, 0.0)
+    errors: dict[int, float] = {}
     probe.rtol, probe.atol = 0.0, 0.0
     M = None
     for i, (operator, rhs, x) in enumerate(solved):
@@ -159,7 +154,8 @@ def _capped_errors(probe: KSPSolver, solved: list, k_full: int, x0) -> dict[int,
         for k in caps:
             probe.max_it = k
             x_k = probe.solve(rhs).value
-            errors[k] = max(errors[k], float(np.linalg.norm(x_k - converged)) / scale)
+            error = float(np.linalg.norm(x_k - converged)) / scale
+            errors[k] = max(errors.get(k, 0.0), error)
     return errors
 
 
