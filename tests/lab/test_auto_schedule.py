@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from prdp_petsc import PRDP
 from prdp_petsc.lab.cli import main
 from prdp_petsc.lab.reports.defaults import format_defaults
 from prdp_petsc.lab.training.harness import build_scene, find_k_full, run
@@ -67,6 +68,12 @@ def test_defaults_report(tmp_path, capsys):
     assert row["tuned"]["certified"] is None  # the tuned controller runs no checks
     assert "default: error ratio" in capsys.readouterr().out
     assert "tuned: error ratio" in format_defaults(result)
+    # the default run starts where PRDP.for_problem puts it from the scene's own probe
+    from prdp_petsc.lab.training.probe import probe
+
+    start = PRDP.for_problem(probe(build_scene(load_scene(HEAT1D), "quick", 0))).k_init
+    run = json.loads((tmp_path / "seed_0" / "default" / "results.json").read_text())
+    assert run["epochs"][0]["k"] == start
 
 
 def test_a_check_never_trains_a_scene_whose_loss_steps_its_optimiser():

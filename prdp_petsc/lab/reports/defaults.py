@@ -17,6 +17,8 @@ import json
 import logging
 from pathlib import Path
 
+from prdp_petsc import PRDP
+
 from .kinds import DataSet, ReportKind
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
@@ -31,7 +33,7 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
     """Full fidelity, the tuned PRDP and the default construction on every seed."""
     from ..training.building import build_scene, release
     from ..training.harness import run
-    from ..training.probe import find_k_full
+    from ..training.probe import probe
     from ..training.scene import load_scene
     from ..training.seeds import ratio_statistics
     from ..training.summary import ACCURACY_RATIO
@@ -40,13 +42,14 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
     per_seed = []
     for seed in seeds:
         scene = build_scene(module, preset, seed)
-        k_full = find_k_full(scene)
+        measured = probe(scene)  # K_full, and the capped solves' errors: the default's start
+        k_full, start = int(measured), PRDP.for_problem(measured).k_init
         release(scene)
         row = {"seed": seed, "k_full": k_full}
         runs = {"full": f"fixed:{k_full}", **SCHEDULES}
         for name, schedule in runs.items():
             folder = None if out is None else Path(out) / f"seed_{seed}" / name
-            prdp = {"k_full": k_full} if schedule == "auto" else None
+            prdp = {"k_full": k_full, "k_init": start} if schedule == "auto" else None
             log = run(scene_file, schedule, preset=preset, seed=seed, threads=threads,
                       progress=False, module=module, out=folder, prdp=prdp)  # fmt: skip
             t = log["totals"]

@@ -283,8 +283,9 @@ def run(
                         "with --parallel"
                     )
                 before = (recorded or {}).get("prdp") or {}  # the resumed run's
-                k_full = (prdp or {}).get("k_full") or before.get("k_full")  # or compare's
-                start = before.get("k_init")
+                given = prdp or {}  # compare's or defaults' probe
+                k_full = given.get("k_full") or before.get("k_full")
+                start = given.get("k_init") or before.get("k_init")
                 if k_full is None or start is None:  # the start comes from the probe's errors
                     measured = probe(scene)
                     k_full = k_full or int(measured)
