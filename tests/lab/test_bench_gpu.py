@@ -83,9 +83,9 @@ def test_an_absent_peer_is_skipped_with_a_note(monkeypatch, tmp_path):
     real = bench_gpu.environment
 
     def without_jax(device):
-        env = real(device)
-        env.notes.update(jax="jax is not installed", lineax="jax is not installed")
-        return env
+        device, notes = real(device)
+        notes.update(jax="jax is not installed", lineax="jax is not installed")
+        return device, notes
 
     monkeypatch.setattr(bench_gpu, "environment", without_jax)
     d = _run(tmp_path, "--problems", "lshape2", "--k", "3", "--rounds", "1", "--calls", "1",
@@ -150,9 +150,8 @@ def test_problems_are_the_issues(tmp_path):
 def test_tight_cg_matches_the_direct_reference():
     A = bench_gpu.lshape(4)
     rng = np.random.default_rng(1)
-    env = bench_gpu.Env("cpu", {})
     case = bench_gpu.Case("lshape4", A, rng.standard_normal(A.shape[0]),
-                          rng.standard_normal(A.shape[0]), env)  # fmt: skip
+                          rng.standard_normal(A.shape[0]))  # fmt: skip
     direct = bench_gpu.reference_gradient(case, direct_max_n=10**6)
     tight = bench_gpu.reference_gradient(case, direct_max_n=1)
     assert direct["method"].startswith("scipy") and tight["method"].startswith("torch")
@@ -174,9 +173,8 @@ def test_smallest_k_brackets_to_one_percent():
 def test_cpu_gpu_agreement_compares_two_runs():
     A = bench_gpu.lshape(2)
     rng = np.random.default_rng(2)
-    env = bench_gpu.Env("cpu", {})
     case = bench_gpu.Case("lshape2", A, rng.standard_normal(A.shape[0]),
-                          rng.standard_normal(A.shape[0]), env)  # fmt: skip
+                          rng.standard_normal(A.shape[0]))  # fmt: skip
     same = bench_gpu.cpu_gpu_agreement(case, 10, devices=("cpu", "cpu"))
     assert same["x"] == 0.0 and same["grad"] == 0.0 and same["target"] == 1e-10
 

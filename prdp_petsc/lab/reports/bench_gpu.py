@@ -1,42 +1,31 @@
 """prdp_petsc on one GPU against jax, lineax and a hand-written torch CG, fwd + bwd.
 
-``prdp-petsc bench gpu --out DIR`` (``python -m prdp_petsc.lab.reports.bench_gpu`` where
-the lab's extras are not installed, PETSc options then through ``PETSC_OPTIONS``) writes
-``DIR/bench_gpu.json``.  Every contender runs in one process on one device, on the same
-problems, b and x_ref; without CUDA on the CPU with PETSc's default types, so that the
-harness is tested there.
+``prdp-petsc bench gpu --out DIR`` (or ``python -m prdp_petsc.lab.reports.bench_gpu``,
+PETSc options then through ``PETSC_OPTIONS``) writes ``DIR/bench_gpu.json``: every
+contender in one process on one device (without CUDA, the CPU with PETSc's default
+types), on the same problems, b and x_ref.  One call is K Jacobi-CG iterations from
+x = 0 without a tolerance, the cotangent ``x − x_ref`` of ``½‖x_K(b) − x_ref‖²`` and K
+iterations on the adjoint (the gradient in b), float64, ending with a device
+synchronisation.  The contenders (`CONTENDERS`; one that cannot run is skipped with a
+note): ``prdp_petsc``, ``pp.solve`` with ``vec_type cuda, mat_type aijcusparse`` and
+``backward()``; ``raw_petsc``, petsc4py alone on Vecs wrapping torch tensors by DLPack
+(the adjoint by ``KSPSolve``, or ``KSPSolveTranspose``); each ``_sr`` with
+``ksp_cg_single_reduction``; ``jax_cg`` and ``lineax_cg``, ``jax.jit(jax.grad)`` of
+their CG; ``torch_pcg``, `pcg` twice.  PETSc options reach each one's KSP by its prefix
+(``-prdp_petsc_ksp_view``).
 
-- Problems: ``lshape<r>``, P1 ``−Δu`` on ``MeshTri.init_lshaped().refined(r)`` with the
-  interior vertices jittered by up to 0.15 of the shortest edge (r = 6, 8, 9: 12 033,
-  195 585 and 784 385 unknowns); ``heat3d<m>``, one implicit heat step ``M + 0.01 K`` on
-  m³ points of the unit cube (m = 41: 59 319).  Dirichlet boundary eliminated; SPD.
-- One call: K Jacobi-CG iterations from x = 0 without a tolerance, the cotangent
-  ``x − x_ref`` of ``½‖x_K(b) − x_ref‖²`` and K iterations on the adjoint (the gradient in
-  b), float64, ending with ``torch.cuda.synchronize`` or ``block_until_ready``.
-- Contenders: ``prdp_petsc``, ``pp.solve`` with ``{"ksp_type": "cg", "pc_type": "jacobi",
-  "vec_type": "cuda", "mat_type": "aijcusparse"}`` and ``backward()``; ``raw_petsc``,
-  petsc4py alone on Vecs wrapping torch tensors by DLPack, no autograd, no checks, the
-  adjoint by ``KSPSolve`` (``KSPSolveTranspose`` in ``raw_petsc_transpose``); each
-  ``_sr`` with ``ksp_cg_single_reduction``; ``jax_cg`` and ``lineax_cg``,
-  ``jax.jit(jax.grad)`` of ``jax.scipy.sparse.linalg.cg`` and of ``lineax.linear_solve``
-  (BCOO matvec, or ``--jax-matrix bcsr``); ``torch_pcg``, a hand-written Jacobi PCG on a
-  torch sparse CSR tensor, its gradient a second PCG.  One that cannot run is skipped
-  with a note.
-- Figures per (problem, K): medians over ``--rounds`` paired rounds in rotating order
-  (``--calls`` calls each), ratios within each round (median, IQR/median as ``noise``),
-  x and the gradient against prdp_petsc's.  ``cpu_gpu_agreement``: prdp_petsc's GPU path
-  against its CPU path at K = 10.  ``time_to_tolerance`` (``--tol-problems``): the
-  smallest K whose gradient is within ``--tol`` of the reference (SuperLU up to
-  ``--direct-max-n`` unknowns, else `tight_cg`) for Jacobi CG, timed for every
-  contender, and for prdp_petsc with GAMG (its PC set-up apart, as ``setup_s``).
-
-``--budget-s``: a step that would start later is listed in ``skipped``.  PETSc options
-reach each contender's KSP by its prefix (``-prdp_petsc_ksp_view``).
+Per (problem, K): medians over ``--rounds`` paired rounds in rotating order, ratios
+within each round (median, IQR/median as ``noise``), x and the gradient against
+prdp_petsc's; prdp_petsc's GPU path against its CPU path at K = 10; on
+``--tol-problems`` the smallest K whose gradient is within ``--tol`` of the reference
+(`reference_gradient`) for Jacobi CG and for prdp_petsc with GAMG.  A step that would
+start after ``--budget-s`` is listed in ``skipped``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import os
 import re
@@ -52,6 +41,10 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
+import skfem
+import torch
+
+import prdp_petsc as pp
 
 from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import cpu, machine, provenance, versions, write_result
@@ -64,9 +57,8 @@ logger = logging.getLogger(__name__)
 
 # -- problems ------------------------------------------------------------------------------
 def lshape(refine: int, jitter: float = 0.15, seed: int = 0) -> sp.csr_matrix:
-    """P1 ``−Δu`` on the `refine` times refined L-shape, its interior vertices jittered."""
-    import skfem
-
+    """P1 ``−Δu`` on the `refine` times refined L-shape, its interior vertices jittered
+    by up to `jitter` of the shortest edge (r = 6, 8, 9: 12 033, 195 585, 784 385 unknowns)."""
     mesh = skfem.MeshTri.init_lshaped().refined(refine)
     h = np.linalg.norm(np.diff(mesh.p[:, mesh.facets], axis=1), axis=0).min()
     p, inner = mesh.p.copy(), mesh.interior_nodes()
@@ -79,8 +71,6 @@ def lshape(refine: int, jitter: float = 0.15, seed: int = 0) -> sp.csr_matrix:
 
 def heat_step(axis: int, dt: float = 0.01) -> sp.csr_matrix:
     """One implicit heat step ``M + dt K`` (P1) on `axis`³ points of the unit cube."""
-    import skfem
-
     line = np.linspace(0.0, 1.0, axis)
     mesh = skfem.MeshTet.init_tensor(line, line, line)
     return _interior(skfem.Basis(mesh, skfem.ElementTetP1()), dt)
@@ -93,8 +83,6 @@ def _areas(mesh) -> np.ndarray:
 
 def _interior(basis, dt: float | None = None) -> sp.csr_matrix:
     """``K`` (κ = 1), or ``M + dt K``, on the dofs of `basis` off the boundary."""
-    import prdp_petsc as pp
-
     stiffness = pp.diffusion_operator(basis)
     A = stiffness.matrix(np.ones(stiffness.n_params))
     if dt is not None:
@@ -121,29 +109,16 @@ def problem(name: str) -> tuple[str, Callable[[], sp.csr_matrix]]:
     return label, partial(matrix, int(m[2]))
 
 
-# -- where the run happens, one problem's data, one contender's run -----------------------
-@dataclass
-class Env:
-    """The torch device, and why each kind of contender cannot run there (`notes`:
-    ``petsc``, ``jax``, ``lineax`` -> the reason, None where it can)."""
-
-    device: str  # "cuda" or "cpu"
-    notes: dict
-
-    @property
-    def cuda(self) -> bool:
-        return self.device == "cuda"
-
-
+# -- one problem's data, one contender's run ----------------------------------------------
 @dataclass(eq=False)
 class Case:
-    """One problem's matrix, b and x_ref, and their copies on the device."""
+    """One problem's matrix, b and x_ref, the torch device of the run and their copies there."""
 
     name: str
     A: sp.csr_matrix
     b: np.ndarray
     x_ref: np.ndarray
-    env: Env
+    device: str = "cpu"  # or "cuda"
     jax_matrix: str = "bcoo"  # jax's sparse format: "bcoo" or "bcsr"
 
     @property
@@ -151,10 +126,8 @@ class Case:
         return self.A.shape[0]
 
     @cached_property
-    def on_torch(self) -> tuple:
+    def on_device(self) -> tuple:
         """(A as a torch sparse CSR tensor, 1/diag(A), b, x_ref) on the device."""
-        import torch
-
         with warnings.catch_warnings():  # "sparse CSR support is in beta"
             warnings.simplefilter("ignore", UserWarning)
             A = torch.sparse_csr_tensor(
@@ -164,8 +137,8 @@ class Case:
                 size=self.A.shape,
                 check_invariants=False,
             )
-        inv_diag = _tensor(1.0 / self.A.diagonal(), self.env.device)
-        return A.to(self.env.device), inv_diag, *self.tensors(self.env.device)
+        inv_diag = _tensor(1.0 / self.A.diagonal(), self.device)
+        return A.to(self.device), inv_diag, *self.tensors(self.device)
 
     def tensors(self, device: str) -> tuple:
         """b and x_ref as torch tensors on `device`."""
@@ -173,19 +146,17 @@ class Case:
 
     def release(self) -> None:
         """Drop the device copies (the next problem's need the memory)."""
-        self.__dict__.pop("on_torch", None)
+        self.__dict__.pop("on_device", None)
+        if self.device == "cuda":
+            torch.cuda.empty_cache()
 
 
-def _tensor(array: np.ndarray, device: str):
-    import torch
-
+def _tensor(array: np.ndarray, device: str) -> torch.Tensor:
     return torch.as_tensor(np.ascontiguousarray(array), dtype=torch.float64).to(device)
 
 
 def _sync(device: str) -> None:
     if device == "cuda":
-        import torch
-
         torch.cuda.synchronize()
 
 
@@ -201,17 +172,13 @@ class Run(NamedTuple):
 
 
 class Contender(NamedTuple):
-    """One implementation of fwd + bwd: ``build(name, case, k) -> Run``; it runs where
-    ``env.notes[needs]`` is None."""
+    """One implementation of fwd + bwd, ``build(name, case, k) -> Run``, and what it needs
+    (``petsc``: PETSc with CUDA on a GPU, ``jax``, ``lineax``; `environment` says where)."""
 
     name: str
     describe: str
     build: Callable[..., Run]
     needs: str | None = None
-
-    def missing(self, env: Env) -> str | None:
-        """Why this contender cannot run in `env`, or None."""
-        return env.notes.get(self.needs)
 
     def start(self, case: Case, k: int, **kwargs) -> Run:
         """Build for `case` at K and call once (set-up, compilation)."""
@@ -222,11 +189,7 @@ class Contender(NamedTuple):
 
 # -- contenders ----------------------------------------------------------------------------
 def _prdp_petsc(name, case, k, *, pc_type="jacobi", single_reduction=False, on=None) -> Run:
-    import torch
-
-    import prdp_petsc as pp
-
-    device = on or case.env.device
+    device = on or case.device
     options = {"ksp_type": "cg", "pc_type": pc_type}
     if device == "cuda":
         options.update(vec_type="cuda", mat_type="aijcusparse")
@@ -262,12 +225,11 @@ def _prdp_petsc(name, case, k, *, pc_type="jacobi", single_reduction=False, on=N
 
 
 def _raw_petsc(name, case, k, *, single_reduction=False, transpose=False) -> Run:
-    import torch
     from petsc4py import PETSc
 
     mat = PETSc.Mat().create(comm=PETSc.COMM_SELF)
     mat.setSizes(case.A.shape)
-    mat.setType("aijcusparse" if case.env.cuda else "aij")
+    mat.setType("aijcusparse" if case.device == "cuda" else "aij")
     indptr, indices = (a.astype(PETSc.IntType) for a in (case.A.indptr, case.A.indices))
     mat.setPreallocationCSR((indptr, indices, case.A.data))
     mat.assemble()
@@ -281,13 +243,12 @@ def _raw_petsc(name, case, k, *, single_reduction=False, transpose=False) -> Run
     ksp.setTolerances(rtol=0.0, atol=0.0, max_it=k)
     ksp.setFromOptions()
     ksp.setUp()
-    _, _, b, x_ref = case.on_torch
+    _, _, b, x_ref = case.on_device
     x, g, lam = (torch.zeros_like(b) for _ in range(3))
-    vb, vx, vg, vlam = (
-        PETSc.Vec().createWithDLPack(t, comm=PETSc.COMM_SELF) for t in (b, x, g, lam)
-    )
-    for v in (vb, vx, vg, vlam):
+    vecs = [PETSc.Vec().createWithDLPack(t, comm=PETSc.COMM_SELF) for t in (b, x, g, lam)]
+    for v in vecs:
         v.stateIncrease()  # a fresh Vec's state 0 would read PETSc's norm cache as 0
+    vb, vx, vg, vlam = vecs
     adjoint = ksp.solveTranspose if transpose else ksp.solve
     iterations = set()
 
@@ -298,7 +259,7 @@ def _raw_petsc(name, case, k, *, single_reduction=False, transpose=False) -> Run
         vg.stateIncrease()  # torch wrote g behind PETSc's back
         adjoint(vg, vlam)
         iterations.add(ksp.getIterationNumber())
-        _sync(case.env.device)
+        _sync(case.device)
 
     def info():
         return {
@@ -327,22 +288,19 @@ def _jax_cg(name, case, k, *, lineax=False) -> Run:
         import lineax as lx
 
         tags = (lx.symmetric_tag, lx.positive_semidefinite_tag)
-        cg = lx.CG(rtol=0.0, atol=0.0, max_steps=k)
+        cg, shape = lx.CG(rtol=0.0, atol=0.0, max_steps=k), jax.ShapeDtypeStruct(b.shape, b.dtype)
 
         def solve(b, A, inv_diag):
-            shape = jax.ShapeDtypeStruct(b.shape, b.dtype)
             op = lx.FunctionLinearOperator(lambda x: A @ x, shape, tags=tags)
             precond = lx.TaggedLinearOperator(lx.DiagonalLinearOperator(inv_diag), tags)
-            return lx.linear_solve(
-                op, b, cg, options={"preconditioner": precond}, throw=False
-            ).value
+            options = {"preconditioner": precond}
+            return lx.linear_solve(op, b, cg, options=options, throw=False).value
     else:
 
         def solve(b, A, inv_diag):
             M = lambda r: inv_diag * r  # noqa: E731
-            return jax.scipy.sparse.linalg.cg(
-                lambda x: A @ x, b, tol=0.0, atol=0.0, maxiter=k, M=M
-            )[0]
+            cg = jax.scipy.sparse.linalg.cg
+            return cg(lambda x: A @ x, b, tol=0.0, atol=0.0, maxiter=k, M=M)[0]
 
     def loss(b, A, inv_diag, x_ref):
         x = solve(b, A, inv_diag)
@@ -361,13 +319,13 @@ def _jax_cg(name, case, k, *, lineax=False) -> Run:
 
 
 def _torch_pcg(name, case, k) -> Run:
-    A, inv_diag, b, x_ref = case.on_torch
+    A, inv_diag, b, x_ref = case.on_device
     out = {}
 
     def call():
         out["x"] = pcg(A, inv_diag, b, k)
         out["g"] = pcg(A, inv_diag, out["x"] - x_ref, k)
-        _sync(case.env.device)
+        _sync(case.device)
 
     result = lambda: (out["x"].cpu().numpy(), out["g"].cpu().numpy())  # noqa: E731
     return Run(call, result, lambda: {"matvec": "torch sparse CSR @ x"})
@@ -376,13 +334,11 @@ def _torch_pcg(name, case, k) -> Run:
 def pcg(A, inv_diag, rhs, k: int, *, rtol: float | None = None, every: int = 100):
     """K iterations of Jacobi-preconditioned CG from zero, scalars kept on the device.
     With `rtol`, stop once ``‖r‖ ≤ rtol ‖rhs‖``, read on the host every `every` iterations."""
-    import torch
-
     x, r = torch.zeros_like(rhs), rhs.clone()
     z = inv_diag * r
     p, rz = z.clone(), torch.dot(r, z)
     stop = None if rtol is None else rtol * float(torch.linalg.vector_norm(rhs))
-    for i in range(k):
+    for i in range(1, k + 1):
         q = A @ p
         alpha = rz / torch.dot(p, q)
         x.add_(alpha * p)
@@ -391,63 +347,41 @@ def pcg(A, inv_diag, rhs, k: int, *, rtol: float | None = None, every: int = 100
         rz_new = torch.dot(r, z)
         p.mul_(rz_new / rz).add_(z)
         rz = rz_new
-        if (
-            stop is not None
-            and i % every == every - 1
-            and float(torch.linalg.vector_norm(r)) <= stop
-        ):
+        if stop is not None and i % every == 0 and torch.linalg.vector_norm(r) <= stop:
             break
     return x
 
 
-_PRDP = "pp.solve + backward, cg/{}{} (on the GPU with vec_type cuda, mat_type aijcusparse)"
-_RAW = "petsc4py KSPSolve + {} on DLPack Vecs, cg/jacobi{}"
+_PRDP = "pp.solve + backward, cg/{} (on the GPU with vec_type cuda, mat_type aijcusparse)"
+_RAW = "petsc4py KSPSolve + {} on DLPack Vecs, cg/jacobi"
 _SR = ", ksp_cg_single_reduction"
+_JAX = "jax.jit(jax.grad) of {}"
 _SINGLE = {"single_reduction": True}
 #: Every contender, in the order the tables list them.
+# fmt: off
 CONTENDERS = (
-    Contender("prdp_petsc", _PRDP.format("jacobi", ""), _prdp_petsc, "petsc"),
-    Contender(
-        "prdp_petsc_sr", _PRDP.format("jacobi", _SR), partial(_prdp_petsc, **_SINGLE), "petsc"
-    ),
-    Contender("raw_petsc", _RAW.format("KSPSolve", ""), _raw_petsc, "petsc"),
-    Contender(
-        "raw_petsc_sr", _RAW.format("KSPSolve", _SR), partial(_raw_petsc, **_SINGLE), "petsc"
-    ),
-    Contender(
-        "raw_petsc_transpose",
-        _RAW.format("KSPSolveTranspose", ""),
-        partial(_raw_petsc, transpose=True),
-        "petsc",
-    ),
-    Contender(
-        "jax_cg",
-        "jax.jit(jax.grad) of jax.scipy.sparse.linalg.cg(M = 1/diag), sparse matvec",
-        _jax_cg,
-        "jax",
-    ),
-    Contender(
-        "lineax_cg",
-        "jax.jit(jax.grad) of lineax.linear_solve(lx.CG, diagonal preconditioner)",
-        partial(_jax_cg, lineax=True),
-        "lineax",
-    ),
-    Contender(
-        "torch_pcg",
-        "hand-written torch Jacobi PCG (sparse CSR matvec); gradient: a second PCG on "
-        "x - x_ref (implicit, A SPD), no autograd through the iterations",
-        _torch_pcg,
-    ),
+    Contender("prdp_petsc", _PRDP.format("jacobi"), _prdp_petsc, "petsc"),
+    Contender("prdp_petsc_sr", _PRDP.format("jacobi" + _SR), partial(_prdp_petsc, **_SINGLE),
+              "petsc"),
+    Contender("raw_petsc", _RAW.format("KSPSolve"), _raw_petsc, "petsc"),
+    Contender("raw_petsc_sr", _RAW.format("KSPSolve") + _SR, partial(_raw_petsc, **_SINGLE),
+              "petsc"),
+    Contender("raw_petsc_transpose", _RAW.format("KSPSolveTranspose"),
+              partial(_raw_petsc, transpose=True), "petsc"),
+    Contender("jax_cg", _JAX.format("jax.scipy.sparse.linalg.cg(M = 1/diag), sparse matvec"),
+              _jax_cg, "jax"),
+    Contender("lineax_cg", _JAX.format("lineax.linear_solve(lx.CG, diagonal preconditioner)"),
+              partial(_jax_cg, lineax=True), "lineax"),
+    Contender("torch_pcg", "hand-written torch Jacobi PCG (sparse CSR matvec); gradient: a "
+              "second PCG on x - x_ref (implicit, A SPD), no autograd through the iterations",
+              _torch_pcg),
 )
-GAMG = Contender(
-    "prdp_petsc_gamg", _PRDP.format("gamg", ""), partial(_prdp_petsc, pc_type="gamg"), "petsc"
-)
+GAMG = Contender("prdp_petsc_gamg", _PRDP.format("gamg"), partial(_prdp_petsc, pc_type="gamg"),
+                 "petsc")
 #: (numerator, denominator) of the ratios reported per cell, besides ``c / jax_cg``
-PAIRS = (
-    ("prdp_petsc", "raw_petsc"),
-    ("prdp_petsc_sr", "raw_petsc_sr"),
-    ("prdp_petsc", "raw_petsc_transpose"),
-)
+PAIRS = (("prdp_petsc", "raw_petsc"), ("prdp_petsc_sr", "raw_petsc_sr"),
+         ("prdp_petsc", "raw_petsc_transpose"))
+# fmt: on
 
 
 # -- measuring -----------------------------------------------------------------------------
@@ -518,6 +452,8 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
     results = {name: run.result() for name, run in runs.items()}
     reference = "prdp_petsc" if "prdp_petsc" in names else next(iter(names), None)
     x0, g0 = results.get(reference, (None, None))
+    agreement = {n: {"x": _rel(x, x0), "grad": _rel(g, g0)} for n, (x, g) in results.items()}
+    agreement.pop(reference, None)
     return {
         "problem": case.name,
         "n": case.n,
@@ -525,11 +461,7 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
         "median_s": {name: float(np.median(m)) for name, m in med.items()},
         "ratios": {f"{a}/{b}": _summary(med[a] / med[b]) for a, b in pairs},
         "reference": reference,
-        "agreement": {
-            name: {"x": _rel(x, x0), "grad": _rel(g, g0)}
-            for name, (x, g) in results.items()
-            if name != reference
-        },
+        "agreement": agreement,
         "setup_s": setup,
         "info": {name: run.info() for name, run in runs.items()},
         "notes": notes,
@@ -552,7 +484,7 @@ def cpu_gpu_agreement(case: Case, k: int, devices=("cuda", "cpu")) -> dict:
 # -- time to a gradient within tol of the reference ---------------------------------------
 def reference_gradient(case: Case, direct_max_n: int) -> dict:
     """x* = A⁻¹b and ∇* = A⁻¹(x* − x_ref): SuperLU up to `direct_max_n` unknowns, above
-    that `tight_cg`."""
+    that `tight_cg`; with the relative residuals of both."""
     t = time.perf_counter()
     if case.n <= direct_max_n:
         from scipy.sparse.linalg import splu
@@ -562,7 +494,7 @@ def reference_gradient(case: Case, direct_max_n: int) -> dict:
         grad = lu.solve(x - case.x_ref)
         found = {"method": "scipy.sparse.linalg.splu (SuperLU, COLAMD)"}
     else:
-        _, _, b, x_ref = case.on_torch
+        _, _, b, x_ref = case.on_device
         x, change_x = tight_cg(case, b)
         grad, change_grad = tight_cg(case, x - x_ref)
         x, grad = x.cpu().numpy(), grad.cpu().numpy()
@@ -583,9 +515,7 @@ def tight_cg(case: Case, rhs, inner_rtol: float = 1e-12, settled: float = 1e-11,
     `inner_rtol` of its own right-hand side, until a correction changes x by at most
     `settled` (relative), so the recursive residual's drift cannot fake convergence.
     Returns x and the relative size of the last correction."""
-    import torch
-
-    A, inv_diag, _, _ = case.on_torch
+    A, inv_diag, _, _ = case.on_device
     x = torch.zeros_like(rhs)
     for _ in range(rounds):
         d = pcg(A, inv_diag, rhs - A @ x, 100 * case.n, rtol=inner_rtol)
@@ -597,8 +527,8 @@ def tight_cg(case: Case, rhs, inner_rtol: float = 1e-12, settled: float = 1e-11,
 
 
 def _smallest_k(error, tol: float, k0: int, k_max: int) -> tuple[int | None, list]:
-    """The smallest K (to 1 %) with ``error(K) <= tol``: doubling, then bisection; and
-    the trace of [K, error]."""
+    """The smallest K (to 1 %) with ``error(K) <= tol``, by doubling from `k0` and then
+    bisection, and the [K, error] pairs tried; None if `k_max` misses `tol`."""
     trace, lo, k = [], 0, k0
     while (e := error(k)) > tol:
         trace.append([k, e])
@@ -615,9 +545,9 @@ def _smallest_k(error, tol: float, k0: int, k_max: int) -> tuple[int | None, lis
     return hi, trace
 
 
-def time_to_tolerance(case: Case, contenders, args, budget: Budget) -> dict:
+def time_to_tolerance(case: Case, contenders, gamg: bool, args, budget: Budget) -> dict:
     """For each contender the smallest K whose gradient is within ``args.tol`` of the
-    reference, and its fwd + bwd time there; the same for prdp_petsc with GAMG."""
+    reference and its fwd + bwd time there; the same for prdp_petsc with GAMG if `gamg`."""
     tol = args.tol
     ref = reference_gradient(case, args.direct_max_n)
     grad_ref = ref.pop("grad")
@@ -635,7 +565,7 @@ def time_to_tolerance(case: Case, contenders, args, budget: Budget) -> dict:
         for c in contenders if k is not None else ():
             if budget.allows(f"time to {tol:g}: {c.name} on {case.name}"):
                 out["contenders"][c.name] = _at_k(c, case, k, error, args, out["notes"])
-    if GAMG.missing(case.env) is None and budget.allows(f"time to {tol:g}: GAMG on {case.name}"):
+    if gamg and budget.allows(f"time to {tol:g}: GAMG on {case.name}"):
         out["gamg"] = _gamg(case, error, args, out["notes"])
     return out
 
@@ -683,11 +613,9 @@ def _gamg(case: Case, error, args, notes: dict) -> dict | None:
 
 
 # -- the run -------------------------------------------------------------------------------
-def environment(device: str) -> Env:
-    """What can run where: `device` ``auto`` picks CUDA when torch sees a GPU."""
-    import importlib.util
-
-    import torch
+def environment(device: str) -> tuple[str, dict]:
+    """The torch device (``auto``: CUDA where torch sees a GPU) and why each need of the
+    contenders (`Contender.needs`) cannot be met there (None where it can)."""
     from petsc4py import PETSc
 
     if device == "auto":
@@ -708,40 +636,38 @@ def environment(device: str) -> Env:
     notes["lineax"] = notes["jax"]
     if notes["jax"] is None and importlib.util.find_spec("lineax") is None:
         notes["lineax"] = "lineax is not installed"
-    return Env(device, notes)
+    return device, notes
 
 
-def device_info(env: Env) -> dict:
-    """The device's name, memory and the CUDA and PETSc versions the run used."""
-    import torch
+def device_info(device: str, jax: bool) -> dict:
+    """The device's name and memory, and the CUDA and PETSc versions of the run."""
     from petsc4py import PETSc
 
+    cuda = device == "cuda"
     info = {
-        "kind": env.device,
+        "kind": device,
         "petsc_cuda": bool(PETSc.Sys.hasExternalPackage("cuda")),
         "torch_cuda": torch.version.cuda,
-        "name": torch.cuda.get_device_name() if env.cuda else cpu(),
+        "name": torch.cuda.get_device_name() if cuda else cpu(),
         "petsc_version": PETSc.Sys.getVersionInfo(),
     }
-    if env.cuda:
+    if cuda:
         info["memory_gib"] = round(torch.cuda.get_device_properties(0).total_memory / 2**30, 1)
-    if env.notes["jax"] is None:
+    if jax:
         import jax
 
         info["jax_devices"] = [str(d) for d in jax.devices()]
     return info
 
 
-def bench_gpu(args, env: Env, budget: Budget) -> dict:
-    """Every problem, cell and time to tolerance of `args`; a JSON-ready dict."""
-    import torch
-
-    contenders, availability = [], {}
+def bench_gpu(args, device: str, notes: dict, budget: Budget) -> dict:
+    """Every problem, cell and time to tolerance of `args` on `device`, with the contenders
+    that `notes` (`environment`) lets run there; a JSON-ready dict."""
+    availability = {}
     for c in (*CONTENDERS, GAMG):
-        why = "left out by --skip" if c.name in args.skip else c.missing(env)
+        why = "left out by --skip" if c.name in args.skip else notes.get(c.needs)
         availability[c.name] = {"describe": c.describe, "available": why is None, "note": why}
-        if why is None and c is not GAMG:
-            contenders.append(c)
+    contenders = [c for c in CONTENDERS if availability[c.name]["available"]]
     problems, cells, agreement, tolerance = {}, [], {}, {}
     for name in args.problems:
         if not budget.allows(f"problem {name}"):
@@ -750,32 +676,27 @@ def bench_gpu(args, env: Env, budget: Budget) -> dict:
         label, matrix = problem(name)
         A = matrix()
         b, x_ref = np.random.default_rng(args.seed).standard_normal((2, A.shape[0]))
-        case = Case(name, A, b, x_ref, env, args.jax_matrix)
-        problems[name] = {
-            "label": label,
-            "n": case.n,
-            "nnz": A.nnz,
-            "build_s": time.perf_counter() - t,
-        }
+        case = Case(name, A, b, x_ref, device, args.jax_matrix)
+        build_s = time.perf_counter() - t
+        problems[name] = {"label": label, "n": case.n, "nnz": A.nnz, "build_s": build_s}
         logger.info("%s: n = %d, nnz = %d", name, case.n, A.nnz)
         for k in args.k:
             if budget.allows(f"{name}, K = {k}"):
                 cells.append(bench_cell(case, k, contenders, args.rounds, args.calls, args.warmup))
-        if env.cuda and budget.allows(f"CPU/GPU agreement on {name}"):
+        if device == "cuda" and budget.allows(f"CPU/GPU agreement on {name}"):
             agreement[name] = cpu_gpu_agreement(case, 10)
         if name in args.tol_problems and budget.allows(f"time to {args.tol:g} on {name}"):
-            tolerance[name] = time_to_tolerance(case, contenders, args, budget)
+            gamg = availability[GAMG.name]["available"]
+            tolerance[name] = time_to_tolerance(case, contenders, gamg, args, budget)
         case.release()
-        if env.cuda:
-            torch.cuda.empty_cache()
+    if device != "cuda":
+        agreement = {"note": "no CUDA device: the whole run is on the CPU path"}
     return {
-        "device": device_info(env),
+        "device": device_info(device, notes["jax"] is None),
         "problems": problems,
         "contenders": availability,
         "cells": cells,
-        "cpu_gpu_agreement": agreement
-        if env.cuda
-        else {"note": "no CUDA device: the whole run is on the CPU path"},
+        "cpu_gpu_agreement": agreement,
         "time_to_tolerance": tolerance,
         "skipped": budget.skipped,
     }
@@ -914,47 +835,41 @@ def _contenders(text: str) -> tuple[str, ...]:
     return _names(text)
 
 
+def _ks(text: str) -> tuple[int, ...]:
+    return tuple(positive(k) for k in _names(text))
+
+
+#: option -> (type, default, help) of ``bench gpu``, besides those with fixed choices
+# fmt: off
+OPTIONS = {
+    "--problems": (_problems, ("lshape6", "heat3d41", "lshape8", "lshape9"),
+                   "lshape<r>,heat3d<m>,... (default lshape6,heat3d41,lshape8,lshape9)"),
+    "--k": (_ks, (10, 100, 300), "CG iterations K (10,100,300)"),
+    "--rounds": (positive, 5, "paired rounds per cell (5)"),
+    "--calls": (positive, 5, "timed calls per round (5)"),
+    "--warmup": (int, 2, "untimed calls after set-up (2)"),
+    "--tol": (float, 1e-6, "gradient tolerance (1e-6)"),
+    "--tol-problems": (_names, ("lshape8", "lshape9"),
+                       "problems timed to --tol (default lshape8,lshape9; '' for none)"),
+    "--tol-calls": (positive, 2, "timed calls at that K (2)"),
+    "--direct-max-n": (positive, 60_000,
+                       "largest n whose reference is spsolve, else a tight CG (60000)"),
+    "--k-max": (positive, 20_000, "largest K searched (20000)"),
+    "--skip": (_contenders, (), "contenders to leave out"),
+    "--seed": (int, 0, "seed of b and x_ref (0)"),
+    "--threads": (positive, 1, "torch CPU threads (1)"),
+    "--budget-s": (float, 420.0, "start no step after this many seconds (420; 0: no limit)"),
+}
+# fmt: on
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench gpu", description=__doc__.split("\n")[0])
-    add = p.add_argument
-    add("--out", type=Path, required=True, help="folder for bench_gpu.json")
-    add(
-        "--problems",
-        type=_problems,
-        default=("lshape6", "heat3d41", "lshape8", "lshape9"),
-        help="lshape<r>,heat3d<m>,... (default lshape6,heat3d41,lshape8,lshape9)",
-    )
-    add(
-        "--k",
-        type=lambda text: tuple(map(positive, _names(text))),
-        default=(10, 100, 300),
-        help="CG iterations K (10,100,300)",
-    )
-    add("--rounds", type=positive, default=5, help="paired rounds per cell (5)")
-    add("--calls", type=positive, default=5, help="timed calls per round (5)")
-    add("--warmup", type=int, default=2, help="untimed calls after set-up (2)")
-    add("--tol", type=float, default=1e-6, help="gradient tolerance (1e-6)")
-    add(
-        "--tol-problems",
-        type=_names,
-        default=("lshape8", "lshape9"),
-        help="problems timed to --tol (default lshape8,lshape9; '' for none)",
-    )
-    add("--tol-calls", type=positive, default=2, help="timed calls at that K (2)")
-    add(
-        "--direct-max-n",
-        type=positive,
-        default=60_000,
-        help="largest n whose reference is spsolve, else a tight CG (60000)",
-    )
-    add("--k-max", type=positive, default=20_000, help="largest K searched (20000)")
-    add("--device", choices=("auto", "cuda", "cpu"), default="auto")
-    add("--skip", type=_contenders, default=(), help="contenders to leave out")
-    add("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo", help="jax's sparse format of A")
-    add("--seed", type=int, default=0, help="seed of b and x_ref (0)")
-    add("--threads", type=positive, default=1, help="torch CPU threads (1)")
-    add("--budget-s", type=float, default=420.0,
-        help="start no step after this many seconds (420; 0: no limit)")  # fmt: skip
+    p.add_argument("--out", type=Path, required=True, help="folder for bench_gpu.json")
+    p.add_argument("--device", choices=("auto", "cuda", "cpu"), default="auto")
+    p.add_argument("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo", help="jax's A")
+    for option, (kind, default, text) in OPTIONS.items():
+        p.add_argument(option, type=kind, default=default, help=text)
     add_size_preset(p, "lshape3 and heat3d5, K = 2, 5, 2 rounds of 2 calls (a smoke test)")
     add_debug(p)
     return p
@@ -968,13 +883,11 @@ def main(argv: list[str]) -> int:
         args.rounds, args.calls, args.warmup, args.tol_calls = 2, 2, 1, 2
     # jax takes 75 % of the GPU's memory at its first array unless told not to
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    import torch
-
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     result = {
         "benchmark": "gpu",
-        **bench_gpu(args, environment(args.device), Budget(args.budget_s or None)),
+        **bench_gpu(args, *environment(args.device), Budget(args.budget_s or None)),
         "settings": {k: v for k, v in vars(args).items() if k not in ("out", "debug")},
         "provenance": provenance(torch.get_num_threads(), 1),
         "machine": machine(),
