@@ -867,7 +867,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench gpu", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for bench_gpu.json")
     p.add_argument("--device", choices=("auto", "cuda", "cpu"), default="auto")
-    p.add_argument("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo", help="jax's A")
+    p.add_argument("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo",
+                   help="jax's sparse format of A (bcoo)")  # fmt: skip
     for option, (kind, default, text) in OPTIONS.items():
         p.add_argument(option, type=kind, default=default, help=text)
     add_size_preset(p, "lshape3 and heat3d5, K = 2, 5, 2 rounds of 2 calls (a smoke test)")
