@@ -83,18 +83,17 @@ def test_an_absent_peer_is_skipped_with_a_note(monkeypatch, tmp_path):
     real = bench_gpu.environment
 
     def without_jax(device):
-        env = real(device)
-        env.jax_note = "jax is not installed"
-        return env
+        device, notes = real(device)
+        notes.update(jax="jax is not installed", lineax="jax is not installed")
+        return device, notes
 
     monkeypatch.setattr(bench_gpu, "environment", without_jax)
     d = _run(tmp_path, "--problems", "lshape2", "--k", "3", "--rounds", "1", "--calls", "1",
              "--tol-problems", "", "--skip", "raw_petsc_transpose,prdp_petsc_sr")  # fmt: skip
+    described = {c.name: c.describe for c in bench_gpu.CONTENDERS}
     for name in PEERS:
         assert d["contenders"][name] == {
-            "describe": bench_gpu.CONTENDERS[
-                [c.name for c in bench_gpu.CONTENDERS].index(name)
-            ].describe,
+            "describe": described[name],
             "available": False,
             "note": "jax is not installed",
         }
@@ -108,10 +107,12 @@ def test_an_absent_peer_is_skipped_with_a_note(monkeypatch, tmp_path):
 
 
 def test_a_contender_that_fails_is_noted_and_the_others_run(monkeypatch, tmp_path):
-    def broken(self, case, k, **kwargs):
+    def broken(name, case, k):
         raise RuntimeError("no device here")
 
-    monkeypatch.setattr(bench_gpu.TorchPCG, "build", broken)
+    contenders = [c._replace(build=broken) if c.name == "torch_pcg" else c
+                  for c in bench_gpu.CONTENDERS]  # fmt: skip
+    monkeypatch.setattr(bench_gpu, "CONTENDERS", tuple(contenders))
     d = _run(tmp_path, "--problems", "lshape2", "--k", "3", "--rounds", "1", "--calls", "1",
              "--tol-problems", "", "--skip", "jax_cg,lineax_cg")  # fmt: skip
     (cell,) = d["cells"]
@@ -128,28 +129,29 @@ def test_the_budget_skips_what_would_start_after_it(tmp_path):
 
 def test_problems_are_the_issues(tmp_path):
     # the sizes the issue names: 12 033 unknowns at refined(6), 59 319 on 41³ points
-    A = bench_gpu.problem("lshape6").matrix()
-    assert A.shape == (12033, 12033)
-    heat = bench_gpu.problem("heat3d5").matrix()
+    label, matrix = bench_gpu.problem("lshape6")
+    A = matrix()
+    assert label == "L-shape P1" and A.shape == (12033, 12033)
+    heat = bench_gpu.problem("heat3d5")[1]()
     assert heat.shape == (27, 27)
     for M in (A, heat):  # SPD: symmetric to rounding, positive diagonal, Cholesky works
         assert abs(M - M.T).max() <= 1e-14 * abs(M).max()
         assert (M.diagonal() > 0).all()
     assert np.linalg.eigvalsh(heat.toarray()).min() > 0
     # the jitter moves the interior vertices: the matrix is not the unjittered one's
-    still = bench_gpu.LShape(3, jitter=0.0).matrix()
-    moved = bench_gpu.problem("lshape3").matrix()
+    still = bench_gpu.lshape(3, jitter=0.0)
+    moved = bench_gpu.problem("lshape3")[1]()
     assert still.shape == moved.shape and abs(still - moved).max() > 1e-3
-    with pytest.raises(Exception, match="unknown problem"):
-        bench_gpu.problem("square7")
+    for name in ("square7", "heat3d2"):
+        with pytest.raises(Exception, match="unknown problem"):
+            bench_gpu.problem(name)
 
 
 def test_tight_cg_matches_the_direct_reference():
-    A = bench_gpu.problem("lshape4").matrix()
+    A = bench_gpu.lshape(4)
     rng = np.random.default_rng(1)
-    env = bench_gpu.Env("cpu", petsc_cuda=False, jax_note="not needed")
     case = bench_gpu.Case("lshape4", A, rng.standard_normal(A.shape[0]),
-                          rng.standard_normal(A.shape[0]), env)  # fmt: skip
+                          rng.standard_normal(A.shape[0]))  # fmt: skip
     direct = bench_gpu.reference_gradient(case, direct_max_n=10**6)
     tight = bench_gpu.reference_gradient(case, direct_max_n=1)
     assert direct["method"].startswith("scipy") and tight["method"].startswith("torch")
@@ -169,11 +171,10 @@ def test_smallest_k_brackets_to_one_percent():
 
 
 def test_cpu_gpu_agreement_compares_two_runs():
-    A = bench_gpu.problem("lshape2").matrix()
+    A = bench_gpu.lshape(2)
     rng = np.random.default_rng(2)
-    env = bench_gpu.Env("cpu", petsc_cuda=False, jax_note="not needed")
     case = bench_gpu.Case("lshape2", A, rng.standard_normal(A.shape[0]),
-                          rng.standard_normal(A.shape[0]), env)  # fmt: skip
+                          rng.standard_normal(A.shape[0]))  # fmt: skip
     same = bench_gpu.cpu_gpu_agreement(case, 10, devices=("cpu", "cpu"))
     assert same["x"] == 0.0 and same["grad"] == 0.0 and same["target"] == 1e-10
 
