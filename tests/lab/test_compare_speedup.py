@@ -11,9 +11,10 @@ import prdp_petsc.lab.training.compare as compare_module
 import prdp_petsc.lab.training.seeds as seeds_module
 from prdp_petsc.errors import SolverError
 from prdp_petsc.lab.cli.training import make_parser
+from prdp_petsc.lab.training.accuracy import time_to_accuracy
 from prdp_petsc.lab.training.compare import compare, scene_routes
 from prdp_petsc.lab.training.harness import load_trained, release, run
-from prdp_petsc.lab.training.routes import parse_routes, time_to_accuracy
+from prdp_petsc.lab.training.routes import parse_routes
 from prdp_petsc.lab.training.scene import load_scene
 from prdp_petsc.lab.training.schedules import (
     RTOL_FACTOR,
