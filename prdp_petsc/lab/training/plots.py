@@ -14,23 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .summary import is_full, split_run
+
 __all__ = ["compare_figures", "plot_compare", "run_label", "run_styles"]
 
 _PRDP, _FULL, _TWIN = ("C3", "o"), ("C0", "s"), ("C7", "D")
 _COLOURS = ["C1", "C2", "C4", "C5", "C6", "C8", "C9"]  # coarser K, in order of K
 _MARKERS = ["^", "v", "P", "X", "<", ">", "h"]
 _LINESTYLES = ["-", "--", ":", "-."]
-
-
-def _split(name: str) -> tuple[str, int | None, str]:
-    """``"fixed:8@cg/icc"`` → ``("fixed", 8, "cg/icc")``; ``"prdp"`` → ``("prdp", None, "")``."""
-    schedule, _, route = name.partition("@")
-    kind, _, k = schedule.partition(":")
-    return (kind, int(k), route) if k.isdigit() else (schedule, None, route)
-
-
-def _is_full(kind: str, k: int | None, route: str, k_fulls: dict) -> bool:
-    return kind in ("fixed", "twin") and k is not None and k == k_fulls.get(route, k_fulls.get(""))
 
 
 def run_label(
@@ -48,11 +39,11 @@ def run_label(
     'K = 8 (full), cg/icc'
     """
     k_fulls = k_fulls if isinstance(k_fulls, dict) else {"": k_fulls}
-    kind, k, route = _split(name)
+    kind, k, route = split_run(name)
     if kind == "prdp":
         label = "PRDP"
     elif kind in ("fixed", "twin") and k is not None:
-        label = f"K = {k}" + (" (full)" if _is_full(kind, k, route, k_fulls) else "")
+        label = f"K = {k}" + (" (full)" if is_full(name, k_fulls) else "")
         label += ", second seed" if kind == "twin" else ""
     else:
         label = kind
@@ -72,29 +63,31 @@ def run_styles(
     """
     k_fulls = k_fulls if isinstance(k_fulls, dict) else {"": k_fulls}
     names = list(dict.fromkeys(names))
-    routes = sorted({_split(n)[2] for n in names}, key=lambda r: (r != "", r))
+    routes = sorted({split_run(n)[2] for n in names}, key=lambda r: (r != "", r))
     words = {"": "scene's solver", **(route_names or {})} if len(routes) > 1 else {}
+
+    def role(name):  # PRDP, full fidelity, its twin, coarser K
+        kind = split_run(name)[0]
+        if kind == "prdp":
+            return 0
+        return (1 if kind == "fixed" else 2) if is_full(name, k_fulls) else 3
+
     coarse = sorted(
-        {(k, kind) for kind, k, route in map(_split, names)
-         if kind != "prdp" and not _is_full(kind, k, route, k_fulls)},
-        key=lambda kk: (kk[0] is None, kk[0] or 0, kk[1]),
-    )  # fmt: skip
+        {split_run(n)[:2] for n in names if role(n) == 3},
+        key=lambda kk: (kk[1] is None, kk[1] or 0, kk[0]),
+    )
 
     def rank(name):
-        kind, k, route = _split(name)
-        full = _is_full(kind, k, route, k_fulls)
-        group = 0 if kind == "prdp" else 1 if full and kind == "fixed" else 2 if full else 3
-        return routes.index(route), group, -(k or 0), name
+        _, k, route = split_run(name)
+        return routes.index(route), role(name), -(k or 0), name
 
     styles = {}
     for name in sorted(names, key=rank):
-        kind, k, route = _split(name)
-        if kind == "prdp":
-            colour, marker = _PRDP
-        elif _is_full(kind, k, route, k_fulls):
-            colour, marker = _FULL if kind == "fixed" else _TWIN
+        kind, _, route = split_run(name)
+        if role(name) < 3:
+            colour, marker = (_PRDP, _FULL, _TWIN)[role(name)]
         else:
-            i = coarse.index((k, kind))
+            i = coarse.index(split_run(name)[:2])
             colour, marker = _COLOURS[i % len(_COLOURS)], _MARKERS[i % len(_MARKERS)]
         styles[name] = {
             "color": colour,

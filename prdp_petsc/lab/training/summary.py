@@ -19,8 +19,10 @@ __all__ = [
     "TWIN",
     "fastest",
     "format_table",
+    "is_full",
     "solver_bound",
     "speedup_vs_best_full",
+    "split_run",
     "stopped_runs",
     "summarize",
 ]
@@ -88,9 +90,9 @@ def summarize(
             "certified": certificate.get("certified"),
         }
     constant = {
-        int(name[6:]): log["totals"]["final_val_error"]
+        split_run(name)[1]: log["totals"]["final_val_error"]
         for name, log in logs.items()
-        if name.startswith("fixed:") and name[6:].isdigit() and not log["stopped"]
+        if split_run(name)[::2] == ("fixed", "") and not log["stopped"]
     }
     if k_full in constant and len(constant) > 1:
         summary["equal_accuracy_k"] = equal_accuracy_k(constant, k_full, ACCURACY_RATIO - 1)
@@ -139,14 +141,25 @@ def _least(times: dict) -> str | None:
     return min(reached, key=reached.get) if reached else None
 
 
-def _kind(name: str, k_fulls: dict) -> str:
-    """``"full"`` (``fixed:K_full`` of its route), ``"twin"``, or ``"reduced"`` (PRDP,
-    ``rtol``, a coarse constant K) for a run named ``schedule[@route]``."""
+def split_run(name: str) -> tuple[str, int | None, str]:
+    """``"fixed:8@cg/icc"`` → ``("fixed", 8, "cg/icc")``; ``"prdp"`` → ``("prdp", None, "")``."""
     schedule, _, route = name.partition("@")
-    if schedule.startswith(f"{TWIN}:"):
+    kind, _, k = schedule.partition(":")
+    return (kind, int(k), route) if k.isdigit() else (schedule, None, route)
+
+
+def is_full(name: str, k_fulls: dict) -> bool:
+    """Whether run `name` is full fidelity (or its twin): K is its route's K_full
+    (``k_fulls[""]``, the scene solver's, for a route `k_fulls` does not name)."""
+    kind, k, route = split_run(name)
+    return kind in ("fixed", TWIN) and k is not None and k == k_fulls.get(route, k_fulls.get(""))
+
+
+def _kind(name: str, k_fulls: dict) -> str:
+    """``"full"``, ``"twin"`` or ``"reduced"`` (PRDP, ``rtol``, a coarse constant K)."""
+    if split_run(name)[0] == TWIN:
         return TWIN
-    fixed = schedule.startswith("fixed:") and schedule[6:].isdigit()
-    return "full" if fixed and int(schedule[6:]) == k_fulls.get(route) else "reduced"
+    return "full" if is_full(name, k_fulls) else "reduced"
 
 
 def speedup_vs_best_full(logs: dict, k_fulls: dict | int) -> dict:
