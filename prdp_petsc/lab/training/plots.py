@@ -101,6 +101,17 @@ def run_styles(
     return styles
 
 
+def _log_scale(ax, which: str) -> None:
+    """Make the ``"x"`` or ``"y"`` axis of `ax` logarithmic, with plain tick labels
+    (0.02, 0.3, never 2×10⁻²)."""
+    from matplotlib.ticker import LogFormatter
+
+    (ax.set_xscale if which == "x" else ax.set_yscale)("log")
+    axis = ax.xaxis if which == "x" else ax.yaxis
+    axis.set_major_formatter(LogFormatter())
+    axis.set_minor_formatter(LogFormatter())
+
+
 def _route_names(logs: dict) -> dict:
     """``{"": "ksp/pc"}``: the KSP/PC the scene's own runs used, from their logs."""
     seen = [
@@ -174,7 +185,7 @@ def compare_figures(logs: dict, k_full: int | dict) -> dict:
             values = values[np.isfinite(values)]
             if not (counts and axis == "x") and values.size and values.min() > 0:
                 if values.max() / values.min() > 10:  # more than a decade
-                    (ax.set_xscale if axis == "x" else ax.set_yscale)("log")
+                    _log_scale(ax, axis)
         if counts:  # epochs and rollout steps
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set(xlabel=xlabel, ylabel=ylabel, title=_title(logs))

@@ -167,7 +167,7 @@ def _seed_row(seed: int, summary: dict) -> dict:
 def seeds_figure(result: dict):
     """The figure of `plot_seeds`, unsaved (a matplotlib Figure); None without any ratio.
 
-    Left, per seed, the PRDP / full and twin / full error ratios on a log scale, with
+    Left, per seed, the PRDP / full and twin / full error ratios, with
     the lines at 1 and at the per-seed test; right, the wall time PRDP saved.
     """
     rows = [r for r in result["per_seed"] if "prdp_ratio" in r]
@@ -190,8 +190,6 @@ def seeds_figure(result: dict):
     if twins:
         left.plot(*zip(*twins, strict=True), ls="none", color=style["twin:1"]["color"], mfc="none",
                   marker=style["twin:1"]["marker"], label="twin / full (second seed)")  # fmt: skip
-    if all(r["prdp_ratio"] > 0 for r in rows):
-        left.set_yscale("log")  # 10 % worse and 10 % better lie equally far from 1
     left.set_ylabel("final validation error ratio to full fidelity")
     right.bar(seeds, [100 * r["wall_time_saved"] for r in rows], color="C2", width=0.6)
     right.axhline(0.0, color="0.45", lw=0.9)
