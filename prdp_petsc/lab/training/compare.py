@@ -35,7 +35,6 @@ from .threads import torch_threads
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "AUTO",
     "REDUCED_SCHEDULES",
     "SCENE_SOLVER",
     "TWIN_SEED_OFFSET",

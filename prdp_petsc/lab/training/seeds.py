@@ -22,7 +22,7 @@ from pathlib import Path
 from .compare import compare
 from .parallel import Parallel
 from .records import write_json
-from .summary import ACCURACY_RATIO, format_table, stopped_runs
+from .summary import ACCURACY_RATIO, format_table, plain_table, stopped_runs
 
 __all__ = [
     "SPEEDUP_GOAL",
@@ -297,8 +297,6 @@ def _speedups(per_seed: list[dict]) -> dict:
 
 def format_seeds(result: dict) -> str:
     """Plain-text table of `compare_seeds`: one row per seed, then the summary lines."""
-    import pandas as pd
-
     has_speedup = "speedup" in result
     rows = []
     for r in result["per_seed"]:
@@ -312,10 +310,7 @@ def format_seeds(result: dict) -> str:
         if has_speedup:
             row["speedup"] = r.get("speedup_vs_best_full")
         rows.append(row)
-    table = pd.DataFrame(rows, dtype=object).to_markdown(
-        index=False, tablefmt="plain", numalign="right", missingval="—",
-        floatfmt=("", "", ".4e", ".4e", ".4e", ".3f", ".3f", ".1f", ".1f", "", ".2f"),
-    )  # fmt: skip
+    table = plain_table(rows, ("", "", ".4e", ".4e", ".4e", ".3f", ".3f", ".1f", ".1f", "", ".2f"))
     lines = [f"scene {result['scene']}   seeds {', '.join(map(str, result['seeds']))}", table]
     lines += [f"seed {r['seed']}: {r['savings_unavailable']}" for r in result["per_seed"]
               if "prdp_ratio" not in r]  # fmt: skip

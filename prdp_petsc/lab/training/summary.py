@@ -20,6 +20,7 @@ __all__ = [
     "fastest",
     "format_table",
     "is_full",
+    "plain_table",
     "solver_bound",
     "speedup_vs_best_full",
     "split_run",
@@ -306,8 +307,6 @@ def format_table(summary: dict) -> str:
     Column ``reach s``: the run's ``time_to_full_accuracy`` (— where it never reached
     full-fidelity accuracy; a summary from before that key takes ``fastest``'s times).
     """
-    import pandas as pd
-
     reach = (summary.get("fastest") or {}).get("seconds_to_target", {})
     rows = []
     for name, r in summary["runs"].items():
@@ -322,10 +321,7 @@ def format_table(summary: dict) -> str:
             "reach s": r.get("time_to_full_accuracy", reach.get(name)),
             "stopped": f"{stop['reason']} at epoch {stop['epoch']}" if stop else "no",
         })  # fmt: skip
-    table = pd.DataFrame(rows, dtype=object).to_markdown(
-        index=False, tablefmt="plain", numalign="right", missingval="—",
-        floatfmt=("", ".4e", "", "", ".2f", ".1f", ".2f", ""),
-    )  # fmt: skip
+    table = plain_table(rows, ("", ".4e", "", "", ".2f", ".1f", ".2f", ""))
     lines = [f"scene {summary['scene']}   K_full = {summary['k_full']}", table]
     lines += [_rtol_line(name, r["rtol"]) for name, r in summary["runs"].items() if "rtol" in r]
     if "pilot" in summary:
@@ -376,6 +372,16 @@ def format_table(summary: dict) -> str:
     if "speedup" in summary:
         lines.append(_speedup_line(summary["speedup_vs_best_full"], summary["speedup"]))
     return "\n".join(lines)
+
+
+def plain_table(rows: list[dict], floatfmt: tuple[str, ...]) -> str:
+    """`rows` as a plain-text table (pandas' `DataFrame.to_markdown`): a column of numbers
+    right-aligned in its `floatfmt` format, a missing value (None) as —."""
+    import pandas as pd
+
+    return pd.DataFrame(rows, dtype=object).to_markdown(
+        index=False, tablefmt="plain", numalign="right", missingval="—", floatfmt=floatfmt
+    )
 
 
 def _savings_line(label: str, d: dict, note: str = "") -> str:
