@@ -23,9 +23,9 @@ from prdp_petsc.lab.components.networks import MeshNet, ResidualMLP, _EdgeSum, _
 from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import build_scene, run
 from prdp_petsc.lab.training.rollout import rollout_errors
-from prdp_petsc.lab.training.routes import fastest, parse_route, route_options
+from prdp_petsc.lab.training.routes import parse_route, route_options
 from prdp_petsc.lab.training.scene import load_scene
-from prdp_petsc.lab.training.summary import format_table
+from prdp_petsc.lab.training.summary import fastest, format_table
 from prdp_petsc.lab.training.unroll import unrolled_loss
 
 HEAT2D = Path(__file__).resolve().parents[2] / "demos" / "heat2d.py"

@@ -1,4 +1,4 @@
-"""Reading constant-K runs: the smallest cap that trains as accurately as full fidelity."""
+"""Equal accuracy: when a run counts as trained as well as full fidelity, and how soon."""
 
 from __future__ import annotations
 
@@ -6,18 +6,46 @@ import math
 
 from prdp_petsc.prdp import ACCURACY_BAND
 
-__all__ = ["equal_accuracy_k"]
+__all__ = ["ACCURACY_RATIO", "accuracy_target", "equal_accuracy_k", "time_to_accuracy"]
+
+#: Largest ratio of final validation errors (run / full fidelity) that counts as equal accuracy.
+ACCURACY_RATIO = 1.0 + ACCURACY_BAND
+
+
+def accuracy_target(logs: dict, full_name: str) -> float | None:
+    """`ACCURACY_RATIO` × the final validation error of run `full_name` (full fidelity),
+    or None where that run is missing or recorded no epoch."""
+    full = logs.get(full_name)
+    if not full or not full["epochs"]:
+        return None
+    return ACCURACY_RATIO * full["epochs"][-1]["val_metric"]
+
+
+def time_to_accuracy(log: dict, target: float) -> float | None:
+    """Wall time a run needed to reach `target` and stay there; None if it never did.
+
+    The run reaches it at the first epoch from which on its validation error stays at
+    or below the target to the end (a run that dips below and drifts back has not); its
+    time is the cumulative wall time up to and including that epoch.  A run that
+    stopped early never reaches it, nor does any run against a NaN target.
+    """
+    epochs = log["epochs"]
+    if log.get("stopped"):
+        return None
+    first = len(epochs)  # the first epoch from which on the run stays at the target
+    while first > 0 and epochs[first - 1]["val_metric"] <= target:
+        first -= 1
+    if first == len(epochs):
+        return None
+    return sum(e["wall_time"] for e in epochs[: first + 1])
 
 
 def equal_accuracy_k(errors: dict, k_full: int, tol: float = ACCURACY_BAND) -> dict:
     """Smallest constant cap K that trains to within ``tol`` of full fidelity.
 
-    Model (docs/maths.md §7, "How far incomplete convergence can go"): a network
-    trained through a solve capped at K learns to undo the part of the solve's error
-    that K iterations leave, which a stationary solver contracts geometrically, so its
-    final validation error is e(K) = e_full + C ρ^K.  The two largest constant caps
-    K_a < K_b below `k_full` fix C and ρ if e(K_a) > e(K_b) > e_full; then
-    K_tol = K_b + ln(tol e_full / (e(K_b) - e_full)) / ln ρ.
+    Model (docs/maths.md §7): a network trained through a solve capped at K ends at
+    e(K) = e_full + C ρ^K.  The two largest caps K_a < K_b below `k_full` fix C and ρ
+    if e(K_a) > e(K_b) > e_full; then K_tol = K_b + ln(tol e_full / (e(K_b) - e_full)) / ln ρ.
 
     Parameters
     ----------

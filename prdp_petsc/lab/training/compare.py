@@ -1,19 +1,10 @@
 """PRDP against constant full fidelity: ``compare`` runs the schedules and routes.
 
-Runs PRDP, the constant K_full baseline (K_full found by the harness from the
-scene's tolerance) and a few constant coarse Ks for the same number of epochs,
-then reports savings in inner iterations (forward + adjoint) and wall time next
-to the validation errors, and plots error against cost.  Savings count only at
-equal accuracy: the summary flags a PRDP validation error more than
-`ACCURACY_RATIO` times K_full's.
-
-Time to accuracy: every run's ``time_to_full_accuracy`` is the wall time from
-which on its validation error stays within 5 % of full fidelity's final one
-(`prdp_petsc.lab.training.routes.time_to_accuracy`), and ``speedup_vs_best_full``
-divides the least such time of a full-fidelity run (``fixed:K_full`` on the
-scene's solver or on any route) by the least of a reduced one (PRDP, the ``rtol``
-schedule or a coarse constant K, on any route): above 1, training with a reduced
-solver reached full-fidelity accuracy sooner than the best full-fidelity route.
+PRDP, constant K_full (from the scene's tolerance) and a few constant coarse Ks train
+for the same epochs on the scene's solver and on each route
+(`prdp_petsc.lab.training.routes`); `prdp_petsc.lab.training.summary.summarize` then
+reports the savings at equal accuracy and each run's time to full-fidelity accuracy,
+and `prdp_petsc.lab.training.plots` draws error against cost.
 """
 
 from __future__ import annotations
@@ -44,7 +35,6 @@ from .threads import torch_threads
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "AUTO",
     "REDUCED_SCHEDULES",
     "SCENE_SOLVER",
     "TWIN_SEED_OFFSET",
@@ -98,72 +88,45 @@ def compare(
     scene_file : str or Path
         Scene file (see `prdp_petsc.lab.training.scene`).
     preset, epochs, seed
-        Preset name; number of epochs (>= 1; default: the scene's); random seed.
+        Preset name (with ``--set`` changes); epochs (default: the scene's); seed.
     out : str or Path
-        Output folder: ``summary.json``, one ``<schedule>/results.json`` per run, plots.
+        Output folder: ``summary.json``, one folder per run, the plots.
     progress, plots : bool
         Show progress bars; write the plots.
     threads : int
-        torch threads for every run (restored afterwards); recorded in the summary.
+        torch threads for every run; recorded in the summary.
     routes : sequence of str, or str, optional
-        Other solvers to try, ``"ksp_type/pc_type"`` (e.g. ``"cg/icc"``; a string
-        ``"cg/icc,cg/gamg"`` is split as `parse_routes` does), with sub-options as
-        ``":option=value"`` or by a name of the scene's ``ROUTES``
-        (`prdp_petsc.lab.training.routes.route_settings`): the `schedules` and
-        full fidelity (the route's own K_full) run again with those options on every
-        solver prefix of the scene (`prdp_petsc.lab.training.routes`), as
-        ``"prdp@cg/icc"``, ``"rtol@cg/icc"`` and ``"fixed:K@cg/icc"``; ``fastest`` in
-        the summary says which run reached the full-fidelity validation error in the
-        least wall time.  None (the default): the routes the scene declares in its
-        preset key ``routes`` (`scene_routes`); ``()`` or ``""`` runs none; ``"auto"``
-        lets a pilot pick one of those (`pilot_routes`: a timed full-fidelity epoch of
-        the scene's solver and of each route, the fastest one's route runs).  A route
-        that does not fit the scene (a `StructureError`: CG on a non-symmetric
-        operator; a `SolverError` of its K_full probe: ILU on a zero diagonal
-        block) is skipped and reported.
+        Other solvers (`prdp_petsc.lab.training.routes.route_settings`): the
+        `schedules` and full fidelity at the route's own K_full run again with them,
+        as ``"prdp@cg/icc"`` and ``"fixed:K@cg/icc"``.  None: the scene's preset key
+        ``routes`` (`scene_routes`); ``()`` none; ``"auto"``: the one a pilot picks
+        (`pilot_routes`).  A route that does not fit (a `StructureError` or a
+        `SolverError` of its K_full probe) is skipped and reported.
     schedules : sequence of str
-        The reduced-fidelity schedules to run on the scene's solver and on every
-        route, from `REDUCED_SCHEDULES`: ``"prdp"`` (the default, the scene's PRDP
-        settings), ``"auto"`` (`PRDP.for_problem` from the route's K_full, with a
-        gradient check; the summary's ``auto``) and ``"rtol"``, PRDP moving PETSc's
-        rtol under a generous cap instead of K (`prdp_petsc.lab.training.harness.run`).
+        Reduced-fidelity schedules from `REDUCED_SCHEDULES`: ``"prdp"`` (the scene's
+        settings), ``"auto"`` (`PRDP.for_problem`) and ``"rtol"`` (PRDP moving
+        PETSc's rtol under a generous cap).
     parallel : {None, "domain", "batch"}
-        Every run uses the MPI ranks this way (`prdp_petsc.lab.training.parallel`);
-        rank 0 writes the files.
+        How every run uses the MPI ranks (`prdp_petsc.lab.training.parallel`).
     twin : bool
         Also run full fidelity with torch seeded ``seed + TWIN_SEED_OFFSET``.
     resume : bool
-        Continue an earlier comparison in `out`: a run whose ``results.json`` says
-        it finished the requested epochs is read, not trained again; one with a
-        ``checkpoint.pt`` continues from it (`run`'s ``resume``; refused if its
-        recorded preset or seed differ); any other runs from the start.
+        Read the runs in `out` that finished the requested epochs with the same
+        settings, continue those with a checkpoint, run the others afresh.
     checkpoint_every : int
-        Every run saves its ``checkpoint.pt`` after this many epochs (see `run`).
+        Epochs between a run's checkpoints (see `run`).
 
     Returns
     -------
     dict
-        ``scene``, ``k_full``, ``threads``, ``runs`` (per schedule:
-        ``final_val_error``, ``wall_time``, ``fwd_iterations``, ``adj_iterations``,
-        ``k_final``, ``stopped``, ``time_to_full_accuracy``; for the ``rtol``
-        schedule ``rtol``: first and last rtol, level, cap, forward iterations per
-        solve in the first and last epoch; with `twin`, also ``twin:K``),
-        ``speedup_vs_best_full`` and ``speedup`` (`speedup_vs_best_full`),
-        ``noise_ratio`` (with `twin`: its final validation error over K_full's),
-        ``savings`` of PRDP against K_full
-        (``iterations``, ``wall_time``, ``pr``, ``ic``, in inner iterations forward +
-        adjoint) with ``val_error_ratio`` and ``equal_accuracy`` (plus
-        ``accuracy_warning`` when it is False), or ``savings_unavailable`` saying why;
-        ``provenance`` (`prdp_petsc.lab.provenance.provenance`); with
-        ``routes="auto"``, ``pilot`` (`pilot_routes`, also in ``out/pilot.json``
-        from before the first run, so that `resume` keeps the pick); with `resume`,
-        ``reused``: the runs read from an earlier comparison; ``schedules``.
+        `summarize`'s summary plus ``schedules``, ``parallel``, ``provenance``, with
+        ``routes="auto"`` the ``pilot`` (also in ``out/pilot.json``), with `resume`
+        ``reused`` (the runs read, not trained), with `plots` ``plots``.
 
     Raises
     ------
     KeyboardInterrupt
-        Re-raised after ``summary.json`` records the runs so far, the interrupted one
-        with ``stopped: {"reason": "interrupted"}``.
+        Re-raised after ``summary.json`` records the runs so far.
     """
     epochs = check_epochs(epochs)
     schedules = tuple(dict.fromkeys(schedules))
@@ -209,6 +172,16 @@ def compare(
         skipped = {}  # route -> why it does not fit the scene's solvers
         reused = []  # runs a resumed comparison read instead of training
         pilot = None
+
+        def summary_now() -> dict:
+            summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
+            if pilot is not None:
+                summary["pilot"] = pilot
+            summary.update(schedules=list(schedules), parallel=ranks.describe(), provenance=origin)
+            if resume:
+                summary["reused"] = reused
+            return summary
+
         if auto:
             kept = out / PILOT
             if resume and ranks.root and kept.is_file():  # the pick being resumed
@@ -237,16 +210,12 @@ def compare(
             try:
                 with context:
                     if route and route not in k_fulls:  # the route's own K_full
-                        probe = build_scene(module, preset, seed)
-                        try:
-                            k_fulls[route] = find_k_full(probe)
-                        except (StructureError, SolverError) as err:  # it does not fit
-                            # CG on a non-symmetric operator; ILU on a zero diagonal block
-                            logger.warning("route %s skipped: %s", route, err)
-                            skipped[route] = " ".join(str(err).split())
+                        k_fulls[route], why = _route_k_full(module, preset, seed)
+                        if why:
+                            logger.warning("route %s skipped: %s", route, why)
+                            skipped[route] = why
+                            del k_fulls[route]
                             continue
-                        finally:
-                            release(probe)
                     torch_seed = None  # the run's default: `seed`
                     if schedule == TWIN:
                         schedule, name = f"fixed:{k_full}", f"twin:{k_full}"
@@ -289,20 +258,9 @@ def compare(
                 results = folder / RESULTS if folder else None
                 if results is not None and results.is_file():
                     logs[name] = json.loads(results.read_text())
-                interrupted = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
-                interrupted["provenance"] = origin
-                if pilot is not None:
-                    interrupted["pilot"] = pilot
-                write(out / "summary.json", interrupted)
+                write(out / "summary.json", summary_now())
                 raise
-    summary = summarize(scene_name, k_fulls, logs, threads=threads, skipped=skipped)
-    if pilot is not None:
-        summary["pilot"] = pilot
-    summary["schedules"] = list(schedules)
-    summary["parallel"] = ranks.describe()
-    summary["provenance"] = origin
-    if resume:
-        summary["reused"] = reused
+    summary = summary_now()
     write(out / "summary.json", summary)
     if plots and ranks.root:
         from .plots import plot_compare
@@ -326,22 +284,13 @@ def pilot_routes(
     parallel: str | None = None,
     epochs: int = 1,
 ) -> dict:
-    """Time `epochs` full-fidelity training epochs of the scene's own solver and of each
-    route (at its own K_full) and pick the fastest, before anything else trains.
+    """Time `epochs` full-fidelity epochs of the scene's own solver and of each route
+    (at its own K_full) and pick the fastest, before anything else trains.
 
-    Each candidate trains ``epochs + 1`` epochs; the first pays its first-use costs
-    (imports, the PC type's first set-up) and is not timed.  A candidate whose run
-    stops (a diverged solve, a non-finite loss) is skipped with the reason, as is one
-    that does not fit; with no `routes` there is nothing to choose (``picked`` None).
-
-    The operator is the scene's own, the network and data those of `seed`; each
-    candidate trains from the same start.  `prefixes` are the scene's solver prefixes
-    (the route's options go under each), `k_full` the scene solver's K_full.  A route
-    that does not fit (its K_full probe raises `StructureError` or `SolverError`) is
-    skipped, with the reason.  Full fidelity is the pilot's measure because it is the
-    same accuracy for every candidate; a route whose capped solves are cheap but
-    whose full ones are dear could win under PRDP yet lose the pilot (the comparison
-    then shows it only if the route is given by name).
+    Each candidate trains ``epochs + 1`` epochs from the same start; the first pays
+    first-use costs and is not timed.  A candidate that does not fit (its K_full probe
+    raises) or whose run stops is skipped with the reason.  `prefixes` are the scene's
+    solver prefixes, `k_full` the scene solver's K_full.
 
     Returns
     -------
@@ -358,16 +307,10 @@ def pilot_routes(
         own = route == SCENE_SOLVER
         context = contextlib.nullcontext() if own else route_options(prefixes, route, named)
         with context:
-            k = k_full
-            if not own:
-                probe = build_scene(module, preset, seed)
-                try:
-                    k = find_k_full(probe)
-                except (StructureError, SolverError) as err:
-                    candidates[route] = {"skipped": " ".join(str(err).split())}
-                    continue
-                finally:
-                    release(probe)
+            k, why = (k_full, None) if own else _route_k_full(module, preset, seed)
+            if why:
+                candidates[route] = {"skipped": why}
+                continue
             quiet = RunSettings(preset=preset, epochs=epochs + 1, seed=seed, progress=False,
                                 threads=threads, parallel=parallel)  # fmt: skip
             log = run(scene_file, f"fixed:{k}", quiet, module=module)
@@ -386,6 +329,18 @@ def pilot_routes(
         "candidates": candidates,
         "picked": min(timed, key=timed.get) if timed else None,
     }
+
+
+def _route_k_full(module, preset: str, seed: int) -> tuple[int | None, str | None]:
+    """K_full of the scene under the route options now set, or None and why the route
+    does not fit (CG on a non-symmetric operator, ILU on a zero diagonal block)."""
+    probe = build_scene(module, preset, seed)
+    try:
+        return find_k_full(probe), None
+    except (StructureError, SolverError) as err:
+        return None, " ".join(str(err).split())
+    finally:
+        release(probe)
 
 
 def _folder_name(name: str) -> str:

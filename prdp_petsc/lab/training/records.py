@@ -1,8 +1,5 @@
-"""Result files: a run's ``results.json`` by name, and JSON that any value fits into.
-
-Every JSON file the lab writes (``results.json``, ``summary.json``, ``seeds.json``,
-the reports') goes through `write_json`: plain JSON types (`to_json`), written
-atomically, so a run stopped mid-write keeps the previous complete file.
+"""Result files: a run's ``results.json`` by name, and JSON that any value fits into,
+written atomically (a run stopped mid-write keeps the previous complete file).
 """
 
 from __future__ import annotations

@@ -1,55 +1,24 @@
-"""Solver routes for ``compare``: the same scene with another KSP/PC, and the fastest route.
+"""Solver routes for ``compare``: the same scene with another KSP/PC.
 
-A PETSc user would precondition, so a comparison of PRDP against full fidelity
-with the scene's own (often unpreconditioned) solver is only half the answer.
-A *route* ``"ksp/pc"`` (e.g. ``"cg/icc"``, ``"cg/gamg"``) runs the scene again with
-``-<prefix>ksp_type ksp -<prefix>pc_type pc`` for every solver prefix of the
-scene, in PETSc's options database exactly as if given on the command line (the
-adjoints inherit them).  `fastest` then says which run reaches the full-fidelity
-validation error in the least wall time, by `time_to_accuracy`: the one definition of
-"reaching full-fidelity accuracy" that ``compare``'s ``time_to_full_accuracy`` and
-``speedup_vs_best_full`` use too.
-
-A route may carry the sub-options its PC needs after the pair, each as
-``:option`` (a flag) or ``:option=value``, written without the leading dash and
-without the solver prefix: ``"gmres/fieldsplit:pc_fieldsplit_type=schur:
-fieldsplit_0_pc_type=bjacobi"`` (one string, no spaces) sets
-``-<prefix>pc_fieldsplit_type schur`` and ``-<prefix>fieldsplit_0_pc_type bjacobi``
-for every prefix too.  A value holds no ``:``, ``=``, ``,`` or space.  Long ones read
-better by name: a scene module's ``ROUTES`` dict maps a name (``"schur"``) to such a
-string, and its preset key ``routes`` and ``compare --routes`` may use the name;
-the runs are named by it (``prdp@schur``).  ``auto`` is no route: ``compare --routes
-auto`` lets a pilot pick one (`prdp_petsc.lab.training.compare.pilot_routes`).
-
-A scene declares the routes that fit its operator as the preset key ``routes``, a
-comma-separated string (`parse_routes`); ``compare`` runs them unless told otherwise.
+A *route* ``"ksp/pc"`` (``"cg/icc"``) runs the scene again with ``-<prefix>ksp_type
+ksp -<prefix>pc_type pc`` for every solver prefix of the scene, in PETSc's options
+database as if given on the command line (the adjoints inherit them).  Sub-options
+follow the pair as ``:option`` (a flag) or ``:option=value``, without the dash and
+the prefix: ``"gmres/fieldsplit:pc_fieldsplit_type=schur"``; a value holds no ``:``,
+``=``, ``,`` or space.  A scene's ``ROUTES`` dict names long ones (``"schur"``), and
+its preset key ``routes`` (a comma-separated string, `parse_routes`) declares those
+``compare`` runs.  ``auto`` is no route: ``compare --routes auto`` lets a pilot pick
+one (`prdp_petsc.lab.training.compare.pilot_routes`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 import re
 import warnings
 from collections.abc import Iterator, Mapping
 
-from prdp_petsc.prdp import ACCURACY_BAND
-
-__all__ = [
-    "AUTO",
-    "REACH_FACTOR",
-    "accuracy_target",
-    "fastest",
-    "parse_route",
-    "parse_routes",
-    "route_options",
-    "route_settings",
-    "time_to_accuracy",
-]
-
-#: a run "reaches" the full-fidelity error when within this factor of it
-REACH_FACTOR = 1.0 + ACCURACY_BAND
-
+__all__ = ["AUTO", "parse_route", "parse_routes", "route_options", "route_settings", "route_string"]
 
 #: ``compare --routes auto``: a pilot picks one of the scene's routes; no route's name
 AUTO = "auto"
@@ -181,55 +150,3 @@ def route_options(prefixes, route: str, named: Mapping[str, str] | None = None) 
                 opts.delValue(name)
             else:
                 opts.setValue(name, value)
-
-
-def accuracy_target(logs: dict, full_name: str) -> float | None:
-    """`REACH_FACTOR` × the final validation error of run `full_name` (the scene's own
-    solver at K_full), or None where that run is missing or recorded no epoch."""
-    full = logs.get(full_name)
-    if not full or not full["epochs"]:
-        return None
-    return REACH_FACTOR * full["epochs"][-1]["val_metric"]
-
-
-def time_to_accuracy(log: dict, target: float) -> float | None:
-    """Wall time a run needed to reach `target` and stay there; None if it never did.
-
-    The run reaches it at the first epoch from which on its validation error stays
-    at or below the target to the end of the run (a run that dips below and drifts
-    back, as a biased small K does, has not reached it); its time is the cumulative
-    wall time up to and including that epoch.  A run that stopped early (a diverged
-    solve, Ctrl-C) did not train to the end, so it never reaches it; neither does
-    any run against a NaN target.
-    """
-    epochs = log["epochs"]
-    if log.get("stopped"):
-        return None
-    first = len(epochs)  # the first epoch from which on the run stays at the target
-    while first > 0 and epochs[first - 1]["val_metric"] <= target:
-        first -= 1
-    if first == len(epochs):
-        return None
-    return sum(e["wall_time"] for e in epochs[: first + 1])
-
-
-def fastest(logs: dict, full_name: str) -> dict | None:
-    """Wall time each run needed to reach the full-fidelity validation error.
-
-    The target is `accuracy_target` (the final validation error of `full_name`, the
-    scene's own solver at K_full, times `REACH_FACTOR`), each run's time is
-    `time_to_accuracy`.  Returns None without the full-fidelity run.
-    """
-    target = accuracy_target(logs, full_name)
-    if target is None:
-        return None
-    times = {name: time_to_accuracy(log, target) for name, log in logs.items()}
-    reached = {name: t for name, t in times.items() if t is not None}
-    winner = min(reached, key=reached.get) if reached else None
-    return {
-        "target_val_error": target,
-        "reference": full_name,
-        "seconds_to_target": times,
-        "winner": winner,
-        "winner_seconds": reached.get(winner, math.nan) if winner else None,
-    }
