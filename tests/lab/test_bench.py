@@ -138,7 +138,7 @@ def _owned_record():
 
 
 def test_the_mpi_scaling_model_recovers_the_law_it_was_fitted_to():
-    from prdp_petsc.lab.reports.scaling import format_scaling_model, scaling_model
+    from prdp_petsc.lab.reports.bench_mpi import format_scaling_model, scaling_model
 
     model = scaling_model(_owned_record())
     assert model["base_mb"] == pytest.approx(200, abs=1e-6)
