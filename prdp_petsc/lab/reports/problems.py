@@ -87,65 +87,51 @@ def _smooth_perturbation(mesh, theta: np.ndarray) -> np.ndarray:
     return theta * (1.0 + 0.5 * np.sin(2 * np.pi * c[0]) * np.cos(np.pi * c[1]))
 
 
-def _finish(name, A, theta, b, mesh, symmetric, description, info) -> Problem:
+def _finish(name, A, theta, b, mesh, symmetric, description, info: dict) -> Problem:
+    """The problem, its data ``d`` the solution for a smoothly perturbed coefficient."""
     from scipy.sparse.linalg import splu
 
     d = splu(A.matrix(_smooth_perturbation(mesh, theta)).tocsc()).solve(b)
-    info = {"unknowns": int(A.shape[0]), "nnz": int(A.nnz), "parameters": int(A.n_params), **info}
+    sizes = {"unknowns": int(A.shape[0]), "nnz": int(A.nnz), "parameters": int(A.n_params)}
+    info = {**sizes, "h": mean_edge_length(mesh), **info}
     return Problem(name, A, theta, b, d, symmetric, description, info)
+
+
+def _unit_load(basis) -> np.ndarray:
+    from skfem import LinearForm
+
+    return LinearForm(lambda v, w: 1.0 * v).assemble(basis)
 
 
 def poisson(refine: int = 2) -> Problem:
     """2D Poisson ``−∇·(κ∇u) = 1`` on ``plate_holes``, zero Dirichlet values everywhere."""
-    from skfem import Basis, ElementTriP1, LinearForm
+    from skfem import Basis, ElementTriP1
 
     mesh = load_mesh("plate_holes", refine)
     basis = Basis(mesh, ElementTriP1())
-    dirichlet = Dirichlet(diffusion_operator(basis), basis.get_dofs())
-
-    @LinearForm
-    def one(v, w):
-        return 1.0 * v
-
-    b = one.assemble(basis)[dirichlet.interior]
-    theta = np.ones(mesh.t.shape[1])
-    return _finish(
-        "poisson",
-        dirichlet.A_II,
-        theta,
-        b,
-        mesh,
-        True,
-        f"−∇·(κ∇u) = 1 on plate_holes (refine {refine}), P1, u = 0 on all boundaries",
-        {"mesh": "plate_holes", "refine": refine, "h": mean_edge_length(mesh)},
-    )
+    bc = Dirichlet(diffusion_operator(basis), basis.get_dofs())
+    description = f"−∇·(κ∇u) = 1 on plate_holes (refine {refine}), P1, u = 0 on all boundaries"
+    theta, b = np.ones(mesh.t.shape[1]), _unit_load(basis)[bc.interior]
+    info = {"mesh": "plate_holes", "refine": refine}
+    return _finish("poisson", bc.A_II, theta, b, mesh, True, description, info)
 
 
 def heat3d(refine: int = 1, dt_ratio: float = 10.0) -> Problem:
-    """One implicit heat step on ``box3d``: ``(M + Δt K(κ)) u¹ = M u⁰``, insulated walls.
-
-    ``Δt = dt_ratio · h² / κ`` with h the mean edge length and κ = 1.
-    """
+    """One implicit heat step on ``box3d``: ``(M + Δt K(κ)) u¹ = M u⁰``, insulated walls,
+    ``Δt = dt_ratio · h² / κ`` with h the mean edge length and κ = 1."""
     from skfem import Basis, ElementTetP1
 
     mesh = load_mesh("box3d", refine)
     basis = Basis(mesh, ElementTetP1())
-    h = mean_edge_length(mesh)
-    dt = dt_ratio * h**2
+    dt = dt_ratio * mean_edge_length(mesh) ** 2
     M = mass_matrix(basis)
     A = dt * diffusion_operator(basis) + M
-    u0 = warm_spot(mesh.p)
-    theta = np.ones(mesh.t.shape[1])
-    return _finish(
-        "heat3d",
-        A,
-        theta,
-        M @ u0,
-        mesh,
-        True,
-        f"(M + Δt K(κ)) u¹ = M u⁰ on box3d (refine {refine}, tetrahedra), Δt κ/h² = {dt_ratio:g}",
-        {"mesh": "box3d", "refine": refine, "h": h, "dt": dt, "dt_kappa_over_h2": dt_ratio},
+    description = (
+        f"(M + Δt K(κ)) u¹ = M u⁰ on box3d (refine {refine}, tetrahedra), Δt κ/h² = {dt_ratio:g}"
     )
+    theta, b = np.ones(mesh.t.shape[1]), M @ warm_spot(mesh.p)
+    info = {"mesh": "box3d", "refine": refine, "dt": dt, "dt_kappa_over_h2": dt_ratio}
+    return _finish("heat3d", A, theta, b, mesh, True, description, info)
 
 
 def warm_spot(points: np.ndarray) -> np.ndarray:
@@ -162,7 +148,7 @@ def spiral_wind(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def advection(refine: int = 1, epsilon: float = 0.01) -> Problem:
     """``−∇·(ε∇u) + β·∇u = 1`` on the annulus (Galerkin P1), ``u = 0`` on both circles."""
-    from skfem import Basis, BilinearForm, ElementTriP1, LinearForm
+    from skfem import Basis, BilinearForm, ElementTriP1
 
     mesh = load_mesh("annulus", refine)
     basis = Basis(mesh, ElementTriP1())
@@ -172,30 +158,12 @@ def advection(refine: int = 1, epsilon: float = 0.01) -> Problem:
         bx, by = spiral_wind(*w.x)
         return (bx * u.grad[0] + by * u.grad[1]) * v
 
-    @LinearForm
-    def one(v, w):
-        return 1.0 * v
-
-    A = diffusion_operator(basis) + convection.assemble(basis)
-    dirichlet = Dirichlet(A, basis.get_dofs())
-    h = mean_edge_length(mesh)
-    theta = np.full(mesh.t.shape[1], float(epsilon))
-    return _finish(
-        "advection",
-        dirichlet.A_II,
-        theta,
-        one.assemble(basis)[dirichlet.interior],
-        mesh,
-        False,
-        f"−∇·(ε∇u) + β·∇u = 1 on annulus (refine {refine}), ε = {epsilon:g}, spiral wind",
-        {
-            "mesh": "annulus",
-            "refine": refine,
-            "h": h,
-            "epsilon": epsilon,
-            "mesh_peclet": 1.0 * h / (2 * epsilon),
-        },
-    )
+    bc = Dirichlet(diffusion_operator(basis) + convection.assemble(basis), basis.get_dofs())
+    description = f"−∇·(ε∇u) + β·∇u = 1 on annulus (refine {refine}), ε = {epsilon:g}, spiral wind"
+    theta, b = np.full(mesh.t.shape[1], float(epsilon)), _unit_load(basis)[bc.interior]
+    peclet = mean_edge_length(mesh) / (2 * epsilon)
+    info = {"mesh": "annulus", "refine": refine, "epsilon": epsilon, "mesh_peclet": peclet}
+    return _finish("advection", bc.A_II, theta, b, mesh, False, description, info)
 
 
 #: name -> (builder, keyword arguments of the full size, of the quick size)
