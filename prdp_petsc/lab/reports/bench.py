@@ -23,7 +23,7 @@
     backward at K = 300 on `five_point` (175 × 175), gradient in b, with the peak
     resident-set growth of each in a fresh subprocess.
 
-Every ratio is a paired median (`prdp_petsc.lab.reports.benchmarking`); ``timing_noise``
+Every ratio is a bm.paired median (`prdp_petsc.lab.reports.benchmarking`); ``timing_noise``
 says how busy the machine was, and every timing is in the JSON; they describe one
 machine, never assert them.  torch runs on ``--threads`` (default 1: PETSc's AIJ kernels
 are serial).  Targets: overhead ≤ 5 % at about 1e5 unknowns; small systems ≤ 25 % for
@@ -55,17 +55,8 @@ import numpy as np
 from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
 from ..provenance import load_average, machine_info, write_result
 from . import bench_elasticity, bench_gpu, bench_jax, bench_mpi
-from .benchmarking import (
-    STATISTIC,
-    bench_solver,
-    check_exactly_k,
-    interleaved,
-    ksp_types,
-    paired,
-    raw_ksp,
-    stopwatch,
-    timing_noise,
-)
+from . import benchmarking as bm
+from .benchmarking import timing_noise
 from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb, reset_peak, rss_mb
 from .problems import five_point, plate_reaction
@@ -86,12 +77,12 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
     from prdp_petsc import solve
 
     A, theta_np, b_np, g_np, refine = plate_reaction(n)
-    solver = bench_solver(ksp_type, pc_type, k)
+    solver = bm.bench_solver(ksp_type, pc_type, k)
     theta = torch.tensor(theta_np, requires_grad=True)
     b = torch.tensor(b_np, requires_grad=True)
     g = torch.tensor(g_np)
     solve(A, b, solver, theta=theta).backward(g)  # creates the Mat and both KSPs
-    raw = raw_ksp(solver.mat, ksp_type, pc_type, k)
+    raw = bm.raw_ksp(solver.mat, ksp_type, pc_type, k)
     x_vec, b_vec = solver.mat.createVecs()
     lam_vec, g_vec = x_vec.duplicate(), b_vec.duplicate()
     b_vec.array[:] = b_np
@@ -103,7 +94,7 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         times = {}
         for key, (op, rhs, sol) in zip(RAW_KEYS, raw_calls, strict=True):
             sol.set(0.0)
-            _, times[key] = stopwatch(op, rhs, sol)
+            _, times[key] = bm.stopwatch(op, rhs, sol)
             if raw.getIterationNumber() != k:
                 raise RuntimeError(f"raw KSP ran {raw.getIterationNumber()} iterations, not {k}")
         return times
@@ -112,8 +103,8 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         def step() -> dict:
             theta.grad = b.grad = None
             f0, a0 = solver.stats.forward_time, solver.stats.adjoint_time
-            x, forward = stopwatch(solve, A, b, solver, theta=th)
-            _, backward = stopwatch(x.backward, g)
+            x, forward = bm.stopwatch(solve, A, b, solver, theta=th)
+            _, backward = bm.stopwatch(x.backward, g)
             times = {f"{key}_forward": forward, f"{key}_backward": backward}
             if key == "bridge":
                 times["bridge_forward_ksp"] = solver.stats.forward_time - f0
@@ -124,10 +115,10 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
 
     steps = {"raw": raw_step, "bridge": bridge_step("bridge", theta),
              "b_only": bridge_step("bridge_b_only", theta.detach())}  # fmt: skip
-    t = interleaved(steps, repeats, warmup)
-    check_exactly_k(solver, k)
-    if ksp_types(solver) != [raw.getType(), raw.getPC().getType()]:
-        raise RuntimeError(f"bridge KSP is {ksp_types(solver)}, raw is {raw.getType()}")
+    t = bm.interleaved(steps, repeats, warmup)
+    bm.check_exactly_k(solver, k)
+    if bm.ksp_types(solver) != [raw.getType(), raw.getPC().getType()]:
+        raise RuntimeError(f"bridge KSP is {bm.ksp_types(solver)}, raw is {raw.getType()}")
     r = {key: np.asarray(v) for key, v in t.items()}  # one entry per repeat
     bridge = r["bridge_forward"] + r["bridge_backward"]
     raw_pair = r["raw_forward"] + r["raw_adjoint_as_solve"]
@@ -139,12 +130,12 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         "nnz": int(A.nnz),
         "n_params": int(A.n_params),
         "k": k,
-        "statistic": STATISTIC,
-        "overhead": paired(bridge, raw_pair) - 1.0,
-        "backward_over_forward_symmetric": paired(r["bridge_backward"], r["bridge_forward"]),
-        "overhead_vs_raw_solve_transpose": paired(bridge, raw_transpose) - 1.0,
-        "overhead_b_only": paired(b_only, raw_pair) - 1.0,
-        "raw_transpose_over_forward": paired(r["raw_transpose"], r["raw_forward"]),
+        "statistic": bm.STATISTIC,
+        "overhead": bm.paired(bridge, raw_pair) - 1.0,
+        "backward_over_forward_symmetric": bm.paired(r["bridge_backward"], r["bridge_forward"]),
+        "overhead_vs_raw_solve_transpose": bm.paired(bridge, raw_transpose) - 1.0,
+        "overhead_b_only": bm.paired(b_only, raw_pair) - 1.0,
+        "raw_transpose_over_forward": bm.paired(r["raw_transpose"], r["raw_forward"]),
         "bridge_outside_ksp_s": {
             side: float(np.median(r[f"bridge_{side}"] - r[f"bridge_{side}_ksp"]))
             for side in ("forward", "backward")
@@ -152,7 +143,7 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
         "timing_noise": timing_noise(t["raw_forward"]),
         "median_s": {key: float(np.median(v)) for key, v in t.items()},
         "timings_s": t,
-        "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": ksp_types(solver)},
+        "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": bm.ksp_types(solver)},
         "traced_peak": traced_peaks(A, b, theta, g, solver),
     }
 
@@ -209,10 +200,10 @@ def bench_throughput(n, k, batches, repeats, warmup, ksp_type, pc_type) -> dict:
 
     A, theta_np, _, _, refine = plate_reaction(n)
     rhs, cot = np.random.default_rng(2).standard_normal((2, max(batches), A.shape[0]))
-    solver = bench_solver(ksp_type, pc_type, k)
+    solver = bm.bench_solver(ksp_type, pc_type, k)
     theta = torch.tensor(theta_np)
     pp.solve(A, torch.tensor(rhs[0], requires_grad=True), solver, theta=theta).sum().backward()
-    raw = raw_ksp(solver.mat, ksp_type, pc_type, k)
+    raw = bm.raw_ksp(solver.mat, ksp_type, pc_type, k)
     x_vec, b_vec = solver.mat.createVecs()
 
     def raw_rows(rows: np.ndarray) -> np.ndarray:
@@ -237,12 +228,12 @@ def bench_throughput(n, k, batches, repeats, warmup, ksp_type, pc_type) -> dict:
         def through_torch(fn):
             def step() -> float:
                 b, g = torch.tensor(rhs[:B], requires_grad=True), torch.tensor(cot[:B])
-                return stopwatch(lambda: fn(b).backward(g))[1]
+                return bm.stopwatch(lambda: fn(b).backward(g))[1]
 
             return step
 
         return {
-            "raw": lambda: stopwatch(lambda: (raw_rows(rhs[:B]), raw_rows(cot[:B])))[1],
+            "raw": lambda: bm.stopwatch(lambda: (raw_rows(rhs[:B]), raw_rows(cot[:B])))[1],
             "bridge": through_torch(lambda b: pp.solve(A, b, solver, theta=theta)),
             "wrapper": through_torch(Bare.apply),
         }
@@ -257,15 +248,15 @@ def bench_throughput(n, k, batches, repeats, warmup, ksp_type, pc_type) -> dict:
         "batches": {},
     }
     for B in batches:
-        t = interleaved(steps(B), repeats, warmup)
+        t = bm.interleaved(steps(B), repeats, warmup)
         out["batches"][str(B)] = {
-            "overhead": paired(t["bridge"], t["raw"]) - 1.0,
-            "floor": paired(t["wrapper"], t["raw"]) - 1.0,
+            "overhead": bm.paired(t["bridge"], t["raw"]) - 1.0,
+            "floor": bm.paired(t["wrapper"], t["raw"]) - 1.0,
             "raw_s": float(np.median(t["raw"])),
             "bridge_s": float(np.median(t["bridge"])),
             "timings_s": t,
         }
-    check_exactly_k(solver, k)
+    bm.check_exactly_k(solver, k)
     if raw.getIterationNumber() != k:
         raise RuntimeError(f"raw KSP ran {raw.getIterationNumber()} iterations, not {k}")
     lo, hi = min(batches), max(batches)
@@ -286,7 +277,7 @@ def bench_unrolled(n, k, repeats, warmup, ksp_type, pc_type, memory_ks) -> dict:
     import torch
 
     A, b_np, g_np = five_point(max(2, round(float(np.sqrt(n)))), seed=1)
-    solver = bench_solver(ksp_type, pc_type, k)
+    solver = bm.bench_solver(ksp_type, pc_type, k)
     b, g = torch.tensor(b_np, requires_grad=True), torch.tensor(g_np)
     handwritten = ksp_type == "cg" and pc_type in ("jacobi", "none")
     modes = MODES if handwritten else MODES[:2]
@@ -295,14 +286,14 @@ def bench_unrolled(n, k, repeats, warmup, ksp_type, pc_type, memory_ks) -> dict:
     def step(mode: str):
         def timed() -> dict:
             b.grad = None
-            x, forward = stopwatch(_mode_solve, mode, A, b, solver, pc_type)
-            _, backward = stopwatch(x.backward, g)
+            x, forward = bm.stopwatch(_mode_solve, mode, A, b, solver, pc_type)
+            _, backward = bm.stopwatch(x.backward, g)
             grads[mode] = b.grad.numpy().copy()
             return {f"{mode}_fwd": forward, f"{mode}_bwd": backward}
 
         return timed
 
-    t = interleaved({mode: step(mode) for mode in modes}, repeats, warmup)
+    t = bm.interleaved({mode: step(mode) for mode in modes}, repeats, warmup)
     total = {mode: np.add(t[f"{mode}_fwd"], t[f"{mode}_bwd"]) for mode in modes}
     spec = {"n": n, "ksp_type": ksp_type, "pc_type": pc_type, "threads": torch.get_num_threads()}
     ks = sorted(set(memory_ks) | {k})
@@ -312,18 +303,18 @@ def bench_unrolled(n, k, repeats, warmup, ksp_type, pc_type, memory_ks) -> dict:
         "n": int(A.shape[0]),
         "nnz": int(A.nnz),
         "k": k,
-        "unrolled_speedup": paired(total["unrolled"], total["implicit"]),
-        "statistic": STATISTIC,
+        "unrolled_speedup": bm.paired(total["unrolled"], total["implicit"]),
+        "statistic": bm.STATISTIC,
         "peak_rss_increase_mb": peak_rss_increase(
             [{**spec, "k": kk, "mode": mode} for mode in modes for kk in ks]
         ),
         "peak_memory_method": MEMORY_METHOD,
         "median_s": {key: float(np.median(v)) for key, v in t.items()},
         "timings_s": t,
-        "ksp": ksp_types(solver),
+        "ksp": bm.ksp_types(solver),
     }
     if handwritten:
-        out["handwritten_speedup"] = paired(total["handwritten"], total["implicit"])
+        out["handwritten_speedup"] = bm.paired(total["handwritten"], total["implicit"])
         diff = np.abs(grads["handwritten"] - grads["unrolled"]).max()
         out["handwritten_grad_rel_diff"] = float(diff / np.abs(grads["unrolled"]).max())
     return out
@@ -424,7 +415,7 @@ def _peak_rss_child(spec_json: str) -> None:
     spec = json.loads(spec_json)
     torch.set_num_threads(int(spec["threads"]))
     A, b_np, g_np = five_point(max(2, round(float(np.sqrt(int(spec["n"]))))), seed=1)
-    solver = bench_solver(spec["ksp_type"], spec["pc_type"], 1)
+    solver = bm.bench_solver(spec["ksp_type"], spec["pc_type"], 1)
     b, g = torch.tensor(b_np, requires_grad=True), torch.tensor(g_np)
     mode, pc = spec["mode"], spec["pc_type"]
     _mode_solve(mode, A, b, solver, pc).backward(g)  # warm-up: set-ups, autograd
@@ -503,7 +494,7 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(args.threads)
     try:
         machine = {**machine_info(), "torch_default_threads": default_threads}
-        (over, small, unr), wall = stopwatch(
+        (over, small, unr), wall = bm.stopwatch(
             lambda: (
                 bench_overhead(n, k, repeats, 2, ksp_type, pc_type),
                 bench_throughput(4851, 10, (1, 32), max(3, repeats), 2, ksp_type, pc_type),
@@ -552,7 +543,7 @@ def main(argv: list[str]) -> int:
             "warmup": 2,
             "unrolled_repeats": unrolled_repeats,
             "unrolled_warmup": 1,
-            "statistic": STATISTIC,
+            "statistic": bm.STATISTIC,
             "clock": "time.perf_counter",
             "torch_threads": args.threads,
             "quick": quick,
