@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 __all__ = [
+    "PREFIX",
     "STATISTIC",
     "bench_solver",
     "check_exactly_k",
