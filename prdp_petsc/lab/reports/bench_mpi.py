@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
-from ..provenance import machine_info
+from ..provenance import machine_info, write_result
 from ..subprocesses import child_env
 from .benchmarking import interleaved, stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
@@ -304,9 +304,7 @@ def main(argv: list[str]) -> int:
         "solve": solve,
         "epoch": epoch,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_mpi.json"
-    path.write_text(json.dumps(result, indent=1))
+    path = write_result(args.out, "bench_mpi.json", result)
     print(format_report(result))
     print(f"written {path}")
     return 0

@@ -19,7 +19,6 @@ operator its adjoint runs with ``ksp_use_explicittranspose`` (timed with it).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, add_size_preset, positive
-from ..provenance import load_average
+from ..provenance import load_average, write_result
 from ..training.routes import parse_routes, route_settings
 from .benchmarking import stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
@@ -366,10 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     result = sweep(problem, ks, pairs, passes=2 if quick else 3)
     result["seconds"] = time.perf_counter() - t0
     result["quick"] = quick
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"work_precision_{args.problem}"
     result["summary"] = summarize(result)
-    stem.with_suffix(".json").write_text(json.dumps(result, indent=1))
+    stem = args.out / f"work_precision_{args.problem}"
+    write_result(args.out, f"{stem.name}.json", result)
     stem.with_suffix(".md").write_text(to_markdown(result))
     plot(result, stem.with_suffix(".png"))
     print(
