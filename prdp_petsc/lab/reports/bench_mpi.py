@@ -45,7 +45,15 @@ from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb
 from .problems import mean_edge_length, warm_spot
 
-__all__ = ["KIND", "MODEL_RANKS", "format_report", "main", "parse_arguments", "scaling_model"]
+__all__ = [
+    "KIND",
+    "MODEL_RANKS",
+    "format_report",
+    "format_scaling_model",
+    "main",
+    "parse_arguments",
+    "scaling_model",
+]
 
 logger = logging.getLogger(__name__)
 
