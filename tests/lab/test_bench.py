@@ -15,13 +15,9 @@ import pytest
 import torch
 
 import prdp_petsc as pp
-from prdp_petsc.lab.reports.bench import main
-from prdp_petsc.lab.reports.bench_throughput import overhead_problem, raw_ksp
-from prdp_petsc.lab.reports.bench_unrolled import (
-    bench_solver,
-    handwritten_unrolled_cg,
-    unrolled_problem,
-)
+from prdp_petsc.lab.reports.bench import handwritten_unrolled_cg, main
+from prdp_petsc.lab.reports.benchmarking import bench_solver, raw_ksp
+from prdp_petsc.lab.reports.problems import five_point, plate_reaction
 
 #: unrolled comparison: 100 × 100 grid, peak memory at K/3 = 15 and K = 45
 UNROLLED_N, UNROLLED_K = 10_000, 45
@@ -71,7 +67,7 @@ def test_bridge_and_raw_ksp_run_the_same_iterations_and_numbers():
     """Backward runs as many iterations as the forward at equal K, and the raw KSP the
     bench times against returns the bridge's x and λ."""
     k = 10
-    A, theta_np, b_np, g_np, _ = overhead_problem(4851)
+    A, theta_np, b_np, g_np, _ = plate_reaction(4851)
     solver = bench_solver("cg", "jacobi", k)
     theta = torch.tensor(theta_np, requires_grad=True)
     b = torch.tensor(b_np, requires_grad=True)
@@ -96,7 +92,7 @@ def test_unrolled_modes_run_petsc_cg_iterates():
     """mode="implicit", mode="unrolled" and the hand-written CG reach the same x_K;
     unrolled and hand-written differentiate the same map, so their gradients agree, and
     differ from the implicit (capped-adjoint) one before convergence."""
-    A, b_np, g_np, _ = unrolled_problem(400)
+    A, b_np, g_np = five_point(20)
     k = 12
     xs, grads = {}, {}
     for mode in ("implicit", "unrolled", "handwritten"):
@@ -142,7 +138,7 @@ def _owned_record():
 
 
 def test_the_mpi_scaling_model_recovers_the_law_it_was_fitted_to():
-    from prdp_petsc.lab.reports.scaling import format_scaling_model, scaling_model
+    from prdp_petsc.lab.reports.bench_mpi import format_scaling_model, scaling_model
 
     model = scaling_model(_owned_record())
     assert model["base_mb"] == pytest.approx(200, abs=1e-6)

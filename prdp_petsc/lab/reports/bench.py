@@ -1,63 +1,53 @@
 """Benchmark of the torch bridge: overhead over raw PETSc, throughput, unrolled CG.
 
-``prdp-petsc bench bridge --out DIR`` writes ``DIR/bench_bridge.json``, all from
-one run on one machine:
+``prdp-petsc bench bridge --out DIR`` writes ``DIR/bench_bridge.json`` (``bench mpi``,
+``elasticity``, ``jax`` and ``gpu`` run their own modules), all from one run:
 
 ``overhead`` (the headline)
-    Bridge forward + backward (``solve(A, b, solver, theta=θ)``, then
-    ``x.backward(g)`` with gradients for b and θ) over what the bridge runs in
-    PETSc for this symmetric operator and symmetric PC, raw petsc4py ``KSPSolve``
-    + ``KSPSolve`` on the same Mat with the same KSP/PC and K, minus 1: a
-    like-for-like figure.  Problem: ``plate_holes`` refined twice, P1,
-    ``−∇·(κ∇u) + u``, κ per element.  ``overhead_detail`` adds the ratio against
-    ``KSPSolve`` + ``KSPSolveTranspose`` (what a non-symmetric operator runs;
-    PETSc's transposed products are slower), for b only (θ constant), of the
-    minima, and the time the bridge spends outside KSPSolve.
-``implicit_traced_peak_vectors``
-    Peak memory of one forward + backward on that problem's `ParametricMatrix`,
-    traced (tracemalloc), in vectors of n doubles: gradient in b only (target: a
-    few vectors; the operator is the library's own and is not copied), in b and θ
-    (plus ``dA = λ[rows] ⊙ x[cols]``, one entry per nonzero, and the p-sized
-    gradient), and in b and θ with a new θ every call (plus the new values A(θ)).
+    Bridge forward + backward (``solve(A, b, solver, theta=θ)``, then ``x.backward(g)``,
+    gradients in b and θ) over what the bridge runs in PETSc for this symmetric operator
+    and PC, raw petsc4py ``KSPSolve`` + ``KSPSolve`` on the same Mat, KSP/PC and K,
+    minus 1; on `plate_reaction` at about ``--n`` unknowns.  ``overhead_detail`` adds
+    the ratio against ``KSPSolve`` + ``KSPSolveTranspose`` (what a non-symmetric
+    operator runs), the gradient in b only, the time outside KSPSolve, and the traced
+    peak memory of one forward + backward in vectors of n (`traced_peaks`).
 ``throughput``
-    Small systems (n ≈ 5 000, K = 10), one and 32 right-hand sides: bridge over
-    raw ``KSPSolve`` + ``KSPSolve`` loops, and the bridge's fixed cost per call and
-    per right-hand side (see `prdp_petsc.lab.reports.bench_throughput`).
+    Small systems (n ≈ 5 000, K = 10), gradient in b, 1 and 32 right-hand sides: the
+    bridge over the raw loops, the floor of any torch bridge (the raw loops in a bare
+    ``torch.autograd.Function``), and from ``bridge − raw = c₀ + c₁ B`` the bridge's
+    fixed cost per call c₀ and per right-hand side c₁.
 ``backward_over_forward_symmetric``
-    Bridge backward time over bridge forward time at equal K, for this symmetric
-    case (the adjoint runs as a forward solve).
+    Bridge backward time over forward time at equal K (the adjoint is a forward solve).
 ``unrolled_speedup``
-    ``mode="unrolled"`` over ``mode="implicit"``, forward + backward at K = 300 on
-    the five-point ``−Δ`` (175 × 175), gradient in b, with the peak memory of
-    each; ``handwritten_unrolled_speedup`` is the same against a hand-written
-    torch CG (see `prdp_petsc.lab.reports.bench_unrolled`).
+    ``mode="unrolled"`` and a hand-written torch CG over ``mode="implicit"``, forward +
+    backward at K = 300 on `five_point` (175 × 175), gradient in b, with the peak
+    resident-set growth of each in a fresh subprocess.
 
-Every ratio is the median over repeats (after warm-up, ``time.perf_counter``) of
-the ratio within one repeat: the variants run interleaved, in alternating order,
-so that a neighbour's load on a shared machine hits both sides of each ratio.
-``timing_noise`` (interquartile range / median of the raw forward time) says how
-busy the machine was; every single timing is in the JSON.  torch runs on
-``--threads`` threads (default 1: PETSc's AIJ kernels are serial, and OpenMP
-spin-waiting on an oversubscribed machine makes threaded torch sparse kernels
-erratic).  Never assert these numbers in tests; they describe one machine.
-Targets: overhead ≤ 5 % at about 1e5 unknowns; small systems ≤ 25 % for one
-right-hand side and ≤ 10 % for 32; backward / forward ≤ 1.1.
+Every ratio is a bm.paired median (`prdp_petsc.lab.reports.benchmarking`); ``timing_noise``
+says how busy the machine was, and every timing is in the JSON; they describe one
+machine, never assert them.  torch runs on ``--threads`` (default 1: PETSc's AIJ kernels
+are serial).  Targets: overhead ≤ 5 % at about 1e5 unknowns; small systems ≤ 25 % for
+one right-hand side and ≤ 10 % for 32; backward / forward ≤ 1.1; unrolled ≥ 20×.
 
 Notes
 -----
-The KSPs have options prefix ``bench_``: options such as ``-bench_ksp_view`` given
-through ``PETSC_OPTIONS`` reach the bridge's KSP (the raw KSP is set up from
-``--routes KSP/PC`` only, and the run stops if the two types differ).  ``--preset
-quick`` runs tiny sizes (a smoke test); the default is ``paper``.
+The KSPs have options prefix ``bench_``: ``PETSC_OPTIONS=-bench_ksp_view`` reaches the
+bridge's KSP (the raw KSP is set up from ``--routes KSP/PC`` only, and the run stops if
+the two types differ).  ``--preset quick`` runs tiny sizes (a smoke test).
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
+import gc
+import json
 import logging
-import statistics
+import os
+import subprocess
 import sys
-import time
+import tracemalloc
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -65,26 +55,19 @@ import numpy as np
 from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
 from ..provenance import load_average, machine_info, write_result
 from . import bench_elasticity, bench_gpu, bench_jax, bench_mpi
-from .bench_throughput import bench_throughput, overhead_problem, raw_ksp
-from .bench_unrolled import bench_solver, bench_unrolled, ksp_types
+from . import benchmarking as bm
+from .benchmarking import timing_noise
 from .kinds import DataSet, ReportKind, markdown_table
+from .memory import peak_rss_mb, reset_peak, rss_mb
+from .problems import five_point, plate_reaction
 
-__all__ = ["KIND", "main"]
+__all__ = ["KIND", "main", "timing_noise"]
 
 logger = logging.getLogger(__name__)
 
 RAW_KEYS = ("raw_forward", "raw_transpose", "raw_adjoint_as_solve")
-
-
-def _median(values) -> float:
-    return float(statistics.median(values))
-
-
-def timing_noise(values) -> float:
-    """Interquartile range over median of a timing series: above ~0.05 the machine was
-    busy during the run, and the paired ratios are the figures to trust."""
-    q1, q2, q3 = statistics.quantiles(values, n=4) if len(values) > 1 else (values[0],) * 3
-    return float((q3 - q1) / q2)
+MODES = ("implicit", "unrolled", "handwritten")
+HEADLINE_KEYS = ("overhead", "overhead_vs_raw_solve_transpose", "backward_over_forward_symmetric")
 
 
 def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_type: str):
@@ -93,147 +76,90 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
 
     from prdp_petsc import solve
 
-    A, theta_np, b_np, g_np, refine = overhead_problem(n)
-    solver = bench_solver(ksp_type, pc_type, k)
+    A, theta_np, b_np, g_np, refine = plate_reaction(n)
+    solver = bm.bench_solver(ksp_type, pc_type, k)
     theta = torch.tensor(theta_np, requires_grad=True)
     b = torch.tensor(b_np, requires_grad=True)
     g = torch.tensor(g_np)
     solve(A, b, solver, theta=theta).backward(g)  # creates the Mat and both KSPs
-
-    raw = raw_ksp(solver.mat, ksp_type, pc_type, k)
+    raw = bm.raw_ksp(solver.mat, ksp_type, pc_type, k)
     x_vec, b_vec = solver.mat.createVecs()
     lam_vec, g_vec = x_vec.duplicate(), b_vec.duplicate()
     b_vec.array[:] = b_np
     g_vec.array[:] = g_np
+    raw_calls = ((raw.solve, b_vec, x_vec), (raw.solveTranspose, g_vec, lam_vec),
+                 (raw.solve, g_vec, lam_vec))  # fmt: skip
 
-    t = {
-        key: []
-        for key in (
-            *RAW_KEYS,
-            "bridge_forward",
-            "bridge_backward",
-            "bridge_forward_ksp",
-            "bridge_backward_ksp",
-            "bridge_b_only_forward",
-            "bridge_b_only_backward",
-        )
-    }
-
-    def raw_step(record: bool) -> None:
-        times = []
-        for op, rhs, sol in (
-            (raw.solve, b_vec, x_vec),
-            (raw.solveTranspose, g_vec, lam_vec),
-            (raw.solve, g_vec, lam_vec),
-        ):
+    def raw_step() -> dict:
+        times = {}
+        for key, (op, rhs, sol) in zip(RAW_KEYS, raw_calls, strict=True):
             sol.set(0.0)
-            t0 = time.perf_counter()
-            op(rhs, sol)
-            times.append(time.perf_counter() - t0)
+            _, times[key] = bm.stopwatch(op, rhs, sol)
             if raw.getIterationNumber() != k:
                 raise RuntimeError(f"raw KSP ran {raw.getIterationNumber()} iterations, not {k}")
-        if record:
-            for key, dt in zip(RAW_KEYS, times, strict=True):
-                t[key].append(dt)
+        return times
 
-    def bridge_step(record: bool, key: str = "bridge", th=theta) -> None:
-        theta.grad = b.grad = None
-        stats = solver.stats
-        f0, a0 = stats.forward_time, stats.adjoint_time
-        t0 = time.perf_counter()
-        x = solve(A, b, solver, theta=th)
-        t1 = time.perf_counter()
-        x.backward(g)
-        t2 = time.perf_counter()
-        if record:
-            t[f"{key}_forward"].append(t1 - t0)
-            t[f"{key}_backward"].append(t2 - t1)
+    def bridge_step(key: str, th):
+        def step() -> dict:
+            theta.grad = b.grad = None
+            f0, a0 = solver.stats.forward_time, solver.stats.adjoint_time
+            x, forward = bm.stopwatch(solve, A, b, solver, theta=th)
+            _, backward = bm.stopwatch(x.backward, g)
+            times = {f"{key}_forward": forward, f"{key}_backward": backward}
             if key == "bridge":
-                t["bridge_forward_ksp"].append(stats.forward_time - f0)
-                t["bridge_backward_ksp"].append(stats.adjoint_time - a0)
+                times["bridge_forward_ksp"] = solver.stats.forward_time - f0
+                times["bridge_backward_ksp"] = solver.stats.adjoint_time - a0
+            return times
 
-    def b_only_step(record: bool) -> None:
-        bridge_step(record, "bridge_b_only", theta.detach())
+        return step
 
-    for i in range(warmup + repeats):
-        steps = (raw_step, bridge_step, b_only_step)
-        for step in steps if i % 2 == 0 else steps[::-1]:
-            step(i >= warmup)
-    stats = solver.stats  # every bridge solve, forward and adjoint, ran exactly k
-    for side in ("forward", "adjoint"):
-        solves, its = getattr(stats, f"{side}_solves"), getattr(stats, f"{side}_iterations")
-        if its != k * solves:
-            raise RuntimeError(f"bridge {side} KSP: {its} iterations in {solves} solves, not {k}")
-
-    if ksp_types(solver) != [raw.getType(), raw.getPC().getType()]:
-        raise RuntimeError(f"bridge KSP is {ksp_types(solver)}, raw is {raw.getType()}")
-    traced = traced_peaks(A, b, theta, g, solver)
-    med = {key: _median(v) for key, v in t.items()}
-    low = {key: min(v) for key, v in t.items()}
+    steps = {"raw": raw_step, "bridge": bridge_step("bridge", theta),
+             "b_only": bridge_step("bridge_b_only", theta.detach())}  # fmt: skip
+    t = bm.interleaved(steps, repeats, warmup)
+    bm.check_exactly_k(solver, k)
+    if bm.ksp_types(solver) != [raw.getType(), raw.getPC().getType()]:
+        raise RuntimeError(f"bridge KSP is {bm.ksp_types(solver)}, raw is {raw.getType()}")
     r = {key: np.asarray(v) for key, v in t.items()}  # one entry per repeat
     bridge = r["bridge_forward"] + r["bridge_backward"]
-    raw_fb = r["raw_forward"] + r["raw_transpose"]
+    raw_pair = r["raw_forward"] + r["raw_adjoint_as_solve"]
+    raw_transpose = r["raw_forward"] + r["raw_transpose"]
+    b_only = r["bridge_b_only_forward"] + r["bridge_b_only_backward"]
     return {
         "problem": f"plate_holes refine={refine}, P1, -div(kappa grad u) + u, kappa P0",
         "n": int(A.shape[0]),
         "nnz": int(A.nnz),
         "n_params": int(A.n_params),
         "k": k,
-        "statistic": "median over repeats of the ratio within each repeat (paired)",
-        "overhead": _median(bridge / (r["raw_forward"] + r["raw_adjoint_as_solve"]) - 1.0),
-        "backward_over_forward_symmetric": _median(r["bridge_backward"] / r["bridge_forward"]),
-        "overhead_vs_raw_solve_transpose": _median(bridge / raw_fb - 1.0),
-        "overhead_b_only": _median(
-            (r["bridge_b_only_forward"] + r["bridge_b_only_backward"])
-            / (r["raw_forward"] + r["raw_adjoint_as_solve"])
-            - 1.0
-        ),
-        "overhead_of_medians": (med["bridge_forward"] + med["bridge_backward"])
-        / (med["raw_forward"] + med["raw_adjoint_as_solve"])
-        - 1.0,
-        "overhead_of_minima": (low["bridge_forward"] + low["bridge_backward"])
-        / (low["raw_forward"] + low["raw_adjoint_as_solve"])
-        - 1.0,
-        "raw_transpose_over_forward": _median(r["raw_transpose"] / r["raw_forward"]),
+        "statistic": bm.STATISTIC,
+        "overhead": bm.paired(bridge, raw_pair) - 1.0,
+        "backward_over_forward_symmetric": bm.paired(r["bridge_backward"], r["bridge_forward"]),
+        "overhead_vs_raw_solve_transpose": bm.paired(bridge, raw_transpose) - 1.0,
+        "overhead_b_only": bm.paired(b_only, raw_pair) - 1.0,
+        "raw_transpose_over_forward": bm.paired(r["raw_transpose"], r["raw_forward"]),
         "bridge_outside_ksp_s": {
-            "forward": _median(r["bridge_forward"] - r["bridge_forward_ksp"]),
-            "backward": _median(r["bridge_backward"] - r["bridge_backward_ksp"]),
+            side: float(np.median(r[f"bridge_{side}"] - r[f"bridge_{side}_ksp"]))
+            for side in ("forward", "backward")
         },
         "timing_noise": timing_noise(t["raw_forward"]),
-        "median_s": med,
-        "min_s": low,
+        "median_s": {key: float(np.median(v)) for key, v in t.items()},
         "timings_s": t,
-        "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": ksp_types(solver)},
-        "traced_peak": traced,
+        "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": bm.ksp_types(solver)},
+        "traced_peak": traced_peaks(A, b, theta, g, solver),
     }
-
-
-TRACED_METHOD = (
-    "tracemalloc (numpy and torch-from-numpy allocations are traced; PETSc's own are "
-    "not, and the PETSc work vectors are made once per operator), in-process, after "
-    "a warm-up call of the same kind: peak over one forward + backward minus the traced "
-    "memory before it, in vectors of n doubles"
-)
 
 
 def traced_peaks(A, b, theta, g, solver) -> dict:
     """Peak traced memory of one forward + backward on the library's own operator (a
     `ParametricMatrix`), in vectors of n doubles: gradient in b only, in b and θ, and
     in b and θ with a new θ every call (whose values A(θ), nnz of them, are new too)."""
-    import gc
-    import tracemalloc
-
     import torch
 
     from prdp_petsc import solve
 
-    vector = 8.0 * A.shape[0]
     fresh = [theta.detach() * (1.0 + 1e-3 * i) for i in range(4)]
 
     def call(th):
-        b.grad = None
-        if th.requires_grad:
-            th.grad = None
+        b.grad = th.grad = None
         solve(A, b, solver, theta=th).backward(g)
 
     cases = {
@@ -249,10 +175,9 @@ def traced_peaks(A, b, theta, g, solver) -> dict:
         try:
             base = tracemalloc.get_traced_memory()[0]
             run(1)
-            peak = tracemalloc.get_traced_memory()[1] - base
+            out[name] = (tracemalloc.get_traced_memory()[1] - base) / (8.0 * A.shape[0])
         finally:
             tracemalloc.stop()
-        out[name] = peak / vector
     with torch.no_grad():
         solve(A, b, solver, theta=theta)  # leave the solver on the benchmark's θ
     return {
@@ -260,8 +185,250 @@ def traced_peaks(A, b, theta, g, solver) -> dict:
         "n": int(A.shape[0]),
         "nnz_over_n": A.nnz / A.shape[0],
         "n_params_over_n": A.n_params / A.shape[0],
-        "method": TRACED_METHOD,
+        "method": "tracemalloc (numpy and torch-from-numpy allocations; PETSc's own are "
+        "not traced, its work vectors are made once per operator), after a warm-up call "
+        "of the same kind: peak over one forward + backward minus the memory before it",
     }
+
+
+def bench_throughput(n, k, batches, repeats, warmup, ksp_type, pc_type) -> dict:
+    """Time the bridge, the raw petsc4py loops and a bare `torch.autograd.Function`
+    around them, gradient in b, for each batch size; return a JSON-ready dict."""
+    import torch
+
+    import prdp_petsc as pp
+
+    A, theta_np, _, _, refine = plate_reaction(n)
+    rhs, cot = np.random.default_rng(2).standard_normal((2, max(batches), A.shape[0]))
+    solver = bm.bench_solver(ksp_type, pc_type, k)
+    theta = torch.tensor(theta_np)
+    pp.solve(A, torch.tensor(rhs[0], requires_grad=True), solver, theta=theta).sum().backward()
+    raw = bm.raw_ksp(solver.mat, ksp_type, pc_type, k)
+    x_vec, b_vec = solver.mat.createVecs()
+
+    def raw_rows(rows: np.ndarray) -> np.ndarray:
+        out = np.empty_like(rows)
+        for row, x in zip(rows, out, strict=True):
+            b_vec.setArray(row)
+            x_vec.set(0.0)
+            raw.solve(b_vec, x_vec)
+            x[:] = x_vec.getArray(readonly=True)
+        return out
+
+    class Bare(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, b):
+            return torch.from_numpy(raw_rows(b.detach().numpy()))
+
+        @staticmethod
+        def backward(ctx, g):
+            return torch.from_numpy(raw_rows(g.detach().numpy()))
+
+    def steps(B: int) -> dict:
+        def through_torch(fn):
+            def step() -> float:
+                b, g = torch.tensor(rhs[:B], requires_grad=True), torch.tensor(cot[:B])
+                return bm.stopwatch(lambda: fn(b).backward(g))[1]
+
+            return step
+
+        return {
+            "raw": lambda: bm.stopwatch(lambda: (raw_rows(rhs[:B]), raw_rows(cot[:B])))[1],
+            "bridge": through_torch(lambda b: pp.solve(A, b, solver, theta=theta)),
+            "wrapper": through_torch(Bare.apply),
+        }
+
+    out: dict = {
+        "problem": f"plate_holes refine={refine}, P1, -div(kappa grad u) + u, kappa P0",
+        "n": int(A.shape[0]),
+        "k": k,
+        "gradient": "b (theta constant)",
+        "raw": "B x (KSPSolve + KSPSolve), petsc4py loop, same Mat, same KSP/PC",
+        "wrapper": "the raw loops in a bare torch.autograd.Function (no checks)",
+        "batches": {},
+    }
+    for B in batches:
+        t = bm.interleaved(steps(B), repeats, warmup)
+        out["batches"][str(B)] = {
+            "overhead": bm.paired(t["bridge"], t["raw"]) - 1.0,
+            "floor": bm.paired(t["wrapper"], t["raw"]) - 1.0,
+            "raw_s": float(np.median(t["raw"])),
+            "bridge_s": float(np.median(t["bridge"])),
+            "timings_s": t,
+        }
+    bm.check_exactly_k(solver, k)
+    if raw.getIterationNumber() != k:
+        raise RuntimeError(f"raw KSP ran {raw.getIterationNumber()} iterations, not {k}")
+    lo, hi = min(batches), max(batches)
+    if lo != hi:  # bridge − raw = c₀ + c₁ B
+        extra = {B: out["batches"][str(B)]["bridge_s"] - out["batches"][str(B)]["raw_s"]
+                 for B in (lo, hi)}  # fmt: skip
+        out["extra_per_rhs_s"] = (extra[hi] - extra[lo]) / (hi - lo)
+        out["extra_per_call_s"] = extra[lo] - out["extra_per_rhs_s"] * lo
+    for obj in (raw, x_vec, b_vec, solver):
+        obj.destroy()
+    return out
+
+
+def bench_unrolled(n, k, repeats, warmup, ksp_type, pc_type, memory_ks) -> dict:
+    """Time ``mode="unrolled"`` and `handwritten_unrolled_cg` against ``mode="implicit"``
+    (gradient in b) on `five_point` of about n unknowns, and measure the peak memory
+    of each at every K in `memory_ks`."""
+    import torch
+
+    A, b_np, g_np = five_point(max(2, round(float(np.sqrt(n)))), seed=1)
+    solver = bm.bench_solver(ksp_type, pc_type, k)
+    b, g = torch.tensor(b_np, requires_grad=True), torch.tensor(g_np)
+    handwritten = ksp_type == "cg" and pc_type in ("jacobi", "none")
+    modes = MODES if handwritten else MODES[:2]
+    grads = {}
+
+    def step(mode: str):
+        def timed() -> dict:
+            b.grad = None
+            x, forward = bm.stopwatch(_mode_solve, mode, A, b, solver, pc_type)
+            _, backward = bm.stopwatch(x.backward, g)
+            grads[mode] = b.grad.numpy().copy()
+            return {f"{mode}_fwd": forward, f"{mode}_bwd": backward}
+
+        return timed
+
+    t = bm.interleaved({mode: step(mode) for mode in modes}, repeats, warmup)
+    total = {mode: np.add(t[f"{mode}_fwd"], t[f"{mode}_bwd"]) for mode in modes}
+    spec = {"n": n, "ksp_type": ksp_type, "pc_type": pc_type, "threads": torch.get_num_threads()}
+    ks = sorted(set(memory_ks) | {k})
+    side = round(float(np.sqrt(A.shape[0])))
+    out = {
+        "problem": f"-laplacian({side}x{side}), 5-point FD, Dirichlet; gradient wrt b",
+        "n": int(A.shape[0]),
+        "nnz": int(A.nnz),
+        "k": k,
+        "unrolled_speedup": bm.paired(total["unrolled"], total["implicit"]),
+        "statistic": bm.STATISTIC,
+        "peak_rss_increase_mb": peak_rss_increase(
+            [{**spec, "k": kk, "mode": mode} for mode in modes for kk in ks]
+        ),
+        "peak_memory_method": MEMORY_METHOD,
+        "median_s": {key: float(np.median(v)) for key, v in t.items()},
+        "timings_s": t,
+        "ksp": bm.ksp_types(solver),
+    }
+    if handwritten:
+        out["handwritten_speedup"] = bm.paired(total["handwritten"], total["implicit"])
+        diff = np.abs(grads["handwritten"] - grads["unrolled"]).max()
+        out["handwritten_grad_rel_diff"] = float(diff / np.abs(grads["unrolled"]).max())
+    return out
+
+
+def _mode_solve(mode: str, A, b, solver, pc_type: str):
+    from prdp_petsc import solve
+
+    if mode == "handwritten":
+        return handwritten_unrolled_cg(A, b, solver.max_it, jacobi=pc_type == "jacobi")
+    return solve(A, b, solver, mode=mode)
+
+
+def _torch_csr(M):
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+        return torch.sparse_csr_tensor(
+            torch.from_numpy(M.indptr.astype(np.int64)),
+            torch.from_numpy(M.indices.astype(np.int64)),
+            torch.from_numpy(M.data.astype(np.float64)),
+            size=M.shape,
+            check_invariants=False,
+        )
+
+
+def handwritten_unrolled_cg(A, b, k: int, *, jacobi: bool = True):
+    """K steps of (Jacobi-)preconditioned CG from x = 0 in torch, the iteration of
+    ``mode="unrolled"``, through a matrix product whose backward multiplies by ``Aᵀ``
+    stored once as CSR: a fair baseline for it."""
+    import torch
+
+    A = A.tocsr()
+    A_t, At_t = _torch_csr(A), _torch_csr(A.T.tocsr())
+
+    class SpMV(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, p):
+            return A_t @ p
+
+        @staticmethod
+        def backward(ctx, grad):
+            return At_t @ grad
+
+    inv_m = torch.from_numpy(1.0 / A.diagonal()) if jacobi else torch.ones(A.shape[0])
+    x, r = torch.zeros_like(b), b
+    p = z = inv_m * r
+    rho = r @ z
+    for _ in range(k):
+        q = SpMV.apply(p)
+        alpha = rho / (p @ q)
+        x, r = x + alpha * p, r - alpha * q
+        z = inv_m * r
+        rho, rho_old = r @ z, rho
+        p = z + (rho / rho_old) * p
+    return x
+
+
+MEMORY_METHOD = (
+    "fresh subprocess per (mode, K) with glibc MALLOC_MMAP_THRESHOLD_=65536 (freed large "
+    "buffers leave the resident set at once, so the figure is reproducible): build the "
+    "problem, one warm-up forward+backward at K=1, gc + malloc_trim, reset the high-water "
+    "mark (/proc/self/clear_refs = 5), then one forward+backward at K; value = VmHWM - "
+    "VmRSS before it, in MiB (without /proc: ru_maxrss delta)"
+)
+_MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "65536", "MALLOC_TRIM_THRESHOLD_": "131072"}
+
+
+def peak_rss_increase(specs: list[dict]) -> dict:
+    """``{mode: {K: MiB}}``: peak resident-set growth of each spec, each in its own
+    subprocess, all side by side (each measures only itself)."""
+    code = f"import sys; from {__name__} import _peak_rss_child as f; f(sys.argv[1])"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code, json.dumps(spec)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "OMP_NUM_THREADS": str(spec["threads"]), **_MALLOC_ENV},
+        )
+        for spec in specs
+    ]
+    peak: dict = {}
+    for spec, proc in zip(specs, procs, strict=True):
+        stdout, stderr = proc.communicate()
+        if proc.returncode:
+            raise RuntimeError(f"peak-memory subprocess {spec} failed:\n{stderr}")
+        mb = float(json.loads(stdout.strip().splitlines()[-1])["peak_mb"])
+        peak.setdefault(spec["mode"], {})[str(spec["k"])] = mb
+    return peak
+
+
+def _peak_rss_child(spec_json: str) -> None:
+    """Subprocess body: peak resident-set growth of one forward+backward, printed as JSON."""
+    import torch
+
+    spec = json.loads(spec_json)
+    torch.set_num_threads(int(spec["threads"]))
+    A, b_np, g_np = five_point(max(2, round(float(np.sqrt(int(spec["n"]))))), seed=1)
+    solver = bm.bench_solver(spec["ksp_type"], spec["pc_type"], 1)
+    b, g = torch.tensor(b_np, requires_grad=True), torch.tensor(g_np)
+    mode, pc = spec["mode"], spec["pc_type"]
+    _mode_solve(mode, A, b, solver, pc).backward(g)  # warm-up: set-ups, autograd
+    solver.max_it = int(spec["k"])
+    b.grad = None
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:
+        pass
+    base = rss_mb() if reset_peak() else peak_rss_mb()  # without /proc: the peak's growth
+    _mode_solve(mode, A, b, solver, pc).backward(g)
+    print(json.dumps({"peak_mb": peak_rss_mb() - base}))
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -296,8 +463,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _route(text: str) -> tuple[str, str]:
-    """``--routes KSP/PC``: one plain pair (this benchmark compares with a raw KSP of
-    the same types)."""
+    """``--routes KSP/PC``: one plain pair (the raw KSP compared with has the same types)."""
     pairs = routes(text)
     if len(pairs) != 1 or pairs[0].count("/") != 1 or ":" in pairs[0]:
         message = f"expected one KSP/PC pair such as cg/jacobi, got {text!r}"
@@ -307,13 +473,8 @@ def _route(text: str) -> tuple[str, str]:
 
 
 def main(argv: list[str]) -> int:
-    """Run ``bench bridge``; write ``<out>/bench_bridge.json``; return an exit code."""
-    others = {
-        "mpi": bench_mpi,
-        "elasticity": bench_elasticity,
-        "jax": bench_jax,
-        "gpu": bench_gpu,
-    }
+    """Run ``bench WHICH``; ``bench bridge`` writes ``<out>/bench_bridge.json``."""
+    others = {"mpi": bench_mpi, "elasticity": bench_elasticity, "jax": bench_jax, "gpu": bench_gpu}
     if argv and argv[0] in others:
         return others[argv[0]].main(argv[1:])
     args = _parser().parse_args(argv)
@@ -333,29 +494,26 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(args.threads)
     try:
         machine = {**machine_info(), "torch_default_threads": default_threads}
-        t0 = time.perf_counter()
-        over = bench_overhead(n, k, repeats, 2, ksp_type, pc_type)
-        logger.info("overhead %.4f", over["overhead"])
-        small = bench_throughput(4851, 10, (1, 32), max(3, repeats), 2, ksp_type, pc_type)
-        unr = bench_unrolled(un, uk, unrolled_repeats, 1, ksp_type, pc_type, memory_ks)
-        wall = time.perf_counter() - t0
+        (over, small, unr), wall = bm.stopwatch(
+            lambda: (
+                bench_overhead(n, k, repeats, 2, ksp_type, pc_type),
+                bench_throughput(4851, 10, (1, 32), max(3, repeats), 2, ksp_type, pc_type),
+                bench_unrolled(un, uk, unrolled_repeats, 1, ksp_type, pc_type, memory_ks),
+            )
+        )
     finally:
         torch.set_num_threads(default_threads)
     peak = unr["peak_rss_increase_mb"]
+    batches = small["batches"]
     result = {
         "benchmark": "bridge",
         "n": over["n"],
         "k": k,
-        "overhead": over["overhead"],
-        "overhead_vs_raw_solve_transpose": over["overhead_vs_raw_solve_transpose"],
-        "backward_over_forward_symmetric": over["backward_over_forward_symmetric"],
+        **{key: over[key] for key in HEADLINE_KEYS},
         "throughput": {
             "n": small["n"],
             "k": small["k"],
-            "overhead_1_rhs": small["batches"]["1"]["overhead"],
-            "overhead_32_rhs": small["batches"]["32"]["overhead"],
-            "floor_1_rhs": small["batches"]["1"]["floor"],
-            "floor_32_rhs": small["batches"]["32"]["floor"],
+            **{f"{key}_{B}_rhs": batches[B][key] for key in ("overhead", "floor") for B in batches},
             "extra_per_call_s": small["extra_per_call_s"],
             "extra_per_rhs_s": small["extra_per_rhs_s"],
         },
@@ -363,9 +521,7 @@ def main(argv: list[str]) -> int:
         "unrolled_k": uk,
         "unrolled_speedup": unr["unrolled_speedup"],
         "handwritten_unrolled_speedup": unr.get("handwritten_speedup"),
-        "implicit_peak_rss_mb": peak["implicit"][str(uk)],
-        "unrolled_peak_rss_mb": peak["unrolled"][str(uk)],
-        "handwritten_peak_rss_mb": peak.get("handwritten", {}).get(str(uk)),
+        **{f"{mode}_peak_rss_mb": peak.get(mode, {}).get(str(uk)) for mode in MODES},
         "peak_memory_method": unr["peak_memory_method"],
         "implicit_traced_peak_vectors": over["traced_peak"]["vectors"],
         "timing_noise": over["timing_noise"],
@@ -387,8 +543,7 @@ def main(argv: list[str]) -> int:
             "warmup": 2,
             "unrolled_repeats": unrolled_repeats,
             "unrolled_warmup": 1,
-            "statistic": "median over repeats of the ratio within each repeat; variants "
-            "interleaved, order alternating per repeat",
+            "statistic": bm.STATISTIC,
             "clock": "time.perf_counter",
             "torch_threads": args.threads,
             "quick": quick,
@@ -396,10 +551,9 @@ def main(argv: list[str]) -> int:
         "overhead_detail": over,
         "throughput_detail": small,
         "unrolled_detail": unr,
-        "machine": machine,
+        "machine": {**machine, "load_average_end": load_average()},
         "wall_s": wall,
     }
-    result["machine"]["load_average_end"] = load_average()
     write_result(args.out, "bench_bridge.json", result)
     return 0
 
@@ -410,83 +564,45 @@ def _signed(value: float) -> str:
 
 
 def _rows(d: dict) -> list[tuple[str, str, str]]:
-    t = d["throughput"]
-    targets = d.get("targets", {})
+    t, target = d["throughput"], d.get("targets", {})
     rows = [
-        (
-            f"overhead: bridge forward + backward (gradients for b and θ) over raw "
-            f"`KSPSolve` + `KSPSolve`, − 1; n = {d['n']}, K = {d['k']}",
-            _signed(d["overhead"]),
-            targets.get("overhead", ""),
-        ),
-        (
-            "same, over raw `KSPSolve` + `KSPSolveTranspose`",
-            _signed(d["overhead_vs_raw_solve_transpose"]),
-            "",
-        ),
-        (
-            "backward over forward (symmetric: the adjoint runs as a forward solve)",
-            f"{d['backward_over_forward_symmetric']:.2f}",
-            targets.get("backward_over_forward_symmetric", ""),
-        ),
-        (
-            f"small systems (n = {t['n']}, K = {t['k']}), gradient in b: 1 right-hand side",
-            _signed(t["overhead_1_rhs"]),
-            targets.get("throughput.overhead_1_rhs", ""),
-        ),
-        (
-            "same, a batch of 32 right-hand sides",
-            _signed(t["overhead_32_rhs"]),
-            targets.get("throughput.overhead_32_rhs", ""),
-        ),
-    ]
+        (f"overhead: bridge forward + backward (gradients for b and θ) over raw `KSPSolve` + "
+         f"`KSPSolve`, − 1; n = {d['n']}, K = {d['k']}", _signed(d["overhead"]),
+         target.get("overhead", "")),
+        ("same, over raw `KSPSolve` + `KSPSolveTranspose`",
+         _signed(d["overhead_vs_raw_solve_transpose"]), ""),
+        ("backward over forward (symmetric: the adjoint runs as a forward solve)",
+         f"{d['backward_over_forward_symmetric']:.2f}",
+         target.get("backward_over_forward_symmetric", "")),
+        (f"small systems (n = {t['n']}, K = {t['k']}), gradient in b: 1 right-hand side",
+         _signed(t["overhead_1_rhs"]), target.get("throughput.overhead_1_rhs", "")),
+        ("same, a batch of 32 right-hand sides", _signed(t["overhead_32_rhs"]),
+         target.get("throughput.overhead_32_rhs", "")),
+    ]  # fmt: skip
     if "floor_1_rhs" in t:  # recorded since the bare-wrapper variant exists
-        rows.append(
-            (
-                "floor of any torch bridge: the raw loops in a bare `torch.autograd.Function` "
-                "(no checks), 1 / 32 right-hand sides",
-                f"{_signed(t['floor_1_rhs'])} / {_signed(t['floor_32_rhs'])}",
-                "",
-            )
-        )
+        rows.append(("floor of any torch bridge: the raw loops in a bare "
+                     "`torch.autograd.Function` (no checks), 1 / 32 right-hand sides",
+                     f"{_signed(t['floor_1_rhs'])} / {_signed(t['floor_32_rhs'])}",
+                     ""))  # fmt: skip
     rows += [
-        (
-            "bridge's extra cost per call / per right-hand side",
-            f"{t['extra_per_call_s'] * 1e6:.0f} µs / {t['extra_per_rhs_s'] * 1e6:.0f} µs",
-            "",
-        ),
-        (
-            f'`mode="unrolled"` CG over PETSc implicit, n = {d["unrolled_n"]}, '
-            f"K = {d['unrolled_k']}, forward + backward",
-            f"{d['unrolled_speedup']:.1f}×",
-            targets.get("unrolled_speedup", ""),
-        ),
-    ]
+        ("bridge's extra cost per call / per right-hand side",
+         f"{t['extra_per_call_s'] * 1e6:.0f} µs / {t['extra_per_rhs_s'] * 1e6:.0f} µs", ""),
+        (f'`mode="unrolled"` CG over PETSc implicit, n = {d["unrolled_n"]}, '
+         f"K = {d['unrolled_k']}, forward + backward", f"{d['unrolled_speedup']:.1f}×",
+         target.get("unrolled_speedup", "")),
+    ]  # fmt: skip
     if d.get("handwritten_unrolled_speedup") is not None:
-        rows.append(
-            (
-                "same, against a hand-written torch CG",
-                f"{d['handwritten_unrolled_speedup']:.1f}×",
-                "",
-            )
-        )
-    rows.append(
-        (
-            f"peak memory increase at K = {d['unrolled_k']}: implicit / unrolled",
-            f"{d['implicit_peak_rss_mb']:.2f} MiB / {d['unrolled_peak_rss_mb']:.0f} MiB",
-            "",
-        )
-    )
-    traced = d.get("implicit_traced_peak_vectors")
-    if traced:
-        rows.append(
-            (
-                f"traced peak of one forward + backward on the `ParametricMatrix` (n = "
-                f"{d['n']}), in vectors of n: gradient in b / in b and θ / new θ each call",
-                f"{traced['b']:.1f} / {traced['b_theta']:.1f} / {traced['b_theta_new_theta']:.1f}",
-                "b: a few vectors",
-            )
-        )
+        rows.append(("same, against a hand-written torch CG",
+                     f"{d['handwritten_unrolled_speedup']:.1f}×", ""))  # fmt: skip
+    rows.append((f"peak memory increase at K = {d['unrolled_k']}: implicit / unrolled",
+                 f"{d['implicit_peak_rss_mb']:.2f} MiB / {d['unrolled_peak_rss_mb']:.0f} MiB",
+                 ""))  # fmt: skip
+    if traced := d.get("implicit_traced_peak_vectors"):
+        rows.append((f"traced peak of one forward + backward on the `ParametricMatrix` (n = "
+                     f"{d['n']}), in vectors of n: gradient in b / in b and θ / new θ each call",
+                     " / ".join(f"{traced[key]:.1f}" for key in ("b", "b_theta",
+                                                                 "b_theta_new_theta")),
+                     "b: a few vectors"))  # fmt: skip
     return rows
 
 

@@ -1,29 +1,22 @@
 """GAMG on 3D elasticity: iterations against the mesh, with and without the rigid-body modes.
 
-``prdp-petsc bench elasticity --out DIR`` writes ``DIR/bench_elasticity.json``.  The
-problem: linear elasticity (E = 1, ν = 0.3) on the unit cube of n³ Q1 hexahedra
-(``skfem.MeshHex.init_tensor``, ``ElementVector(ElementHex1())``), clamped on the
-face x = 0 (every component of its nodes eliminated), loaded by its weight
-(−e_z).  Each size runs CG + GAMG to ``--rtol`` (1e-8) in three declarations of
-the same operator:
+``prdp-petsc bench elasticity --out DIR`` writes ``DIR/bench_elasticity.json``.  On
+`clamped_cube` (n³ Q1 hexahedra) for each n of ``--sizes``, CG + GAMG runs to
+``--rtol`` in three declarations of the same operator (`VARIANTS`):
 
 ``scalar``
-    nothing declared: GAMG aggregates the 3(n+1)³ unknowns as unrelated scalars,
-    with the constant as its near-null space;
+    nothing declared: GAMG aggregates the unknowns as unrelated scalars;
 ``block``
-    ``block_size=3`` only (GAMG aggregates nodes, the near-null space is the
-    three translations);
+    ``block_size=3`` (GAMG aggregates nodes; near-null space: the translations);
 ``modes``
-    ``block_size=3`` and the six rigid-body modes of the kept dofs as
-    ``near_nullspace`` (`prdp_petsc.fem.vector.rigid_body_modes`).
+    ``block_size=3`` and the six rigid-body modes as ``near_nullspace``
+    (`prdp_petsc.fem.vector.rigid_body_modes`).
 
-Per row: unknowns, iterations and reason, the time of the first solve (PC set-up +
-solve) and of a second one (solve only), the true relative residual, and the
-relative error of a capped solve at ``--k`` (10) iterations against the converged
-``modes`` solution, which is what a PRDP schedule would meet at small K.
-``growth`` is each declaration's iteration count on the largest mesh over that on the
-smallest; the target for ``modes`` is at most 1.5.  Timings describe one machine and
-are never asserted; one torch thread, PETSc's serial AIJ kernels.
+Each row has the iterations and reason, the set-up time (first solve minus a second),
+the true relative residual, and the relative error of a capped solve at ``--k``
+iterations against the converged ``modes`` solution, what a PRDP schedule meets at
+small K.  ``growth`` is each declaration's iterations on the largest mesh over those
+on the smallest; the target for ``modes`` is at most `TARGET_GROWTH`.
 """
 
 from __future__ import annotations
@@ -31,14 +24,15 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import load_average, machine_info, write_result
+from .benchmarking import stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
+from .problems import clamped_cube
 
 __all__ = ["KIND", "VARIANTS", "format_report", "main", "run"]
 
@@ -48,27 +42,6 @@ logger = logging.getLogger(__name__)
 VARIANTS = ("scalar", "block", "modes")
 #: iterations on the largest mesh over those on the smallest that count as flat
 TARGET_GROWTH = 1.5
-
-
-def _problem(n: int):
-    """(basis, Dirichlet, load on the unknowns) of the clamped unit cube of n³ hexahedra."""
-    import skfem
-    from skfem import LinearForm
-
-    from prdp_petsc import Dirichlet, elasticity_operator
-
-    t = np.linspace(0.0, 1.0, n + 1)
-    basis = skfem.Basis(
-        skfem.MeshHex.init_tensor(t, t, t), skfem.ElementVector(skfem.ElementHex1())
-    )
-    A = elasticity_operator(basis)
-    bc = Dirichlet(A, basis.get_dofs(lambda x: np.isclose(x[0], 0.0)).all())
-
-    @LinearForm
-    def weight(v, w):
-        return -v[2]
-
-    return basis, bc, weight.assemble(basis)[bc.interior]  # the clamp holds u = 0
 
 
 def _declaration(variant: str, basis, bc) -> dict:
@@ -90,23 +63,19 @@ def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
     options = {"ksp_type": "cg", "pc_type": "gamg"}
     rows = []
     for n in sizes:
-        basis, bc, b = _problem(n)
+        basis, bc, b = clamped_cube(n)
         M = bc.A_II.matrix(np.ones(bc.A_II.n_params))
-        reference = None
-        results = {}
+        reference, results = None, {}
         for variant in reversed(VARIANTS):  # modes first: its solution is the reference
             declared = _declaration(variant, basis, bc)
+            structure = Structure(**declared)
             with KSPSolver(
-                options, prefix="elas_", max_it=max_it, rtol=rtol, structure=Structure(**declared)
+                options, prefix="elas_", max_it=max_it, rtol=rtol, structure=structure
             ) as s:
                 s.set_operator(M)
-                t0 = time.perf_counter()
-                info = s.solve(b)
-                first = time.perf_counter() - t0
+                info, first = stopwatch(s.solve, b)
+                second = stopwatch(s.solve, b)[1]
                 x = info.value
-                t0 = time.perf_counter()
-                s.solve(b)
-                second = time.perf_counter() - t0
                 reference = x if reference is None else reference
                 s.rtol, s.max_it = 0.0, k
                 capped = s.solve(b).value
@@ -131,7 +100,7 @@ def run(sizes, *, rtol: float = 1e-8, max_it: int = 2000, k: int = 10) -> dict:
         "benchmark": "elasticity",
         "problem": "3D linear elasticity, E = 1, nu = 0.3, unit cube of n^3 Q1 hexahedra, "
         "clamped at x = 0, weight along -z",
-        "settings": {"ksp_type": "cg", "pc_type": "gamg", "rtol": rtol, "max_it": max_it, "k": k},
+        "settings": {**options, "rtol": rtol, "max_it": max_it, "k": k},
         "sizes": list(sizes),
         "rows": rows,
         "growth": {v: c[-1] / c[0] for v, c in counts.items()},
@@ -190,13 +159,11 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(1)
     try:
         machine = machine_info()
-        t0 = time.perf_counter()
-        result = run(sizes, rtol=args.rtol, k=args.k)
-        result["wall_s"] = time.perf_counter() - t0
+        result, wall = stopwatch(run, sizes, rtol=args.rtol, k=args.k)
     finally:
         torch.set_num_threads(default_threads)
-    machine["load_average_end"] = load_average()
-    result["machine"] = machine
+    result["wall_s"] = wall
+    result["machine"] = {**machine, "load_average_end": load_average()}
     result["settings"]["quick"] = quick
     write_result(args.out, "bench_elasticity.json", result)
     print(format_report(result), end="")

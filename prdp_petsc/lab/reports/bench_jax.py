@@ -1,56 +1,30 @@
 """prdp_petsc against JAX's and lineax's CG: K capped iterations, gradient in b.
 
-``prdp-petsc bench jax --out DIR`` writes ``DIR/bench_jax.json``.  One problem, one
-loss, four implementations, each in a process of its own:
-
-Problem
-    The five-point ``−Δ`` on a side × side grid (`prdp_petsc.laplacian`, Dirichlet;
-    110 × 110 = 12 100 unknowns, 60 060 nonzeros by default), SPD.  Loss
-    ``L(b) = ⟨g, x_K(b)⟩`` with ``x_K`` K = 10 iterations of Jacobi-preconditioned
-    CG from x = 0 in fixed mode (no tolerance, exactly K iterations); what is timed
-    is one forward + backward, i.e. ``∂L/∂b`` (K CG iterations forward and K on the
-    adjoint ``A λ = g``, since A and the preconditioner are symmetric).  float64
-    everywhere, the same matrix, b and g.
+``prdp-petsc bench jax --out DIR`` writes ``DIR/bench_jax.json``.  The problem is
+`five_point` (110 × 110 by default), the loss ``L(b) = ⟨g, x_K(b)⟩`` with ``x_K`` K = 10
+Jacobi-preconditioned CG iterations from x = 0 in fixed mode; what is timed is one
+forward + backward (K iterations forward, K on the adjoint ``A λ = g``), float64, the
+same matrix, b and g everywhere:
 
 ``prdp_petsc``
-    ``pp.solve(A, b, solver)`` with A the scipy CSR matrix and ``solver =
-    pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=K)``, then
-    ``x.backward(g)`` (b a leaf tensor with ``requires_grad``, its ``.grad`` reset
-    before each call); the implicit mode (PETSc ``KSPSolve`` forward, the adjoint
-    as a forward ``KSPSolve``), every safeguard on.
+    ``pp.solve(A, b, solver)`` on the scipy CSR matrix, then ``x.backward(g)``.
 ``jax_cg``
-    ``jax.jit(jax.grad(f))`` with ``f(b) = vdot(g, jax.scipy.sparse.linalg.cg(
-    matvec, b, tol=0, atol=0, maxiter=K, M=lambda r: d⁻¹ * r)[0])``, ``matvec(x) =
-    A_bcoo @ x`` where ``A_bcoo = jax.experimental.sparse.BCOO.from_scipy_sparse(A)``
-    (the general sparse format; BCSR and a ``segment_sum`` closure were slower on
-    the machine this was written on), ``d`` the diagonal of A.  JAX differentiates
-    ``cg`` implicitly (``custom_linear_solve``: the adjoint is a second CG solve),
-    as prdp_petsc does.  Compiled and warmed up before timing; every call ends with
-    ``block_until_ready``.
+    ``jax.jit(jax.grad(f))`` of ``vdot(g, jax.scipy.sparse.linalg.cg(matvec, b, tol=0,
+    atol=0, maxiter=K, M=d⁻¹)[0])``, ``matvec`` a ``BCOO`` product (JAX differentiates
+    ``cg`` implicitly too: the adjoint is a second CG solve).
 ``lineax_cg``
-    ``jax.jit(jax.grad(f))`` with ``f(b) = vdot(g, lx.linear_solve(op, b,
-    lx.CG(rtol=0, atol=0, max_steps=K), options={"preconditioner": P},
-    throw=False).value)``, ``op = lx.FunctionLinearOperator(matvec, ...,
-    tags=[symmetric, positive_semidefinite])`` on the same BCOO product and ``P``
-    the diagonal operator ``d⁻¹`` tagged symmetric and positive semidefinite
-    (``throw=False``: reaching ``max_steps`` is the point, not an error).  lineax
-    differentiates the solve implicitly too.
+    The same through ``lx.linear_solve(op, b, lx.CG(rtol=0, atol=0, max_steps=K),
+    options={"preconditioner": d⁻¹}, throw=False)``, ``op`` a symmetric
+    ``FunctionLinearOperator``.
 ``raw_petsc``
-    The floor: petsc4py ``KSPSolve`` + ``KSPSolve`` (b, then g) on a Mat of A with
-    a bare CG + Jacobi KSP, no torch, no checks, result copied out.
+    The floor: petsc4py ``KSPSolve`` + ``KSPSolve`` (b, then g), no torch, no checks.
 
-Protocol: every implementation runs in its own subprocess, single-threaded
-(``OMP_NUM_THREADS=1``, ``OPENBLAS_NUM_THREADS=1``, ``XLA_FLAGS=
---xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``) and, unless
-``--no-pin``, pinned to the same single CPU (``sched_setaffinity``), so JAX's
-runtime threads cannot run on a second core either.  Each builds its problem,
-checks its gradient against the others, warms up; then ``--rounds`` paired rounds:
-in each round the processes run one after the other (order rotating, never two at
-once), each timing ``--calls`` forward + backward calls and reporting their median.
-The ratios ``jax_cg / prdp_petsc`` etc. are taken within each round and their
-median over rounds is the figure; ``noise`` is their interquartile range over the
-median.  Target: prdp_petsc at least 1.5 times faster than each JAX implementation.
-Never asserted in tests; the numbers describe one machine.
+Each implementation runs in its own single-threaded subprocess (``_THREAD_ENV``), pinned
+to the same CPU unless ``--no-pin``; each checks its gradient against the others and
+warms up, then in ``--rounds`` interleaved rounds each times ``--calls`` calls and
+reports their median.  Ratios are taken within a round; the figure is their median
+over rounds, ``noise`` their interquartile range over it.  Target: prdp_petsc at
+least 1.5 times faster than each JAX implementation.
 """
 
 from __future__ import annotations
@@ -59,17 +33,26 @@ import argparse
 import json
 import logging
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import load_average, versions, write_result
+from .benchmarking import (
+    bench_solver,
+    check_exactly_k,
+    interleaved,
+    ksp_types,
+    raw_ksp,
+    stopwatch,
+    summary,
+)
 from .kinds import DataSet, ReportKind
+from .problems import five_point
 
 __all__ = ["IMPLEMENTATIONS", "KIND", "main"]
 
@@ -89,16 +72,6 @@ _THREAD_ENV = {
 }
 
 
-def problem(side: int, seed: int = 0):
-    """(A, b, g): the SPD five-point ``−Δ`` (scipy CSR) and the loss's b and g."""
-    from prdp_petsc.fem.fd import laplacian
-
-    A = (-laplacian((side, side))).tocsr()
-    A.sort_indices()
-    rng = np.random.default_rng(seed)
-    return A, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
-
-
 def jax_missing() -> str | None:
     """None if jax and lineax import, else the install hint."""
     try:
@@ -109,16 +82,15 @@ def jax_missing() -> str | None:
     return None
 
 
-# -- the implementations (each runs in a worker process) ---------------------------------
+# -- the implementations, each ``(call, check)`` in a worker process -----------------------
 def _prdp_petsc(A, b_np, g_np, k):
     import torch
 
     import prdp_petsc as pp
 
     torch.set_num_threads(1)
-    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=k)
-    b = torch.tensor(b_np, requires_grad=True)
-    g = torch.tensor(g_np)
+    solver = bench_solver("cg", "jacobi", k)
+    b, g = torch.tensor(b_np, requires_grad=True), torch.tensor(g_np)
 
     def call():
         b.grad = None
@@ -126,11 +98,8 @@ def _prdp_petsc(A, b_np, g_np, k):
         return b.grad.numpy()
 
     def check():
-        stats = solver.stats  # every solve of every call, forward and adjoint
-        exact = stats.forward_iterations == k * stats.forward_solves
-        if not exact or stats.adjoint_iterations != k * stats.adjoint_solves:
-            raise RuntimeError("prdp_petsc did not run exactly K iterations")
-        return {"ksp": [solver.ksp.getType(), solver.ksp.getPC().getType()]}
+        check_exactly_k(solver, k)
+        return {"ksp": ksp_types(solver)}
 
     return call, check
 
@@ -140,12 +109,7 @@ def _raw_petsc(A, b_np, g_np, k):
 
     mat = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr, A.indices, A.data))
     mat.assemble()
-    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-    ksp.setType("cg")
-    ksp.getPC().setType("jacobi")
-    ksp.setOperators(mat)
-    ksp.setTolerances(rtol=0.0, atol=0.0, max_it=k)
-    ksp.setUp()
+    ksp = raw_ksp(mat, "cg", "jacobi", k)
     x, rhs = mat.createVecs()
 
     def solve(v):
@@ -166,7 +130,8 @@ def _raw_petsc(A, b_np, g_np, k):
     return call, check
 
 
-def _jax_setup(A, b_np, g_np):
+def _jax_gradient(A, b_np, g_np, k, solve_with):
+    """``(call, check)`` of ``jax.jit(jax.grad(b ↦ ⟨g, solve_with(…)⟩))`` on a BCOO product."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -175,84 +140,61 @@ def _jax_setup(A, b_np, g_np):
 
     A_bcoo = jsparse.BCOO.from_scipy_sparse(A)
     inv_diag = jnp.asarray(1.0 / A.diagonal())
-    return jax, jnp, (lambda x: A_bcoo @ x), inv_diag, jnp.asarray(b_np), jnp.asarray(g_np)
+    b, g = jnp.asarray(b_np), jnp.asarray(g_np)
+    x_of_b, library = solve_with(jax, lambda x: A_bcoo @ x, inv_diag, b, k)
+    grad = jax.jit(jax.grad(lambda b: jnp.vdot(g, x_of_b(b))))
+    return lambda: np.asarray(grad(b).block_until_ready()), lambda: {
+        "matvec": "BCOO @ x",
+        **library,
+    }
 
 
-def _jax_cg(A, b_np, g_np, k):
-    jax, jnp, matvec, inv_diag, b, g = _jax_setup(A, b_np, g_np)
-
-    def loss(b):
-        x, _ = jax.scipy.sparse.linalg.cg(
+def _jax_cg(jax, matvec, inv_diag, b, k):
+    def x_of_b(b):
+        return jax.scipy.sparse.linalg.cg(
             matvec, b, tol=0.0, atol=0.0, maxiter=k, M=lambda r: inv_diag * r
-        )
-        return jnp.vdot(g, x)
+        )[0]
 
-    grad = jax.jit(jax.grad(loss))
-
-    def call():
-        return np.asarray(grad(b).block_until_ready())
-
-    return call, lambda: {"matvec": "BCOO @ x", "jax": jax.__version__}
+    return x_of_b, {"jax": jax.__version__}
 
 
-def _lineax_cg(A, b_np, g_np, k):
-    jax, jnp, matvec, inv_diag, b, g = _jax_setup(A, b_np, g_np)
+def _lineax_cg(jax, matvec, inv_diag, b, k):
     import lineax as lx
 
     tags = (lx.symmetric_tag, lx.positive_semidefinite_tag)
     op = lx.FunctionLinearOperator(matvec, jax.ShapeDtypeStruct(b.shape, b.dtype), tags=tags)
-    precond = lx.TaggedLinearOperator(lx.DiagonalLinearOperator(inv_diag), tags)
+    options = {"preconditioner": lx.TaggedLinearOperator(lx.DiagonalLinearOperator(inv_diag), tags)}
     solver = lx.CG(rtol=0.0, atol=0.0, max_steps=k)
 
-    def loss(b):
-        sol = lx.linear_solve(op, b, solver, options={"preconditioner": precond}, throw=False)
-        return jnp.vdot(g, sol.value)
+    def x_of_b(b):
+        return lx.linear_solve(op, b, solver, options=options, throw=False).value
 
-    grad = jax.jit(jax.grad(loss))
-
-    def call():
-        return np.asarray(grad(b).block_until_ready())
-
-    return call, lambda: {"matvec": "BCOO @ x", "lineax": lx.__version__}
+    return x_of_b, {"lineax": lx.__version__}
 
 
 _BUILDERS = {
     "prdp_petsc": _prdp_petsc,
     "raw_petsc": _raw_petsc,
-    "jax_cg": _jax_cg,
-    "lineax_cg": _lineax_cg,
+    "jax_cg": lambda *a: _jax_gradient(*a, _jax_cg),
+    "lineax_cg": lambda *a: _jax_gradient(*a, _lineax_cg),
 }
 
 
 def _worker(spec_json: str) -> None:
-    """Worker process: build one implementation, then answer the parent's commands.
-
-    stdin lines: ``run N`` (time N forward + backward calls; reply their times) or
-    ``quit``.  The first reply reports the set-up (and the gradient, saved to
-    ``spec["grad_path"]``) after the warm-up.
-    """
+    """Worker process: build one implementation, save its gradient, report its set-up,
+    then answer ``run N`` on stdin (time N calls) until ``quit``."""
     spec = json.loads(spec_json)
     if spec.get("cpu") is not None and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {int(spec["cpu"])})
-    A, b_np, g_np = problem(int(spec["side"]))
-    t0 = time.perf_counter()
-    call, check = _BUILDERS[spec["impl"]](A, b_np, g_np, int(spec["k"]))
-    grad = call()  # compiles (JAX) or sets up (PETSc)
-    setup_s = time.perf_counter() - t0
+    A, b_np, g_np = five_point(int(spec["side"]))
+    (call, check), t_build = stopwatch(_BUILDERS[spec["impl"]], A, b_np, g_np, int(spec["k"]))
+    grad, t_first = stopwatch(call)  # compiles (JAX) or sets up (PETSc)
     for _ in range(int(spec["warmup"])):
         call()
     np.save(spec["grad_path"], grad)
-    _reply({"ready": True, "setup_s": setup_s, "info": check(), "pid": os.getpid()})
-    while True:
-        command = sys.stdin.readline().split()
-        if not command or command[0] == "quit":
-            break
-        times = []
-        for _ in range(int(command[1])):
-            t = time.perf_counter()
-            call()
-            times.append(time.perf_counter() - t)
-        _reply({"times": times})
+    _reply({"ready": True, "setup_s": t_build + t_first, "info": check(), "pid": os.getpid()})
+    while (command := sys.stdin.readline().split()) and command[0] != "quit":
+        _reply({"times": [stopwatch(call)[1] for _ in range(int(command[1]))]})
 
 
 def _reply(message: dict) -> None:
@@ -264,9 +206,7 @@ class _Worker:
     """The parent's handle on one worker process."""
 
     def __init__(self, impl: str, spec: dict):
-        code = (
-            "import sys; from prdp_petsc.lab.reports.bench_jax import _worker; _worker(sys.argv[1])"
-        )
+        code = f"import sys; from {__name__} import _worker; _worker(sys.argv[1])"
         self.impl = impl
         self.proc = subprocess.Popen(
             [sys.executable, "-c", code, json.dumps({**spec, "impl": impl})],
@@ -298,13 +238,10 @@ class _Worker:
                 self.proc.kill()
 
 
-def bench_jax(
-    side: int, k: int, rounds: int, calls: int, warmup: int, impls=IMPLEMENTATIONS, pin=True
-) -> dict:
+def bench_jax(side, k, rounds, calls, warmup, impls=IMPLEMENTATIONS, pin=True) -> dict:
     """Run the comparison; return a JSON-ready dict (see the module notes)."""
-    cpu = None
-    if pin and hasattr(os, "sched_getaffinity"):
-        cpu = min(os.sched_getaffinity(0))
+    pinned = hasattr(os, "sched_getaffinity") and pin
+    cpu = min(os.sched_getaffinity(0)) if pinned else None
     with tempfile.TemporaryDirectory() as tmp:
         spec = {"side": side, "k": k, "warmup": warmup, "cpu": cpu}
         workers, setup = {}, {}
@@ -313,26 +250,19 @@ def bench_jax(
                 workers[impl] = _Worker(impl, {**spec, "grad_path": f"{tmp}/{impl}.npy"})
                 setup[impl] = workers[impl].read()
             grads = {impl: np.load(f"{tmp}/{impl}.npy") for impl in impls}
-            t = {impl: [] for impl in impls}
-            for r in range(rounds):
-                order = list(impls[r % len(impls) :] + impls[: r % len(impls)])
-                if r % 2:
-                    order.reverse()
-                for impl in order:
-                    t[impl].append(workers[impl].run(calls))
+            steps = {impl: (lambda w=w: w.run(calls)) for impl, w in workers.items()}
+            t = interleaved(steps, rounds, 0)
         finally:
             for w in workers.values():
                 w.close()
-    ref = grads[impls[0]]
-    scale = float(np.abs(ref).max())
-    med = {impl: np.array([statistics.median(times) for times in t[impl]]) for impl in impls}
-    ratios = {}
-    for impl in impls[1:]:
-        if impl != "raw_petsc":
-            ratios[f"{impl}/{impls[0]}"] = _summary(med[impl] / med[impls[0]])
-    if "raw_petsc" in impls and impls[0] != "raw_petsc":
-        ratios[f"{impls[0]}/raw_petsc"] = _summary(med[impls[0]] / med["raw_petsc"])
-    A, _, _ = problem(side)
+    first = impls[0]
+    med = {impl: np.median(t[impl], axis=1) for impl in impls}  # per round
+    ratios = {f"{impl}/{first}": summary(med[impl] / med[first])
+              for impl in impls[1:] if impl != "raw_petsc"}  # fmt: skip
+    if "raw_petsc" in impls[1:]:
+        ratios[f"{first}/raw_petsc"] = summary(med[first] / med["raw_petsc"])
+    scale = float(np.abs(grads[first]).max())
+    A = five_point(side)[0]
     return {
         "problem": f"-laplacian({side}x{side}), 5-point FD, Dirichlet, SPD; "
         "L(b) = <g, x_K(b)>, gradient wrt b",
@@ -344,7 +274,7 @@ def bench_jax(
         "ratios": ratios,
         "median_s": {impl: float(np.median(med[impl])) for impl in impls},
         "gradient_rel_diff": {
-            impl: float(np.abs(grads[impl] - ref).max() / scale) for impl in impls[1:]
+            impl: float(np.abs(grads[impl] - grads[first]).max() / scale) for impl in impls[1:]
         },
         "setup": setup,
         "round_medians_s": {impl: med[impl].tolist() for impl in impls},
@@ -353,18 +283,13 @@ def bench_jax(
     }
 
 
-def _summary(r: np.ndarray) -> dict:
-    q1, q2, q3 = np.percentile(r, [25, 50, 75])
-    return {"median": float(q2), "q1": float(q1), "q3": float(q3), "noise": float((q3 - q1) / q2)}
-
-
 def format_report(d: dict) -> str:
     """The printed summary of a `bench_jax` result."""
+    load = ", ".join(f"{x:.2f}" for x in d["load_average"]["start"] or [])
     lines = [
         f"{d['problem']}; n = {d['n']}, nnz = {d['nnz']}, K = {d['k']}",
         f"{d['settings']['rounds']} rounds x {d['settings']['calls']} calls per process; "
-        f"CPU pinned: {d['cpu_pinned']}; load average at start "
-        f"{', '.join(f'{x:.2f}' for x in d['load_average']['start'] or [])}",
+        f"CPU pinned: {d['cpu_pinned']}; load average at start {load}",
         "",
         f"{'implementation':<12} {'fwd+bwd (median)':>18}  {'gradient vs prdp_petsc':>22}",
     ]
@@ -379,8 +304,6 @@ def format_report(d: dict) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from ..cli.arguments import add_debug, add_size_preset, positive
-
     p = argparse.ArgumentParser(prog="prdp-petsc bench jax", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for bench_jax.json")
     p.add_argument("--side", type=positive, default=110, help="grid side (110: 12 100 unknowns)")
@@ -405,8 +328,7 @@ def main(argv: list[str]) -> int:
     if quick:
         side, rounds, calls, warmup = min(side, 20), 3, 3, 2
     load = load_average()
-    t0 = time.perf_counter()
-    result = bench_jax(side, args.k, rounds, calls, warmup, pin=not args.no_pin)
+    result, wall = stopwatch(bench_jax, side, args.k, rounds, calls, warmup, pin=not args.no_pin)
     result = {
         "benchmark": "jax",
         **result,
@@ -426,7 +348,7 @@ def main(argv: list[str]) -> int:
         "versions": versions("jax", "jaxlib", "lineax", "equinox"),
         "load_average": {"start": load, "end": load_average()},
         "cpu_count": os.cpu_count(),
-        "wall_s": time.perf_counter() - t0,
+        "wall_s": wall,
     }
     write_result(args.out, "bench_jax.json", result)
     print(format_report(result), end="")

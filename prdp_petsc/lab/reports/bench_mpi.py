@@ -4,30 +4,23 @@
 ``--ranks`` (default 1 and 2) and writes ``DIR/bench_mpi.json`` with
 
 ``solve``
-    A capped CG solve of one implicit heat step ``(M + Δt K(κ)) u¹ = M u⁰`` on the
-    refined tetrahedral ``box3d`` mesh (κ per element, the operator a
-    `ParametricMatrix`), forward and backward (adjoint solve and ∂L/∂κ) through
-    `prdp_petsc.solve` on a solver living on ``COMM_WORLD``: the median time of
-    each, the speed-up over one rank, and the memory per rank: peak resident
-    memory, the PETSc Mat's share (this rank's rows) and the replicated arrays
-    every rank holds (the assembly map G, the CSR operator and the solver's copy
-    of its values, the full vectors).
+    A capped CG + Jacobi solve of one implicit heat step ``(M + Δt K(κ)) u¹ = M u⁰``
+    (κ per element) on the refined tetrahedral ``box3d`` mesh, or with ``--cube N`` the
+    unit cube of N³ points, forward and backward (adjoint and ∂L/∂κ) through
+    `prdp_petsc.solve` on ``COMM_WORLD``: median times, speed-up over one rank, and per
+    rank the peak resident memory, the PETSc Mat's share and the arrays it holds.
+    ``--layout replicated`` assembles the whole operator on every rank; ``owned`` has
+    rank 0 split the mesh (`prdp_petsc.fem.partition`) and every rank assemble and
+    hold its own piece (`prdp_petsc.fem.distributed`).
 ``epoch``
-    Training epochs of the scene SCENE_FILE (default ``demos/heat3d.py``, ``--preset``
-    ``paper``, at its K_full = 96) under ``--parallel domain`` and ``--parallel batch``; the median
-    epoch wall time after the first (warm-up) epoch, and the speed-up.  ``--epochs 0``
-    leaves it out.
+    Training epochs of SCENE_FILE (default ``demos/heat3d.py``) serial, under
+    ``--parallel domain`` and ``--parallel batch``: the median epoch time after the
+    first, and the speed-up.  ``--epochs 0`` leaves it out.
 
-``--layout`` picks how the solve benchmark holds its data (`prdp_petsc.core.parallel`):
-``replicated`` (default) assembles the whole operator on every rank; ``owned`` has rank
-0 build and split the mesh (METIS, `prdp_petsc.fem.partition`), every rank assemble its
-own piece (`prdp_petsc.fem.distributed`) and hold its own rows, with the misfit summed
-over the ranks.  ``--cube N`` replaces ``box3d`` by the tetrahedral unit cube with N
-points per axis (``skfem.MeshTet.init_tensor``: N³ unknowns; N = 101 gives 1 030 301).
-
-``--preset quick`` runs tiny sizes with the scene's quick preset (a smoke test).
-Timings are only meaningful on an otherwise idle machine, with one torch thread
-per rank (set here); the record includes the load average.
+The page of an owned record adds `scaling_model`, a model of memory and halo traffic
+beyond the ranks measured.  ``--preset quick`` runs tiny sizes (a smoke test); timings
+mean something only on an idle machine (one torch thread per rank; the record has the
+load average).
 """
 
 from __future__ import annotations
@@ -45,12 +38,22 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
-from ..provenance import machine_info
+from ..provenance import machine_info, write_result
+from ..subprocesses import child_env
+from .benchmarking import interleaved, stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb
-from .scaling import format_scaling_model, scaling_model
+from .problems import mean_edge_length, warm_spot
 
-__all__ = ["KIND", "format_report", "main", "parse_arguments"]
+__all__ = [
+    "KIND",
+    "MODEL_RANKS",
+    "format_report",
+    "format_scaling_model",
+    "main",
+    "parse_arguments",
+    "scaling_model",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +63,8 @@ MPI_ENV = {
     "OMPI_MCA_rmaps_base_oversubscribe": "1",
     "OMP_NUM_THREADS": "1",
 }
+#: rank counts the scaling model extrapolates to
+MODEL_RANKS = (64, 256, 1024)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -115,14 +120,13 @@ def _mat_mb(mat) -> float:
     return (nonzeros * (8 + index) + (mat.getLocalSize()[0] + 1) * index) / 2**20
 
 
-def _distinct_nbytes(arrays) -> int:
-    """Bytes of `arrays`, each memory block counted once."""
-    counted, total = [], 0
+def _distinct_mb(arrays) -> float:
+    """MB of `arrays`, each memory block counted once."""
+    counted = []
     for a in arrays:
         if a is not None and not any(np.shares_memory(a, c) for c in counted):
             counted.append(a)
-            total += a.nbytes
-    return total
+    return sum(a.nbytes for a in counted) / 2**20
 
 
 def _mesh(args):
@@ -137,178 +141,96 @@ def _mesh(args):
     return load_mesh("box3d", args.refine)
 
 
-def _u0(points: np.ndarray) -> np.ndarray:
-    x, y, z = points
-    return np.exp(-20 * ((x - 0.3) ** 2 + (y - 0.6) ** 2 + (z - 0.5) ** 2))
-
-
-def _timed(comm, repeats: int, forward, backward) -> tuple[list, list]:
-    """Times of `forward` and `backward` (its output in), each between barriers."""
-    fwd, bwd = [], []
-    for _ in range(repeats + 1):  # the first: warm-up (Mat creation, PC set-up)
-        comm.barrier()
-        t0 = time.perf_counter()
-        out = forward()
-        comm.barrier()
-        t1 = time.perf_counter()
-        backward(out)
-        comm.barrier()
-        fwd.append(t1 - t0)
-        bwd.append(time.perf_counter() - t1)
-    return fwd, bwd
-
-
 def _solve_worker(args) -> dict:
-    return _owned_solve_worker(args) if args.layout == "owned" else _replicated_solve_worker(args)
-
-
-def _replicated_solve_worker(args) -> dict:
+    """Time the heat step's solve on this rank's share, in ``args.layout``; measure memory."""
     import torch
     from petsc4py import PETSc
     from skfem import Basis, ElementTetP1
 
     import prdp_petsc as pp
-    from prdp_petsc.lab.reports.problems import mean_edge_length
 
     torch.set_num_threads(1)
     comm = PETSc.COMM_WORLD
+    owned = args.layout == "owned"
     t0 = time.perf_counter()
-    mesh = _mesh(args)
+    record = {"layout": args.layout}
+    if owned:  # rank 0 builds and splits the mesh; every rank keeps its own piece
+        from prdp_petsc.autograd.owned import sum_over_ranks
+        from prdp_petsc.fem.distributed import DistributedParametricMatrix
+        from prdp_petsc.fem.partition import PartitionedMesh
+
+        world = comm.tompi4py()
+        mesh = _mesh(args) if comm.getRank() == 0 else None
+        dt = world.bcast(10.0 * mean_edge_length(mesh) ** 2 if mesh is not None else None, root=0)
+        part = PartitionedMesh.distribute(mesh, comm)
+        mesh, rows = part.mesh, part.owned_vertices  # owned rows are complete: M u0 is exact
+        record["partition_s"] = time.perf_counter() - t0
+    else:
+        mesh = _mesh(args)
+        dt, rows = 10.0 * mean_edge_length(mesh) ** 2, None  # Δt κ / h² = 10
     basis = Basis(mesh, ElementTetP1())
-    dt = 10.0 * mean_edge_length(mesh) ** 2  # Δt κ / h² = 10
-    A = dt * pp.diffusion_operator(basis) + pp.mass_matrix(basis)
-    u0 = _u0(mesh.p)
-    b = torch.from_numpy(pp.mass_matrix(basis) @ u0)
-    assembly = time.perf_counter() - t0
-    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
-    target = torch.from_numpy(u0)
-    solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=args.k, comm=comm)
-
-    def backward(u):
-        (0.5 * ((u - target) ** 2).sum()).backward()
-        theta.grad = None
-
-    forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),
-                               backward)  # fmt: skip
-    sol = pp.solve(A, b, solver, theta=theta, return_solution=True)
-    u = sol.value
-    mat = solver.mat
-    replicated = _distinct_nbytes(
-        [A.indptr, A.indices, A.a0, A.G.data, A.G.indices, A.G.indptr]
-        + [A.values(theta.detach().numpy()), *solver.host_arrays()]
-        + [b.numpy(), u.detach().numpy()]
-    )
-    return {
-        "layout": "replicated",
-        "unknowns": int(A.shape[0]),
-        "nnz": int(A.nnz),
-        "parameters": int(A.n_params),
-        "k": args.k,
-        "iterations": sol.iterations,
-        "assembly_s": assembly,
-        "forward_s": float(np.median(forward[1:])),
-        "backward_s": float(np.median(backward[1:])),
-        "rows_per_rank": mat.getLocalSize()[0],
-        "petsc_mat_mb_per_rank": _mat_mb(mat),
-        "replicated_arrays_mb_per_rank": replicated / 2**20,
-        "peak_rss_mb_per_rank": peak_rss_mb(),
-    }
-
-
-def _owned_solve_worker(args) -> dict:
-    """The solve of `_replicated_solve_worker` in the owned layout: rank 0 builds and
-    splits the mesh, every rank assembles and holds its own piece only."""
-    import torch
-    from petsc4py import PETSc
-    from skfem import Basis, ElementTetP1
-
-    import prdp_petsc as pp
-    from prdp_petsc.autograd.owned import sum_over_ranks
-    from prdp_petsc.fem.distributed import DistributedParametricMatrix
-    from prdp_petsc.fem.partition import PartitionedMesh
-    from prdp_petsc.lab.reports.problems import mean_edge_length
-
-    torch.set_num_threads(1)
-    comm = PETSc.COMM_WORLD
-    world = comm.tompi4py()
-    t0 = time.perf_counter()
-    mesh = _mesh(args) if comm.getRank() == 0 else None
-    dt = world.bcast(10.0 * mean_edge_length(mesh) ** 2 if mesh is not None else None, root=0)
-    part = PartitionedMesh.distribute(mesh, comm)
-    del mesh
-    partition = time.perf_counter() - t0
-    basis = Basis(part.mesh, ElementTetP1())
     M = pp.mass_matrix(basis)
-    A = DistributedParametricMatrix.from_local(dt * pp.diffusion_operator(basis) + M, part)
-    u0 = _u0(part.mesh.p)
-    rows = part.owned_vertices  # the owned rows are complete: M u0 on them is exact
-    b = torch.from_numpy((M @ u0)[:rows])
-    target = torch.from_numpy(u0[:rows])
+    A = dt * pp.diffusion_operator(basis) + M
+    u0 = warm_spot(mesh.p)
+    b, target = torch.from_numpy((M @ u0)[:rows]), torch.from_numpy(u0[:rows])
     del M
-    assembly = time.perf_counter() - t0
+    if owned:
+        A = DistributedParametricMatrix.from_local(A, part)
+    P = A.local if owned else A  # the operator this rank holds
+    held = [P.indptr, P.indices, P.a0, P.G.data, P.G.indices, P.G.indptr]
+    held += [P.rows] if owned else []
+    record["assembly_s"] = time.perf_counter() - t0
     theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
     solver = pp.KSPSolver({"ksp_type": "cg", "pc_type": "jacobi"}, max_it=args.k, comm=comm)
 
-    def backward(u):
-        sum_over_ranks(0.5 * ((u - target) ** 2).sum(), comm).backward()
+    def step() -> dict:
+        comm.barrier()
+        u, forward = stopwatch(pp.solve, A, b, solver, theta=theta)
+        comm.barrier()
+        loss = 0.5 * ((u - target) ** 2).sum()
+        _, backward = stopwatch((sum_over_ranks(loss, comm) if owned else loss).backward)
+        comm.barrier()
         theta.grad = None
+        return {"forward": forward, "backward": backward}
 
-    forward, backward = _timed(comm, args.repeats, lambda: pp.solve(A, b, solver, theta=theta),
-                               backward)  # fmt: skip
+    times = interleaved({"solve": step}, args.repeats, 1)  # the warm-up: Mat, PC set-up
     sol = pp.solve(A, b, solver, theta=theta, return_solution=True)
-    u = sol.value
-    mat = solver.mat
-    P = A.local
-    local = _distinct_nbytes(
-        [P.indptr, P.indices, P.a0, P.G.data, P.G.indices, P.G.indptr, P.rows]
-        + [A.values(theta.detach().numpy()), *solver.host_arrays()]
-        + [b.numpy(), u.detach().numpy(), target.numpy()]
+    held += [A.values(theta.detach().numpy()), *solver.host_arrays(), b.numpy()]
+    held += [sol.value.detach().numpy()] + ([target.numpy()] if owned else [])
+    record.update(
+        unknowns=int(A.shape[0]),
+        nnz=comm.tompi4py().allreduce(int(P.nnz)) if owned else int(P.nnz),
+        parameters=int(A.params.size if owned else A.n_params),
+        k=args.k,
+        iterations=sol.iterations,
+        forward_s=float(np.median(times["forward"])),
+        backward_s=float(np.median(times["backward"])),
+        rows_per_rank=solver.mat.getLocalSize()[0],
+        petsc_mat_mb_per_rank=_mat_mb(solver.mat),
+        peak_rss_mb_per_rank=peak_rss_mb(),
     )
-    nnz = world.allreduce(int(P.nnz))
-    return {
-        "layout": "owned",
-        "unknowns": int(A.shape[0]),
-        "nnz": nnz,
-        "parameters": int(A.params.size),
-        "k": args.k,
-        "iterations": sol.iterations,
-        "partition_s": partition,
-        "assembly_s": assembly,
-        "forward_s": float(np.median(forward[1:])),
-        "backward_s": float(np.median(backward[1:])),
-        "rows_per_rank": mat.getLocalSize()[0],
-        "owned_elements_per_rank": int(part.owned_elements),
-        # the halo: what one ghost exchange moves into this rank (vertex values for x,
-        # λ; element values for θ and, reversed, for ∂L/∂θ)
-        "ghost_vertices_per_rank": int(len(part.vertices.ghosts)),
-        "ghost_elements_per_rank": int(len(part.elements.ghosts)),
-        "petsc_mat_mb_per_rank": _mat_mb(mat),
-        "owned_arrays_mb_per_rank": local / 2**20,
-        "peak_rss_mb_per_rank": peak_rss_mb(),
-    }
+    record[f"{args.layout}_arrays_mb_per_rank"] = _distinct_mb(held)
+    if owned:  # the halo: what one ghost exchange moves into this rank
+        record["owned_elements_per_rank"] = int(part.owned_elements)
+        record["ghost_vertices_per_rank"] = int(len(part.vertices.ghosts))
+        record["ghost_elements_per_rank"] = int(len(part.elements.ghosts))
+    return record
 
 
 def _epoch_worker(args) -> dict:
     from prdp_petsc.lab.training.harness import run
 
     mode = None if args.mode == "serial" else args.mode
-    result = run(
-        args.scene,
-        args.schedule,
-        preset=args.preset,
-        epochs=args.epochs,
-        progress=False,
-        threads=1,
-        parallel=mode,
-    )
-    walls = [e["wall_time"] for e in result["epochs"]]
+    result = run(args.scene, args.schedule, preset=args.preset, epochs=args.epochs,
+                 progress=False, threads=1, parallel=mode)  # fmt: skip
     if result["stopped"]:
         raise RuntimeError(f"the epoch run stopped: {result['stopped']}")
+    after_first = result["epochs"][1:] or result["epochs"]
     return {
         "scene": Path(args.scene).stem,
         "preset": args.preset,
         "schedule": args.schedule,
-        "epoch_s": float(np.median(walls[1:] or walls)),
+        "epoch_s": float(np.median([e["wall_time"] for e in after_first])),
         "solver_s": float(np.median([e["solver_time"] for e in result["epochs"][1:]] or [0])),
         "val_metric": result["epochs"][-1]["val_metric"],
         "peak_rss_mb_per_rank": peak_rss_mb(),
@@ -337,20 +259,13 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
         cmd += ["--cube", str(args.cube), "--layout", args.layout]
         cmd += ["--k", str(args.k), "--repeats", str(args.repeats), args.scene]
         cmd += ["--preset", args.preset, "--schedule", args.schedule, "--epochs", str(args.epochs)]
-        if mode:
-            cmd += ["--mode", mode]
+        cmd += ["--mode", mode] if mode else []
         logger.info("running %s", " ".join(cmd))
-        from prdp_petsc.lab.subprocesses import child_env
-
-        env = child_env(MPI_ENV)  # without this process's own MPI runtime variables
-        # a timeout: a rank that failed alone could leave the others waiting
-        subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, timeout=args.timeout)
+        # without this process's own MPI runtime variables; a timeout: a rank that
+        # failed alone could leave the others waiting
+        subprocess.run(cmd, check=True, env=child_env(MPI_ENV), stdout=subprocess.DEVNULL,
+                       timeout=args.timeout)  # fmt: skip
         return json.loads(record.read_text())
-
-
-def _speedups(records: dict, key: str) -> dict:
-    base = records["1"][key]
-    return {p: base / r[key] for p, r in records.items()}
 
 
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
@@ -377,9 +292,9 @@ def main(argv: list[str]) -> int:
     if 1 not in ranks:
         ranks.insert(0, 1)
     solve = {str(p): _launch(args, p, "solve") for p in ranks}
-    for key in ("forward_s", "backward_s"):
-        for p, s in _speedups(solve, key).items():
-            solve[p][f"speedup_{key[:-2]}"] = s
+    for r in solve.values():
+        for side in ("forward", "backward"):
+            r[f"speedup_{side}"] = solve["1"][f"{side}_s"] / r[f"{side}_s"]
     epoch = {}
     if args.epochs > 0:
         epoch = {"1": _launch(args, 1, "epoch", "serial")}
@@ -397,9 +312,7 @@ def main(argv: list[str]) -> int:
         "solve": solve,
         "epoch": epoch,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_mpi.json"
-    path.write_text(json.dumps(result, indent=1))
+    path = write_result(args.out, "bench_mpi.json", result)
     print(format_report(result))
     print(f"written {path}")
     return 0
@@ -410,12 +323,6 @@ def format_report(result: dict) -> str:
     solve = result["solve"]
     first = next(iter(solve.values()))
     layout = result.get("layout", "replicated")
-    mesh = result.get("mesh", "box3d")
-    lines = [
-        f"3D solve: {mesh} P1, {first['unknowns']} unknowns, CG + Jacobi, K = {first['k']}, "
-        f"{layout} layout",
-        "",
-    ]
     header = ["ranks", "forward s", "backward s", "speed-up fwd / bwd", "rows per rank"]
     header += ["PETSc Mat MB per rank", f"{layout} arrays MB per rank", "peak RSS MB per rank"]
     rows = []
@@ -425,28 +332,100 @@ def format_report(result: dict) -> str:
                      f"{r['speedup_forward']:.2f} / {r['speedup_backward']:.2f}",
                      ", ".join(map(str, r["rows_per_rank"])), _mb(r["petsc_mat_mb_per_rank"]),
                      _mb(arrays), _mb(r["peak_rss_mb_per_rank"])))  # fmt: skip
-    lines.append(markdown_table(header, rows))
-    epoch = result["epoch"]
-    if not epoch:
-        return "\n".join(lines)
-    first = epoch["1"]
-    lines += [
+    lines = [
+        f"3D solve: {result.get('mesh', 'box3d')} P1, {first['unknowns']} unknowns, CG + "
+        f"Jacobi, K = {first['k']}, {layout} layout",
         "",
-        f"Training epoch: {first['scene']} {first['preset']}, {first['schedule']}",
-        "",
+        markdown_table(header, rows),
     ]
-    header = ["run", "epoch s", "solver s", "speed-up", "val metric", "peak RSS MB per rank"]
-    rows = [
-        (name, f"{r['epoch_s']:.3f}", f"{r['solver_s']:.3f}", f"{r['speedup']:.2f}",
-         f"{r['val_metric']:.6g}", _mb(r["peak_rss_mb_per_rank"]))
-        for name, r in epoch.items()
-    ]  # fmt: skip
-    return "\n".join([*lines, markdown_table(header, rows)])
+    if epoch := result["epoch"]:
+        first = epoch["1"]
+        header = ["run", "epoch s", "solver s", "speed-up", "val metric", "peak RSS MB per rank"]
+        rows = [
+            (name, f"{r['epoch_s']:.3f}", f"{r['solver_s']:.3f}", f"{r['speedup']:.2f}",
+             f"{r['val_metric']:.6g}", _mb(r["peak_rss_mb_per_rank"]))
+            for name, r in epoch.items()
+        ]  # fmt: skip
+        lines += ["", f"Training epoch: {first['scene']} {first['preset']}, {first['schedule']}"]
+        lines += ["", markdown_table(header, rows)]
+    return "\n".join(lines)
 
 
 def _mb(values) -> str:
     """Megabytes per rank: ``"310, 295"``."""
     return ", ".join(f"{m:.0f}" for m in values)
+
+
+# -- beyond the ranks measured: a model ---------------------------------------------------------
+def scaling_model(result: dict, ranks=MODEL_RANKS) -> dict | None:
+    """A model (not a measurement) of memory and halo traffic per rank at `ranks`,
+    fitted to an owned-layout record with two or more rank counts; None otherwise.
+
+    memory
+        ``peak(P) = base + per_unknown · N / P``, least squares over the measured
+        ranks of the largest peak but rank 0's (it also read and partitioned the
+        mesh; ``rank0_mb`` is how far above the others it was at the largest P).
+    halo
+        Ghost vertices per rank ``g(P) = c · (N / P)^(2/3)`` (the surface of a
+        compact 3D part), c fitted on P ≥ 2; one CG iteration moves 8·g bytes into
+        each rank.
+
+    ``rows`` holds, per P, the predicted peak, ghost vertices and halo per iteration at
+    the measured N (strong scaling) and at N·P (weak scaling: ``weak_…``).
+    """
+    measured = {int(p): r for p, r in result.get("solve", {}).items() if r.get("layout") == "owned"}
+    if len(measured) < 2 or not all("ghost_vertices_per_rank" in r for r in measured.values()):
+        return None
+    n = next(iter(measured.values()))["unknowns"]
+    ps = sorted(measured)
+    peaks = [max(measured[p]["peak_rss_mb_per_rank"][1:] or measured[p]["peak_rss_mb_per_rank"])
+             for p in ps]  # fmt: skip
+    slope, base = np.polyfit([n / p for p in ps], peaks, 1)
+    c = float(np.mean([max(measured[p]["ghost_vertices_per_rank"]) / (n / p) ** (2 / 3)
+                       for p in ps if p > 1]))  # fmt: skip
+    top = measured[ps[-1]]["peak_rss_mb_per_rank"]
+    rows = {
+        str(p): {
+            "peak_mb_per_rank": float(base + slope * n / p),
+            "ghost_vertices_per_rank": c * (n / p) ** (2 / 3),
+            "halo_kb_per_iteration": 8 * c * (n / p) ** (2 / 3) / 1024,
+            "weak_unknowns": n * p,
+            "weak_peak_mb_per_rank": float(base + slope * n),
+            "weak_halo_kb_per_iteration": 8 * c * n ** (2 / 3) / 1024,
+        }
+        for p in ranks
+    }
+    return {
+        "unknowns": n,
+        "measured_ranks": ps,
+        "base_mb": float(base),
+        "mb_per_unknown": float(slope),
+        "halo_coefficient": c,
+        "rank0_mb": float(top[0] - max(top[1:] or top)) if len(top) > 1 else 0.0,
+        "rows": rows,
+    }
+
+
+def format_scaling_model(model: dict) -> str:
+    """The scaling model as a Markdown table, labelled as a model."""
+    header = ["ranks P", "N", "peak MB per rank", "ghost vertices per rank"]
+    header += ["halo kB per CG iteration", "weak scaling: N", "peak MB per rank"]
+    header += ["halo kB per iteration"]
+    rows = [
+        (p, model["unknowns"], f"{r['peak_mb_per_rank']:.0f}",
+         f"{r['ghost_vertices_per_rank']:.0f}", f"{r['halo_kb_per_iteration']:.1f}",
+         f"{r['weak_unknowns']:.3g}", f"{r['weak_peak_mb_per_rank']:.0f}",
+         f"{r['weak_halo_kb_per_iteration']:.1f}")
+        for p, r in model["rows"].items()
+    ]  # fmt: skip
+    return (
+        f"Model (not measured), fitted to P = {', '.join(map(str, model['measured_ranks']))} "
+        f"at N = {model['unknowns']} unknowns: peak per rank = {model['base_mb']:.0f} MB + "
+        f"{1e3 * model['mb_per_unknown']:.2f} kB × N/P; ghost vertices per rank = "
+        f"{model['halo_coefficient']:.2f} × (N/P)^(2/3); rank 0's peak was "
+        f"{model['rank0_mb']:.0f} MB above the other ranks' (it also read and partitioned "
+        f"the whole mesh).\n\n{markdown_table(header, rows)}"
+    )
 
 
 # -- the page of a recorded ``bench mpi`` ---------------------------------------------------------

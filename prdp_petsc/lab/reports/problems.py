@@ -1,23 +1,23 @@
 """Standard linear test problems built from the library, for benchmarks and tests.
 
-Each problem is a parametric operator ``A(θ)`` on the unknowns (Dirichlet degrees of
-freedom already eliminated), a right-hand side ``b``, reference parameters θ and a
-data-misfit loss, so that forward errors and gradients ``∂L/∂θ`` can be measured
-against a direct solve:
+The `Problem` set (`PROBLEMS`, by name) is a parametric operator ``A(θ)`` on the
+unknowns (Dirichlet degrees of freedom eliminated), a right-hand side and the loss
+``L(x) = ‖x − d‖² / (2n)`` with data ``d`` the solution for a smoothly perturbed
+coefficient, so that forward errors and gradients ``∂L/∂θ`` can be measured against
+a direct solve:
 
 ``poisson``
-    ``−∇·(κ∇u) = 1`` on ``plate_holes`` (a plate with three holes, the finest shipped
-    2D mesh), ``u = 0`` on every boundary; P1 elements, κ per element (θ).
+    ``−∇·(κ∇u) = 1`` on ``plate_holes``, ``u = 0`` on every boundary; P1, κ per element.
 ``heat3d``
     One backward-Euler step ``(M + Δt K(κ)) u¹ = M u⁰`` on the tetrahedral ``box3d``
-    mesh, insulated walls (natural boundary condition); κ per element.
+    mesh, insulated walls; κ per element.
 ``advection``
-    ``−∇·(ε∇u) + β·∇u = 1`` on the ``annulus``, ``u = 0`` on both circles, with the
-    divergence-free spiral wind ``β = (−y, x) + 0.3 (x, y)/r²``; ε per element (θ).
-    Galerkin P1, mesh Péclet number about 1: non-symmetric and non-normal.
+    ``−∇·(ε∇u) + β·∇u = 1`` on the ``annulus``, ``u = 0`` on both circles, spiral wind
+    `spiral_wind`; ε per element.  Galerkin P1, mesh Péclet number about 1.
 
-The loss is ``L(x) = ‖x − d‖² / (2n)``, with data ``d`` the solution for a smoothly
-perturbed coefficient, so that ``∂L/∂θ`` is an honest, non-trivial gradient.
+The benchmarks' own operators live here too: `plate_reaction` (``bench bridge``),
+`five_point` (``bench bridge``, ``bench jax``), `clamped_cube` (``bench elasticity``)
+and `warm_spot`, the initial temperature of every 3D heat step (``bench mpi``).
 """
 
 from __future__ import annotations
@@ -29,31 +29,23 @@ import scipy.sparse as sp
 
 from prdp_petsc import Dirichlet, ParametricMatrix, diffusion_operator, load_mesh, mass_matrix
 
-__all__ = ["PROBLEMS", "Problem", "build_problem", "direct_gradient", "mean_edge_length"]
+__all__ = [
+    "PROBLEMS",
+    "Problem",
+    "build_problem",
+    "clamped_cube",
+    "direct_gradient",
+    "five_point",
+    "mean_edge_length",
+    "plate_reaction",
+    "warm_spot",
+]
 
 
 @dataclass(eq=False)
 class Problem:
-    """A linear problem ``A(θ) x = b`` with a loss, ready for a `KSPSolver`.
-
-    Attributes
-    ----------
-    name : str
-    A : ParametricMatrix
-        Operator on the unknowns; ``A.matrix(theta)`` is the scipy CSR matrix.
-    theta : ndarray
-        Reference parameters (positive coefficients).
-    b : ndarray
-        Right-hand side.
-    data : ndarray
-        Data ``d`` of the loss ``L(x) = ‖x − d‖² / (2n)``.
-    symmetric : bool
-        Whether ``A(θ)`` is symmetric (CG/ICC apply).
-    description : str
-        One line for reports.
-    info : dict
-        Sizes and physical parameters, for reports.
-    """
+    """A linear problem ``A(θ) x = b`` at reference θ, with the data ``d`` of its loss;
+    `symmetric` says whether CG and ICC apply, `info` holds sizes for reports."""
 
     name: str
     A: ParametricMatrix
@@ -95,66 +87,57 @@ def _smooth_perturbation(mesh, theta: np.ndarray) -> np.ndarray:
     return theta * (1.0 + 0.5 * np.sin(2 * np.pi * c[0]) * np.cos(np.pi * c[1]))
 
 
-def _finish(name, A, theta, b, mesh, symmetric, description, info) -> Problem:
+def _finish(name, A, theta, b, mesh, symmetric, description, info: dict) -> Problem:
+    """The problem, its data ``d`` the solution for a smoothly perturbed coefficient."""
     from scipy.sparse.linalg import splu
 
     d = splu(A.matrix(_smooth_perturbation(mesh, theta)).tocsc()).solve(b)
-    info = {"unknowns": int(A.shape[0]), "nnz": int(A.nnz), "parameters": int(A.n_params), **info}
+    sizes = {"unknowns": int(A.shape[0]), "nnz": int(A.nnz), "parameters": int(A.n_params)}
+    info = {**sizes, "h": mean_edge_length(mesh), **info}
     return Problem(name, A, theta, b, d, symmetric, description, info)
+
+
+def _unit_load(basis) -> np.ndarray:
+    from skfem import LinearForm
+
+    return LinearForm(lambda v, w: 1.0 * v).assemble(basis)
 
 
 def poisson(refine: int = 2) -> Problem:
     """2D Poisson ``−∇·(κ∇u) = 1`` on ``plate_holes``, zero Dirichlet values everywhere."""
-    from skfem import Basis, ElementTriP1, LinearForm
+    from skfem import Basis, ElementTriP1
 
     mesh = load_mesh("plate_holes", refine)
     basis = Basis(mesh, ElementTriP1())
-    dirichlet = Dirichlet(diffusion_operator(basis), basis.get_dofs())
-
-    @LinearForm
-    def one(v, w):
-        return 1.0 * v
-
-    b = one.assemble(basis)[dirichlet.interior]
-    theta = np.ones(mesh.t.shape[1])
-    return _finish(
-        "poisson",
-        dirichlet.A_II,
-        theta,
-        b,
-        mesh,
-        True,
-        f"−∇·(κ∇u) = 1 on plate_holes (refine {refine}), P1, u = 0 on all boundaries",
-        {"mesh": "plate_holes", "refine": refine, "h": mean_edge_length(mesh)},
-    )
+    bc = Dirichlet(diffusion_operator(basis), basis.get_dofs())
+    description = f"−∇·(κ∇u) = 1 on plate_holes (refine {refine}), P1, u = 0 on all boundaries"
+    theta, b = np.ones(mesh.t.shape[1]), _unit_load(basis)[bc.interior]
+    info = {"mesh": "plate_holes", "refine": refine}
+    return _finish("poisson", bc.A_II, theta, b, mesh, True, description, info)
 
 
 def heat3d(refine: int = 1, dt_ratio: float = 10.0) -> Problem:
-    """One implicit heat step on ``box3d``: ``(M + Δt K(κ)) u¹ = M u⁰``, insulated walls.
-
-    ``Δt = dt_ratio · h² / κ`` with h the mean edge length and κ = 1.
-    """
+    """One implicit heat step on ``box3d``: ``(M + Δt K(κ)) u¹ = M u⁰``, insulated walls,
+    ``Δt = dt_ratio · h² / κ`` with h the mean edge length and κ = 1."""
     from skfem import Basis, ElementTetP1
 
     mesh = load_mesh("box3d", refine)
     basis = Basis(mesh, ElementTetP1())
-    h = mean_edge_length(mesh)
-    dt = dt_ratio * h**2
+    dt = dt_ratio * mean_edge_length(mesh) ** 2
     M = mass_matrix(basis)
     A = dt * diffusion_operator(basis) + M
-    x, y, z = mesh.p
-    u0 = np.exp(-20 * ((x - 0.3) ** 2 + (y - 0.6) ** 2 + (z - 0.5) ** 2))
-    theta = np.ones(mesh.t.shape[1])
-    return _finish(
-        "heat3d",
-        A,
-        theta,
-        M @ u0,
-        mesh,
-        True,
-        f"(M + Δt K(κ)) u¹ = M u⁰ on box3d (refine {refine}, tetrahedra), Δt κ/h² = {dt_ratio:g}",
-        {"mesh": "box3d", "refine": refine, "h": h, "dt": dt, "dt_kappa_over_h2": dt_ratio},
+    description = (
+        f"(M + Δt K(κ)) u¹ = M u⁰ on box3d (refine {refine}, tetrahedra), Δt κ/h² = {dt_ratio:g}"
     )
+    theta, b = np.ones(mesh.t.shape[1]), M @ warm_spot(mesh.p)
+    info = {"mesh": "box3d", "refine": refine, "dt": dt, "dt_kappa_over_h2": dt_ratio}
+    return _finish("heat3d", A, theta, b, mesh, True, description, info)
+
+
+def warm_spot(points: np.ndarray) -> np.ndarray:
+    """The initial temperature of the 3D heat steps: a Gaussian spot at (0.3, 0.6, 0.5)."""
+    x, y, z = points
+    return np.exp(-20 * ((x - 0.3) ** 2 + (y - 0.6) ** 2 + (z - 0.5) ** 2))
 
 
 def spiral_wind(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -165,7 +148,7 @@ def spiral_wind(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def advection(refine: int = 1, epsilon: float = 0.01) -> Problem:
     """``−∇·(ε∇u) + β·∇u = 1`` on the annulus (Galerkin P1), ``u = 0`` on both circles."""
-    from skfem import Basis, BilinearForm, ElementTriP1, LinearForm
+    from skfem import Basis, BilinearForm, ElementTriP1
 
     mesh = load_mesh("annulus", refine)
     basis = Basis(mesh, ElementTriP1())
@@ -175,30 +158,12 @@ def advection(refine: int = 1, epsilon: float = 0.01) -> Problem:
         bx, by = spiral_wind(*w.x)
         return (bx * u.grad[0] + by * u.grad[1]) * v
 
-    @LinearForm
-    def one(v, w):
-        return 1.0 * v
-
-    A = diffusion_operator(basis) + convection.assemble(basis)
-    dirichlet = Dirichlet(A, basis.get_dofs())
-    h = mean_edge_length(mesh)
-    theta = np.full(mesh.t.shape[1], float(epsilon))
-    return _finish(
-        "advection",
-        dirichlet.A_II,
-        theta,
-        one.assemble(basis)[dirichlet.interior],
-        mesh,
-        False,
-        f"−∇·(ε∇u) + β·∇u = 1 on annulus (refine {refine}), ε = {epsilon:g}, spiral wind",
-        {
-            "mesh": "annulus",
-            "refine": refine,
-            "h": h,
-            "epsilon": epsilon,
-            "mesh_peclet": 1.0 * h / (2 * epsilon),
-        },
-    )
+    bc = Dirichlet(diffusion_operator(basis) + convection.assemble(basis), basis.get_dofs())
+    description = f"−∇·(ε∇u) + β·∇u = 1 on annulus (refine {refine}), ε = {epsilon:g}, spiral wind"
+    theta, b = np.full(mesh.t.shape[1], float(epsilon)), _unit_load(basis)[bc.interior]
+    peclet = mean_edge_length(mesh) / (2 * epsilon)
+    info = {"mesh": "annulus", "refine": refine, "epsilon": epsilon, "mesh_peclet": peclet}
+    return _finish("advection", bc.A_II, theta, b, mesh, False, description, info)
 
 
 #: name -> (builder, keyword arguments of the full size, of the quick size)
@@ -225,3 +190,51 @@ def direct_gradient(problem: Problem, theta: np.ndarray | None = None):
     x = lu.solve(problem.b)
     lam = lu.solve(problem.loss_grad(x), trans="T")
     return x, lam, problem.A.theta_gradient(lam, x)
+
+
+# P1 unknowns of plate_holes: 4851 at refine 0, about 4x per refinement.
+_PLATE_HOLES_N0 = 4851
+
+
+def plate_reaction(n: int, seed: int = 0):
+    """``(A, θ, b, g, refine)``: ``−∇·(κ∇u) + u`` on ``plate_holes`` refined to about n
+    P1 unknowns, κ per element (SPD, no boundary condition), random θ in [1, 1.5]."""
+    import skfem
+
+    refine = max(0, round(float(np.log(n / _PLATE_HOLES_N0) / np.log(4.0))))
+    basis = skfem.Basis(load_mesh("plate_holes", refine=refine), skfem.ElementTriP1())
+    A = diffusion_operator(basis, "P0", reaction=1.0)
+    rng = np.random.default_rng(seed)
+    theta = 1.0 + 0.5 * rng.random(A.n_params)
+    return A, theta, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0]), refine
+
+
+def five_point(side: int, seed: int = 0):
+    """``(A, b, g)``: the SPD five-point ``−Δ`` on a side × side grid (scipy CSR, Dirichlet)
+    and two random vectors."""
+    from prdp_petsc.fem.fd import laplacian
+
+    A = (-laplacian((side, side))).tocsr()
+    A.sort_indices()
+    rng = np.random.default_rng(seed)
+    return A, rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
+
+
+def clamped_cube(n: int):
+    """``(basis, Dirichlet, load)``: linear elasticity (E = 1, ν = 0.3) on the unit cube of
+    n³ Q1 hexahedra, clamped at x = 0, loaded by its weight along −z (on the unknowns)."""
+    import skfem
+
+    from prdp_petsc import elasticity_operator
+
+    t = np.linspace(0.0, 1.0, n + 1)
+    element = skfem.ElementVector(skfem.ElementHex1())
+    basis = skfem.Basis(skfem.MeshHex.init_tensor(t, t, t), element)
+    clamped = basis.get_dofs(lambda x: np.isclose(x[0], 0.0)).all()
+    bc = Dirichlet(elasticity_operator(basis), clamped)
+
+    @skfem.LinearForm
+    def weight(v, w):
+        return -v[2]
+
+    return basis, bc, weight.assemble(basis)[bc.interior]  # the clamp holds u = 0

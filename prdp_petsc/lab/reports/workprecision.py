@@ -1,39 +1,36 @@
 """Work–precision report: error against wall time for KSP/PC pairs on a standard problem.
 
-For a problem of `prdp_petsc.lab.reports.problems` and every applicable KSP/PC pair, sweep the
-iteration cap K over a geometric range in fixed mode (``rtol = atol = 0``, exactly
-K iterations forward and K adjoint) and record
+``prdp-petsc work-precision PROBLEM --out DIR`` (a problem of
+`prdp_petsc.lab.reports.problems`) sweeps, for every applicable KSP/PC pair, the
+iteration cap K over K = 1, 2, 4, … in fixed mode (``rtol = atol = 0``) and records
+the forward error against a sparse direct solve, the error and cosine of the capped
+implicit gradient ``∂L/∂θ`` against the converged one, and the wall time of PC set-up
+(paid whenever θ changes), forward solve, and adjoint solve + ``Gᵀ(λ ⊙ x)``.  It writes
+``work_precision_<problem>.json``, ``.png`` and ``.md`` in DIR.
 
-* the forward error ``‖x_K − x*‖/‖x*‖`` against a sparse direct solve;
-* the error of the capped implicit gradient ``∂L/∂θ`` (forward x_K, adjoint λ_K)
-  against the converged adjoint gradient: relative norm and cosine;
-* wall time: PC setup (paid whenever θ changes, i.e. every training step),
-  forward solve, adjoint solve + ``Gᵀ(λ ⊙ x)``.
-
-On the non-symmetric problem, ``gamg-plain`` is GAMG with plain aggregation
-(``-pc_gamg_agg_nsmooths 0``) next to PETSc's default smoothed aggregation.
-Richardson is damped by ``1/ρ`` (ρ the estimated spectral radius of the
-preconditioned operator) with no PC or Jacobi, undamped with the others.  On the
-non-symmetric problems SOR has no transpose in PETSc, so its adjoint runs with
-``ksp_use_explicittranspose`` (SOR of an explicit Aᵀ, formed at every adjoint
-solve); the time includes that.  For a symmetric operator (to rounding) `KSPSolver`
-marks the matrix symmetric and SOR's transpose is available.
-
-Run ``prdp-petsc work-precision PROBLEM --out DIR`` (``--preset quick`` for small sizes);
-it writes ``work_precision_<problem>.json``, ``.png`` and ``.md`` in DIR.
+Notes
+-----
+``gamg-plain`` is GAMG with plain aggregation (``-pc_gamg_agg_nsmooths 0``).
+Richardson is damped by ``1/ρ`` (ρ the estimated spectral radius of the preconditioned
+operator) with no PC or Jacobi.  PETSc's SOR has no transpose: on a non-symmetric
+operator its adjoint runs with ``ksp_use_explicittranspose`` (timed with it).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..cli.arguments import add_debug, add_size_preset, positive
+from ..provenance import load_average, write_result
+from ..training.routes import parse_routes, route_settings
+from .benchmarking import stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
+from .problems import PROBLEMS, build_problem, direct_gradient
 
 __all__ = ["KIND", "main", "pairs_for", "summarize", "sweep", "to_markdown"]
 
@@ -85,11 +82,9 @@ def _options(ksp: str, pc: str, A, symmetric: bool) -> tuple[dict, dict | None]:
 
 def _timed(fn, min_time: float = 0.3, max_repeat: int = 3):
     """(result, best wall time) of fn(), repeated while the total stays under min_time."""
-    best, total, out = np.inf, 0.0, None
+    best, total = np.inf, 0.0
     for _ in range(max_repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        dt = time.perf_counter() - t0
+        out, dt = stopwatch(fn)
         best, total = min(best, dt), total + dt
         if total > min_time:
             break
@@ -184,13 +179,9 @@ def sweep(
     `retime_limit` seconds are timed once): on a shared machine, interference hits
     different points in different passes.
     """
-    import os
-
     from scipy.sparse.linalg import splu
 
-    from .problems import direct_gradient
-
-    load = [os.getloadavg()[0]] if hasattr(os, "getloadavg") else []
+    load_start = load_average()
     A = problem.matrix()
     (x_ref, _, g_ref), t_direct = _timed(lambda: direct_gradient(problem))
     _, t_factor = _timed(lambda: splu(A.tocsc()))
@@ -212,7 +203,7 @@ def sweep(
             )
         _, t = _timed(lambda: direct_gradient(problem), 0.0, 1)
         t_direct = min(t_direct, t)
-    load += [os.getloadavg()[0]] if hasattr(os, "getloadavg") else []
+    load = [v[0] for v in (load_start, load_average()) if v]
     return {
         "problem": problem.name,
         "description": problem.description,
@@ -235,8 +226,7 @@ def summarize(result: dict, levels=LEVELS) -> list[dict]:
         failed = [r["error"] for r in result["rows"] if r["pair"] == label and "error" in r]
         entry = {"pair": label, "error": failed[0] if failed else None, "levels": {}}
         if pts:
-            best = min(pts, key=lambda r: r["gradient_error"])
-            entry["best_gradient_error"] = best["gradient_error"]
+            entry["best_gradient_error"] = min(r["gradient_error"] for r in pts)
             entry["best_forward_error"] = min(r["forward_error"] for r in pts)
             entry["t_setup"] = pts[0]["t_setup"]
         for level in levels:
@@ -297,17 +287,9 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colors = {
-        "none": "C7",
-        "jacobi": "C0",
-        "sor": "C2",
-        "icc": "C1",
-        "ilu": "C1",
-        "gamg": "C3",
-        "gamg-plain": "C4",
-    }
-    styles = {"cg": "-", "gmres": "--", "bcgs": "-.", "richardson": ":"}
-    markers = {"cg": "o", "gmres": "s", "bcgs": "^", "richardson": "x"}
+    colors = {"none": "C7", "jacobi": "C0", "sor": "C2", "icc": "C1", "ilu": "C1", "gamg": "C3"}
+    colors["gamg-plain"] = "C4"
+    styles = {"cg": ("-", "o"), "gmres": ("--", "s"), "bcgs": ("-.", "^"), "richardson": (":", "x")}
     fig, axes = plt.subplots(1, 3, figsize=(19, 5.6), sharex=True)
     keys = (
         ("forward_error", "forward error ‖x_K − x*‖/‖x*‖"),
@@ -321,21 +303,11 @@ def plot(result: dict, path: Path) -> None:
             continue
         ksp, pc = label.split("/")
         t = np.array([r["t_total"] for r in pts]) * 1e3
+        line, marker = styles[ksp]
         for ax, (key, _) in zip(axes, keys, strict=True):
-            if key == "one_minus_cos":
-                y = np.array([max(1.0 - r["gradient_cosine"], 1e-17) for r in pts])
-            else:
-                y = np.array([max(r[key], 1e-17) for r in pts])
-            ax.loglog(
-                t,
-                y,
-                styles[ksp],
-                color=colors[pc],
-                marker=markers[ksp],
-                ms=3.5,
-                lw=1.3,
-                label=label,
-            )
+            y = [1.0 - r["gradient_cosine"] if key == "one_minus_cos" else r[key] for r in pts]
+            ax.loglog(t, np.maximum(y, 1e-17), line, color=colors[pc], marker=marker, ms=3.5,
+                      lw=1.3, label=label)  # fmt: skip
     t_direct = (result["direct"]["t_solve_and_gradient"]) * 1e3
     for ax, (_, title) in zip(axes, keys, strict=True):
         ax.axvline(t_direct, color="k", lw=0.8, alpha=0.5)
@@ -359,9 +331,6 @@ def plot(result: dict, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     """``prdp-petsc work-precision PROBLEM --out DIR [--preset quick] [--k-max K]
     [--routes R,...]``."""
-    from ..cli.arguments import add_debug, add_size_preset, positive
-    from ..training.routes import parse_routes, route_settings
-    from .problems import PROBLEMS, build_problem
 
     def routes(text: str) -> tuple[str, ...]:
         try:
@@ -396,10 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     result = sweep(problem, ks, pairs, passes=2 if quick else 3)
     result["seconds"] = time.perf_counter() - t0
     result["quick"] = quick
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"work_precision_{args.problem}"
     result["summary"] = summarize(result)
-    stem.with_suffix(".json").write_text(json.dumps(result, indent=1))
+    stem = args.out / f"work_precision_{args.problem}"
+    write_result(args.out, f"{stem.name}.json", result)
     stem.with_suffix(".md").write_text(to_markdown(result))
     plot(result, stem.with_suffix(".png"))
     print(
