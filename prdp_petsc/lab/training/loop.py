@@ -1,9 +1,6 @@
-"""The epoch loop of a training run (`train`) and what it records: per-epoch costs,
-their `totals`, and why a run stopped (`stopped`, `stop_reason`).
-
-`prdp_petsc.lab.training.harness.run` sets a run up and calls `train`; a solver
-outcome (`SolverError`, `InputError`: a diverged solve, a non-finite loss) stops the
-loop with a ``stopped`` record, anything else propagates.
+"""The epoch loop of a training run (`train`) and what it records: per-epoch costs and
+their `totals`.  A solver outcome (`SolverError`, `InputError`: a diverged solve, a
+non-finite loss) stops the loop with a ``stopped`` record; anything else propagates.
 """
 
 from __future__ import annotations
@@ -25,14 +22,9 @@ from .parallel import Parallel
 from .records import RESULTS, to_json, write_json
 from .schedules import Schedule, gradient_check, rtol_from_level
 
-__all__ = ["interrupted", "stop_reason", "stopped", "totals", "train"]
+__all__ = ["interrupted", "totals", "train"]
 
 logger = logging.getLogger(__name__)
-
-
-def stopped(epoch: int, reason: str | None, message: str) -> dict:
-    """A run's ``stopped`` record: the `epoch` it stopped in, why, and the message."""
-    return {"epoch": epoch, "reason": reason, "message": message}
 
 
 def interrupted(result: dict) -> None:
@@ -40,7 +32,7 @@ def interrupted(result: dict) -> None:
     epoch = len(result["epochs"])
     logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
     message = f"KeyboardInterrupt during epoch {epoch}; earlier epochs are complete"
-    result["stopped"] = stopped(epoch, "interrupted", message)
+    result["stopped"] = {"epoch": epoch, "reason": "interrupted", "message": message}
 
 
 def train(
@@ -56,9 +48,9 @@ def train(
     every: int = 1,
     state: dict | None = None,
 ) -> None:
-    """The epoch loop of `run`: fills ``result["epochs"]`` (and ``stopped``) in place,
-    from a checkpoint's `state` if given, saving one every `every` epochs into `out`,
-    with ``results.json`` and the TensorBoard curves (`Curves`) after every epoch."""
+    """Fill ``result["epochs"]`` (and ``stopped``) in place, from a checkpoint's `state`
+    if given; into `out` a checkpoint every `every` epochs, ``results.json`` and the
+    TensorBoard curves after every epoch."""
     from tqdm.auto import tqdm
 
     generator = torch.Generator().manual_seed(torch_seed)
@@ -111,36 +103,34 @@ def train(
                     _certify(controller, result)
             except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
                 logger.error("epoch %d: %s", epoch, err)
-                result["stopped"] = stopped(epoch, stop_reason(err), str(err))
+                result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
                 return
             wall = time.perf_counter() - t0
             stats = [s.stats for s in scene.solvers]
-            fwd, adj, solver_time = ranks.totals(
-                sum(s.forward_iterations for s in stats),
-                sum(s.adjoint_iterations for s in stats),
+            names = ["forward_iterations", "adjoint_iterations"]
+            if any(s.pc_lag > 1 for s in scene.solvers):  # what reusing the PC saved
+                names += ["pc_setups", "pc_quality_rebuilds"]
+            if rtol is not None:  # what the tolerance bought: solves and real iterations
+                names += ["forward_solves", "adjoint_solves"]
+            counts, solver_time = ranks.totals(
+                [sum(getattr(s, name) for s in stats) for name in names],
                 sum(s.forward_time + s.adjoint_time for s in stats),
             )
+            counts = dict(zip(names, counts, strict=True))
             record = {
                 "epoch": epoch,
                 "k": k,
                 "train_loss": float(np.mean(losses)) if losses else math.nan,
                 "val_metric": metric,
                 "wall_time": wall,
-                "fwd_iterations": fwd,
-                "adj_iterations": adj,
+                "fwd_iterations": counts.pop("forward_iterations"),
+                "adj_iterations": counts.pop("adjoint_iterations"),
                 "solver_time": solver_time,
             }
-            if any(s.pc_lag > 1 for s in scene.solvers):  # what reusing the PC saved
-                setups, rebuilds, _ = ranks.totals(
-                    sum(s.pc_setups for s in stats), sum(s.pc_quality_rebuilds for s in stats), 0.0
-                )
-                record.update(pc_setups=setups, pc_quality_rebuilds=rebuilds)
-            if rtol is not None:  # what the tolerance bought: solves and real iterations
-                fwd_solves, adj_solves, _ = ranks.totals(
-                    sum(s.forward_solves for s in stats), sum(s.adjoint_solves for s in stats), 0.0
-                )
-                record.update(rtol=rtol, rtol_level=level, fwd_solves=fwd_solves,
-                              adj_solves=adj_solves)  # fmt: skip
+            if rtol is not None:
+                record.update(rtol=rtol, rtol_level=level, fwd_solves=counts.pop("forward_solves"),
+                              adj_solves=counts.pop("adjoint_solves"))  # fmt: skip
+            record.update(counts)
             result["epochs"].append(record)
             bar.set_postfix(K=k, val=f"{metric:.3e}", **({"rtol": f"{rtol:.0e}"} if rtol else {}))
             if controller is not None:
@@ -166,7 +156,6 @@ def train(
 
 
 def _certify(controller: PRDP, result: dict) -> None:
-    """The last epoch's certificate into ``result["certificate"]``."""
     cert = controller.certify()
     result["certificate"] = {**asdict(cert), "certified": cert.certified}
     logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
@@ -182,6 +171,7 @@ def _check_finite(value: float, what: str) -> None:
 
 
 def totals(log: list[dict]) -> dict:
+    """A run's totals over the epochs of `log` and its final and best validation error."""
     if not log:
         return {"epochs": 0}
     return {
@@ -196,14 +186,3 @@ def totals(log: list[dict]) -> dict:
         **({"rtol_final": log[-1]["rtol"]} if "rtol" in log[-1] else {}),
     }
 
-
-def stop_reason(error: BaseException) -> str | None:
-    """The ``stopped.reason`` a training run records for `error`, or None to re-raise it.
-
-    A `SolverError` gives PETSc's reason, an `InputError` its kind
-    (``INVALID_INPUT``, ``NON_FINITE``, ``STRUCTURE``, ``MESH``); anything else is
-    not a recorded outcome.
-    """
-    if isinstance(error, SolverError | InputError):
-        return error.reason
-    return None

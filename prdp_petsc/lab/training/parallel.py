@@ -1,27 +1,13 @@
 """Training on more than one process: ``--parallel domain`` and ``--parallel batch``.
 
-Start the command under MPI (``mpiexec -n P prdp-petsc run SCENE --parallel ...``);
-scenes need no change.
-
-``domain``
-    Every solver the scene builds lives on ``COMM_WORLD``: each solve is one
-    distributed PETSc solve (MPIAIJ, rows split across the ranks), and every rank
-    sees the same tensors (the replicated layout of `prdp_petsc.core.parallel`).
-    The network and the loss run on every rank alike.  Pays off when the solve
-    dominates and is large.
-``batch``
-    Every rank keeps serial solvers and trains on its share of each mini-batch
-    (samples ``rank, rank + P, ...``).  Its loss is weighted by its share of the
-    batch, the gradients are summed across ranks (one ``MPI_Allreduce``), and
-    every rank takes the same optimizer step: the parameters equal those of serial
-    training with the same global batch, to round-off.  Rank 0 validates, and its
-    PRDP decision (the next K) is broadcast.  This needs a scene whose batches are
-    index tensors and whose loss is the mean of a per-sample loss over the batch;
-    the first step of a run checks the loss (see `Parallel`) and refuses any other.
-
-Rank 0 writes results and shows progress; iteration counts are totals over the
-ranks (``batch``) or those of the collective solves (``domain``); solver time is
-the mean over the ranks.
+Start the command under MPI (``mpiexec -n P prdp-petsc run SCENE --parallel ...``).
+``domain`` builds every solver on ``COMM_WORLD`` (each solve one distributed PETSc
+solve; every rank sees the same tensors).  ``batch`` keeps serial solvers and trains
+every rank on its share of each mini-batch (samples ``rank, rank + P, ...``), its loss
+weighted by its share and the gradients summed across the ranks, so that the
+parameters equal those of serial training to round-off; rank 0 validates and its PRDP
+decision is broadcast.  Rank 0 writes results; iteration counts are totals over the
+ranks (``batch``) or those of the collective solves (``domain``), solver time the mean.
 """
 
 from __future__ import annotations
@@ -40,53 +26,23 @@ __all__ = ["MEAN_RTOL", "MODES", "Parallel"]
 MODES = ("domain", "batch")
 
 #: Relative difference beyond which ``batch`` mode refuses a loss: the ranks' weighted
-#: share losses against the whole batch's (float64; ``100 eps`` for coarser dtypes).
-#: The shipped scenes differ by 1e-16 to 1e-14, a sum over the batch by 1 - 1/P.
+#: share losses against the whole batch's (float64; ``100 eps`` for coarser dtypes)
 MEAN_RTOL = 1e-9
 
 
 class Parallel:
-    """How a training run uses the ranks of ``MPI.COMM_WORLD``.
-
-    One object serves one training run (`prdp_petsc.lab.training.harness.run` makes it).
-
-    Parameters
-    ----------
-    mode : {None, "domain", "batch"}
-        None: every rank trains alone (one process: the serial run).
+    """How one training run uses the ranks of ``MPI.COMM_WORLD`` (`mode` None: alone).
 
     Notes
     -----
-    ``batch`` mode is exact only for a loss that is the mean of per-sample losses:
-    then the ranks' share losses, weighted by their shares, sum to the loss of the
-    whole batch, and so do their gradients.  A sum over the batch, or a
-    normalisation by a batch total, gives another training run with no error, so
-    the first step of a run checks it, from the numbers rather than the scene's
-    code: every rank also computes the loss of the whole batch once, under
-    ``torch.no_grad()``, and when the sum of the weighted share losses differs from
-    it by more than `MEAN_RTOL` (relative) every rank raises `InputError` before
-    the optimizer steps, pointing to ``--parallel domain``.  A step whose losses
-    are NaN or Inf proves nothing; the check then runs again on the next step.
-
-    Cost: one forward pass of one batch per run on every rank, without backward
-    (for a loss through capped solves, one batch of forward solves), and one small
-    ``MPI_Allreduce``.  Its solves are left out of the solvers' `stats`, so the
-    iteration counts and solver times of the first epoch are those of training;
-    its wall time is in the first epoch's.  The loss must run under
-    ``torch.no_grad()``, as validation does.
-
-    A loss that draws from torch's random number generator (noise on the inputs,
-    dropout) cannot be checked: the ranks' shares and the whole batch draw other
-    numbers, so their losses differ whatever the loss is.  Nor could batch mode
-    reproduce the serial run for it: every rank starts from the same generator
-    state, so the ranks would draw the same noise for different samples.  Such a
-    loss is refused as well (the check sees torch's generator state change), with
-    ``--parallel domain`` as the alternative, where every rank draws what the serial
-    run draws.  The check saves and restores torch's generator state around the
-    whole-batch forward, so it changes no random number the run draws.  A loss
-    that draws from a generator of its own (a ``torch.Generator``, numpy) is not
-    seen as random; its whole-batch forward advances that generator, and its
-    losses will almost surely differ, which refuses it as not being a mean.
+    ``batch`` is exact only for a loss that is the mean of per-sample losses.  The
+    first step of a run checks it from the numbers: every rank also computes the whole
+    batch's loss once under ``torch.no_grad()`` (its solves left out of the `stats`),
+    and where the weighted share losses sum to something else (by more than
+    `MEAN_RTOL`) every rank raises `InputError`, pointing to ``--parallel domain``; a
+    NaN or Inf proves nothing and the next step checks again.  A loss that draws from
+    torch's generator (noise, dropout) is refused too: the ranks' shares would draw
+    other numbers than the serial run.
     """
 
     def __init__(self, mode: str | None = None):
@@ -122,12 +78,8 @@ class Parallel:
 
     # -- one optimisation step ---------------------------------------------------------
     def step(self, scene, batch) -> float:
-        """Zero the gradients, back-propagate the loss of `batch`, step; return the loss.
-
-        ``batch`` mode splits `batch` and sums the weighted gradients across ranks;
-        on the run's first step it checks that the loss is a mean of per-sample
-        losses (see the class notes) and raises `InputError` on every rank if not.
-        """
+        """Zero the gradients, back-propagate the loss of `batch`, step; return the loss
+        (``batch``: of the whole batch, the gradients summed over the ranks)."""
         scene.optimizer.zero_grad()
         if self.mode != "batch":
             loss = scene.loss(batch)
@@ -201,11 +153,8 @@ class Parallel:
         return share, len(share) / len(batch)
 
     def _sum_gradients(self, optimizer, loss: float, error) -> float:
-        """Sum the gradients (and the weighted losses) of all ranks in place.
-
-        A failed solve on any rank stops every rank with the same error (no rank
-        is left waiting in a collective call).
-        """
+        """Sum the gradients (and the weighted losses) of all ranks in place; a failed
+        solve on any rank raises on every rank (none waits in a collective call)."""
         from mpi4py import MPI
 
         params = [p for group in optimizer.param_groups for p in group["params"]]
@@ -296,17 +245,17 @@ class Parallel:
         """Rank 0's `value` on every rank (PRDP's next K)."""
         return value if self.comm is None else self.comm.bcast(value, root=0)
 
-    def totals(self, fwd: int, adj: int, solver_time: float) -> tuple[int, int, float]:
-        """Forward and adjoint iterations of the epoch over all ranks, mean solver time."""
+    def totals(self, counts: list[int], solver_time: float) -> tuple[list[int], float]:
+        """The epoch's `counts` (iterations, solves) over all ranks and the mean solver time."""
         if self.mode is None:
-            return fwd, adj, solver_time
+            return counts, solver_time
         from mpi4py import MPI
 
-        total = np.array([fwd, adj, solver_time], dtype=np.float64)
+        total = np.array([*counts, solver_time], dtype=np.float64)
         self.comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
         if self.mode == "batch":  # domain: collective solves, every rank counted the same
-            fwd, adj = int(total[0]), int(total[1])
-        return fwd, adj, float(total[2] / self.size)
+            counts = [int(c) for c in total[:-1]]
+        return counts, float(total[-1] / self.size)
 
 
 def _owned(scene) -> list:
@@ -315,12 +264,9 @@ def _owned(scene) -> list:
 
 
 def _whole_batch_loss(scene, batch) -> torch.Tensor:
-    """The loss of the whole `batch` under ``no_grad``, leaving no trace in the run.
-
-    torch's random number generator is restored afterwards, and a loss that drew
-    from it is refused (`Parallel`); the solvers' `stats` are restored too, so the
-    check's solves are not counted as training work.
-    """
+    """The loss of the whole `batch` under ``no_grad``, leaving no trace in the run:
+    torch's generator and the solvers' `stats` are restored (a loss that drew from the
+    generator is refused)."""
     solvers = getattr(scene, "solvers", None) or []
     stats = [copy.deepcopy(s.stats) for s in solvers]
     try:
