@@ -14,9 +14,7 @@ __all__ = ["build_scene", "release", "seed_everything"]
 
 
 def seed_everything(seed: int) -> None:
-    """Seed Python's, numpy's and torch's global generators (the shipped scenes draw
-    their data from a numpy Generator of their own; one that draws from numpy's
-    global state is then reproducible too, and resumes exactly)."""
+    """Seed Python's, numpy's and torch's global generators."""
     random.seed(seed)
     np.random.seed(seed % 2**32)  # noqa: NPY002 - the legacy global state, for such scenes
     torch.manual_seed(seed)
@@ -31,12 +29,8 @@ def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
 
 
 def release(scene) -> None:
-    """Free the PETSc objects of a scene's solvers now.
-
-    On one rank Python's garbage collector would; distributed PETSc objects are
-    only queued for a collective clean-up, so a long ``compare`` would keep every
-    run's matrices and KSPs until exit.
-    """
+    """Free the PETSc objects of a scene's solvers now (distributed ones would wait for
+    a collective clean-up at exit)."""
     for solver in scene.solvers:
         solver.destroy()
     from petsc4py import PETSc
