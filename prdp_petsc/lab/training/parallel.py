@@ -21,6 +21,8 @@ import torch
 from prdp_petsc import InputError, SolverError
 from prdp_petsc.errors import MeshError, NonFiniteError, StructureError
 
+from .checkpoint import parameters
+
 __all__ = ["MEAN_RTOL", "MODES", "Parallel"]
 
 MODES = ("domain", "batch")
@@ -81,11 +83,13 @@ class Parallel:
         """Zero the gradients, back-propagate the loss of `batch`, step; return the loss
         (``batch``: of the whole batch, the gradients summed over the ranks)."""
         scene.optimizer.zero_grad()
+        params = parameters(scene)
         if self.mode != "batch":
             loss = scene.loss(batch)
             loss.backward()
-            if self.mode == "domain" and _owned(scene):
-                self._sum_replicated_gradients(scene)
+            if self.mode == "domain" and _owned(scene):  # each rank has its part of the rest
+                owned = {id(p) for p in _owned(scene)}
+                self._sum_gradients([p for p in params if id(p) not in owned], 0.0, None)
             scene.optimizer.step()
             return float(loss.detach())
         share, weight = self._share(batch)
@@ -101,25 +105,11 @@ class Parallel:
                 loss = float(value.detach())
         except Exception as err:  # every rank must learn of it, or they wait forever
             error = err
-        loss = self._sum_gradients(scene.optimizer, loss, error)
+        loss = self._sum_gradients(params, loss, error)
         if check:
             self._check_mean(loss, whole)
         scene.optimizer.step()
         return loss
-
-    def _sum_replicated_gradients(self, scene) -> None:
-        """Owned layout: sum over the ranks the gradients of the parameters every rank
-        holds alike (each rank's backward pass gave its own part of them)."""
-        from mpi4py import MPI
-
-        owned = {id(p) for p in _owned(scene)}
-        params = [
-            p for group in scene.optimizer.param_groups for p in group["params"]
-            if id(p) not in owned
-        ]  # fmt: skip
-        has = np.array([p.grad is not None for p in params], dtype=np.int8)
-        self.comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)  # a rank without one adds zeros
-        self._sum_in_place(params, has, 0.0)
 
     def _check_mean(self, shares: float, whole: torch.Tensor) -> None:
         """Refuse, on every rank, a loss whose split `shares` (summed) is not `whole`."""
@@ -152,43 +142,29 @@ class Parallel:
         share = batch[self.rank :: self.size]
         return share, len(share) / len(batch)
 
-    def _sum_gradients(self, optimizer, loss: float, error) -> float:
-        """Sum the gradients (and the weighted losses) of all ranks in place; a failed
-        solve on any rank raises on every rank (none waits in a collective call)."""
+    def _sum_gradients(self, params: list, value: float, error) -> float:
+        """Sum over the ranks, in place and in one ``MPI_Allreduce``, the gradients of the
+        `params` some rank has (a rank without one adds zeros) and `value`; return the
+        summed `value`.  An `error` on any rank is raised on every rank (none is left
+        waiting in a collective call)."""
         from mpi4py import MPI
 
-        params = [p for group in optimizer.param_groups for p in group["params"]]
         has = np.array([p.grad is not None for p in params] + [error is not None], dtype=np.int8)
         self.comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)
         if has[-1]:
             failures = self.comm.allgather(_describe(error))
             rank, failure = next((r, f) for r, f in enumerate(failures) if f)
             raise error if error is not None else _remote_error(rank, failure)
-        return self._sum_in_place(params, has[:-1], loss)
-
-    def _sum_in_place(self, params: list, has, value: float) -> float:
-        """Sum over the ranks, in one ``MPI_Allreduce``, the gradients of the `params`
-        that some rank has (`has`, agreed; a rank without one adds zeros) and `value`;
-        return the summed `value`."""
-        from mpi4py import MPI
-
-        live = [p for p, h in zip(params, has, strict=True) if h]
-        flat = np.empty(sum(p.numel() for p in live) + 1)
-        offset = 0
-        for p in live:
-            size = p.numel()
-            flat[offset : offset + size] = (
-                p.grad.detach().reshape(-1).numpy() if p.grad is not None else 0.0
-            )
-            offset += size
+        live = [p for p, h in zip(params, has[:-1], strict=True) if h]
+        bounds = np.cumsum([0, *(p.numel() for p in live)])
+        flat = np.zeros(bounds[-1] + 1)
+        for p, lo, hi in zip(live, bounds[:-1], bounds[1:], strict=True):
+            if p.grad is not None:
+                flat[lo:hi] = p.grad.detach().reshape(-1).numpy()
         flat[-1] = value
         self.comm.Allreduce(MPI.IN_PLACE, flat, op=MPI.SUM)
-        offset = 0
-        for p in live:
-            size = p.numel()
-            grad = torch.from_numpy(flat[offset : offset + size].copy()).reshape(p.shape)
-            p.grad = grad.to(dtype=p.dtype)
-            offset += size
+        for p, lo, hi in zip(live, bounds[:-1], bounds[1:], strict=True):
+            p.grad = torch.from_numpy(flat[lo:hi].copy()).reshape(p.shape).to(dtype=p.dtype)
         return float(flat[-1])
 
     # -- agreement across ranks ----------------------------------------------------------
