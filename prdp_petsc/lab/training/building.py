@@ -10,21 +10,17 @@ import torch
 
 from .scene import preset_config, with_prdp_settings
 
-__all__ = ["build_scene", "release", "seed_everything"]
-
-
-def seed_everything(seed: int) -> None:
-    """Seed Python's, numpy's and torch's global generators."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)  # noqa: NPY002 - the legacy global state, for such scenes
-    torch.manual_seed(seed)
+__all__ = ["build_scene", "release"]
 
 
 def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
     """``module.build(config, seed)``, Python and torch seeded with `torch_seed` (default
     `seed`): initial weights from torch, data from the scene's numpy Generator."""
     config = preset_config(module, preset)  # "paper modes=32": a preset, changed
-    seed_everything(seed if torch_seed is None else torch_seed)
+    torch_seed = seed if torch_seed is None else torch_seed
+    random.seed(torch_seed)  # the global generators, for scenes that draw from them
+    np.random.seed(torch_seed % 2**32)  # noqa: NPY002
+    torch.manual_seed(torch_seed)
     return with_prdp_settings(module.build(config, seed), preset, config)
 
 

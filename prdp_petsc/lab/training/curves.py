@@ -76,9 +76,3 @@ class Curves:
     def close(self) -> None:
         """Flush and close the event file."""
         self._writer.close()
-
-    def __enter__(self) -> Curves:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -17,7 +17,7 @@ __all__ = ["find_k_full", "k_cap", "probe", "rtol_plan"]
 logger = logging.getLogger(__name__)
 
 
-def probe(scene, max_it: int = 100_000) -> KFull:
+def probe(scene) -> KFull:
     """`prdp_petsc.find_k_full` of the scene's first solver on its probe, at
     ``scene.rtol_full``."""
     system = scene.probe()
@@ -29,14 +29,14 @@ def probe(scene, max_it: int = 100_000) -> KFull:
         )
     A, b, x0 = system
     try:
-        return probe_k_full(A, b, scene.solvers[0], rtol=scene.rtol_full, x0=x0, max_it=max_it)
+        return probe_k_full(A, b, scene.solvers[0], rtol=scene.rtol_full, x0=x0, max_it=100_000)
     except SolverError as err:
         raise SolverError(f"the scene's solver: {err}", reason=err.reason) from err
 
 
-def find_k_full(scene, max_it: int = 100_000) -> int:
+def find_k_full(scene) -> int:
     """K_full of the scene (`probe`) as a plain ``int``."""
-    return int(probe(scene, max_it))
+    return int(probe(scene))
 
 
 def k_cap(scene) -> int | None:

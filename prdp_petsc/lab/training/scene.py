@@ -217,13 +217,6 @@ class Settings(dict):
             "belongs in all its presets"
         )
 
-    def __reduce__(self):  # pickles (and copies) as the dict it holds, with its names
-        return (_settings, (dict(self), self.scene, self.preset))
-
-
-def _settings(settings: dict, scene: str, preset: str) -> Settings:
-    return Settings(settings, scene=scene, preset=preset)
-
 
 def preset_config(module: ModuleType, preset: str) -> dict:
     """The settings of ``"name [key=value ...]"``: the scene's preset ``name``, changed.

@@ -77,10 +77,6 @@ class Hybrid:
             return coarse + self._net(coarse)
         return self.physics(state, self._net(state), keys)
 
-    def uncorrected(self, state: torch.Tensor) -> torch.Tensor:
-        """The solver step alone, P(s)."""
-        return self.physics(state, None, None)
-
 
 def unrolled_loss(
     step: Callable[..., torch.Tensor],
