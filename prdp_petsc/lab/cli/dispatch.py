@@ -46,8 +46,7 @@ def guarded(command, debug: bool, out: str | None = None, args=None) -> int:
         if not debug:
             message = " ".join(str(err).split()) or "(no message)"
             print(
-                f"prdp-petsc: error: {type(err).__name__}: {message} (--debug shows the "
-                "traceback)",
+                f"prdp-petsc: error: {type(err).__name__}: {message} (--debug shows the traceback)",
                 file=sys.stderr,
             )
         if parallel:  # the other ranks may be waiting in a collective call
