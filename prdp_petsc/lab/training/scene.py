@@ -230,21 +230,17 @@ def preset_config(module: ModuleType, preset: str) -> dict:
     if name not in module.PRESETS:
         raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {name!r}")
     config = Settings(module.PRESETS[name], scene=_scene_name(module), preset=str(preset))
-    known = {}
-    for settings in module.PRESETS.values():
-        for key, value in settings.items():
-            known.setdefault(key, value)
-    for key, text in pairs:
-        if key in known:
-            config[key] = _typed(key, text, config.get(key, known[key]))
-            continue
-        if key in PRDP_SETTINGS:  # a setting of the controller: `with_prdp_settings`
-            config[key] = _typed(key, text, PRDP_SETTINGS[key])
-            continue
-        if (_scene_name(module), key) not in _WARNED:
-            _WARNED.add((_scene_name(module), key))
-            logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
-        config[key] = _typed(key, text, None)
+    for key, text in pairs:  # every preset names the same keys (`check_presets`)
+        if key in config:
+            like = config[key]
+        elif key in PRDP_SETTINGS:  # a setting of the controller: `with_prdp_settings`
+            like = PRDP_SETTINGS[key]
+        else:
+            like = None
+            if (_scene_name(module), key) not in _WARNED:
+                _WARNED.add((_scene_name(module), key))
+                logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
+        config[key] = _typed(key, text, like)
     return config
 
 
