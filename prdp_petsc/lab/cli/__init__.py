@@ -13,18 +13,7 @@ Sub-commands::
                    [--checkpoint-every N] [--resume]
                    --out DIR [PETSc options]
     prdp-petsc scene SCENE_FILE [NAME [ARGS ...]] [--debug] [PETSc options]
-    prdp-petsc bench bridge|elasticity|jax [--preset quick|paper] --out DIR
-    prdp-petsc bench mpi [SCENE_FILE] [--preset quick|paper] --out DIR
-    prdp-petsc work-precision PROBLEM [--preset quick|paper] [--k-max K]
-                   [--routes cg/gamg,...] --out DIR
-    prdp-petsc stability [--preset quick|paper] --out DIR
-    prdp-petsc pages --out docs/results
-    prdp-petsc rollouts --run NAME=DIR[,DIR...] ... [--ratio NAME/REF] --out DIR
-    prdp-petsc horizon SCENE_FILE [--preset P] [--m 2 4 8 16] [--k K] --out DIR
-    prdp-petsc ablation SCENE_FILE [--preset P] [--seeds 0-2] --lever NAME KEY=VALUE ...
-                   [--schedules prdp,rtol] [--routes R] [--no-twin] --out DIR
-    prdp-petsc unseen [--preset quick|paper] [--seeds 0-2] --out DIR
-    prdp-petsc defaults SCENE_FILE [--preset P] [--seeds 0-2] --out DIR
+    prdp-petsc COMMAND -h   (the report tools listed below: bench, work-precision, ...)
     prdp-petsc --version
 
 Every sub-command follows the same conventions: PETSc options (single dash, such as

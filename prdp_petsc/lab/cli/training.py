@@ -83,11 +83,9 @@ OPTIONS = [
         "resume from their checkpoint")),
     ("compare", ["--routes"], dict(
         type=routes,
-        help="other solvers to run PRDP and full fidelity with, comma-separated "
-        "ksp_type/pc_type (e.g. cg/icc,cg/gamg), each optionally with sub-options as "
-        ":option=value (gmres/fieldsplit:pc_fieldsplit_type=schur), or a route the scene "
-        "names in ROUTES (default: the routes of the scene's preset; '' runs none; auto: "
-        "a short pilot at full fidelity picks one)")),
+        help="other solvers to run PRDP and full fidelity with: ksp/pc[:option=value,...] "
+        "(cg/icc,cg/gamg) or the scene's ROUTES names (default: its preset's; '' none; "
+        "auto: a short pilot at full fidelity picks one)")),
     ("compare", ["--schedules"], dict(
         type=_schedules, default=("prdp",),
         help="reduced-fidelity schedules to run on every route, comma-separated: prdp "
@@ -116,9 +114,8 @@ def make_parser(
         if name == "compare":
             seed.add_argument(
                 "--seeds", type=seeds,
-                help="compare on each of these seeds (e.g. 0-3 or 0,2,5), each with a second "
-                "full-fidelity run from other initial weights (the run-to-run noise), and "
-                "summarise the error ratios over the seeds",
+                help="compare on each of these seeds (0-3 or 0,2,5), each with a second "
+                "full-fidelity run from other initial weights, and summarise over the seeds",
             )  # fmt: skip
         for commands, flags, options in OPTIONS:
             if name in commands.split():

@@ -12,13 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["Curves", "route"]
-
-
-def route(solvers: list[dict]) -> str:
-    """The KSP/PC types PETSc used, ``ksp/pc`` per scene solver (`KSPSolver.describe`
-    records), comma-separated: ``"cg/icc"``, ``"richardson/jacobi,cg/gamg"``."""
-    return ",".join(f"{s['forward']['ksp_type']}/{s['forward']['pc_type']}" for s in solvers)
+__all__ = ["Curves"]
 
 
 class Curves:
@@ -40,7 +34,9 @@ class Curves:
             "scene": result["scene"],
             "preset": result["preset"],
             "schedule": result["schedule"],
-            "route": route(result["solvers"]),
+            "route": ",".join(  # ksp/pc of every solver, as PETSc ran them
+                f"{s['forward']['ksp_type']}/{s['forward']['pc_type']}" for s in result["solvers"]
+            ),
             "seed": result["seed"],
             "torch_seed": result["torch_seed"],
         }

@@ -254,7 +254,10 @@ def run(
                     result["uncorrected_rollout"] = ranks.rollout(scene.uncorrected_rollout)
                 result["finished"] = True
         except KeyboardInterrupt:
-            _interrupted(result)
+            epoch = len(result["epochs"])
+            logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
+            message = f"KeyboardInterrupt during epoch {epoch}; earlier epochs are complete"
+            result["stopped"] = {"epoch": epoch, "reason": "interrupted", "message": message}
             raise
         finally:
             result["solvers"] = [s.describe() for s in scene.solvers]
@@ -263,14 +266,6 @@ def run(
                 write_json(out / RESULTS, result)
             release(scene)
     return result
-
-
-def _interrupted(result: dict) -> None:
-    """Record in `result` that Ctrl-C stopped its run (the caller re-raises)."""
-    epoch = len(result["epochs"])
-    logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
-    message = f"KeyboardInterrupt during epoch {epoch}; earlier epochs are complete"
-    result["stopped"] = {"epoch": epoch, "reason": "interrupted", "message": message}
 
 
 def _train(
@@ -293,9 +288,8 @@ def _train(
 
     generator = torch.Generator().manual_seed(torch_seed)
     check = gradient_check(scene) if plan.kind == "auto" else None
-    if plan.kind == "auto":
-        start = {"k_init": scene.prdp["k_init"]} if "k_init" in scene.prdp else {}
-        controller = PRDP.for_problem(scene.prdp["k_full"], check=check, **start)
+    if plan.kind == "auto":  # `run` has set k_full and k_init
+        controller = PRDP.for_problem(**scene.prdp, check=check)
     else:
         controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
     levels = result.get("rtol") if plan.kind == "rtol" else None
@@ -338,7 +332,9 @@ def _train(
                 if controller is not None:  # its checks' solves count in this epoch's costs
                     following = ranks.agree(controller.update(metric))
                 if check is not None and epoch == epochs - 1:  # the certified end
-                    _certify(controller, result)
+                    cert = controller.certify()
+                    result["certificate"] = {**asdict(cert), "certified": cert.certified}
+                    logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
             except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
                 logger.error("epoch %d: %s", epoch, err)
                 result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
@@ -391,12 +387,6 @@ def _train(
         bar.close()
         if curves is not None:
             curves.close()
-
-
-def _certify(controller: PRDP, result: dict) -> None:
-    cert = controller.certify()
-    result["certificate"] = {**asdict(cert), "certified": cert.certified}
-    logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
 
 
 def _check_finite(value: float, what: str) -> None:
