@@ -52,7 +52,9 @@ def versions(*more: str) -> dict:
     """The installed version of each of `DISTRIBUTIONS` and `more` (None: not
     installed), ``petsc`` and ``python``."""
     found = {name: _version(name) for name in (*DISTRIBUTIONS, *more)}
-    found["petsc"] = _petsc_version()
+    from petsc4py import PETSc  # a dependency of the library
+
+    found["petsc"] = ".".join(str(part) for part in PETSc.Sys.getVersion())
     found["python"] = platform.python_version()
     return found
 
@@ -125,14 +127,6 @@ def _version(distribution: str) -> str | None:
         return version(distribution)
     except PackageNotFoundError:
         return None
-
-
-def _petsc_version() -> str | None:
-    try:
-        from petsc4py import PETSc
-    except ImportError:  # pragma: no cover - a dependency
-        return None
-    return ".".join(str(part) for part in PETSc.Sys.getVersion())
 
 
 def write_result(folder: str | Path, name: str, result: dict) -> Path:
