@@ -1,14 +1,9 @@
-"""The lab: the experiment machinery around the prdp_petsc library.
+"""The lab: the experiment machinery around the prdp_petsc library (the ``lab`` extra).
 
-Installed with the ``lab`` extra (``pip install "prdp-petsc[lab]"``: matplotlib and
-tqdm).  It holds the scene protocol (`prdp_petsc.lab.training.scene.Scene`), the
-training harness, PRDP-against-full comparisons over seeds and routes, the reports
-and benchmarks, the generated results pages and the ``prdp-petsc`` command
-(`prdp_petsc.lab.cli`).  `prdp_petsc.lab.components` holds the physics and networks
-that only the shipped scenes use.
-
-The lab uses only the library's public names (``import prdp_petsc as pp``); the
-library imports nothing from here.
+The scene protocol (`prdp_petsc.lab.training.scene.Scene`), the training harness,
+comparisons over seeds and routes, reports, benchmarks, the generated results pages
+and the ``prdp-petsc`` command (`prdp_petsc.lab.cli`); `prdp_petsc.lab.components`
+holds what only the shipped scenes use.  It uses only the library's public names.
 """
 
 from importlib import import_module

@@ -1,8 +1,5 @@
-"""Values the lab reads from its users, checked one way: counts >= 1 and seed lists.
-
-The training functions raise ValueError with these; the command line
-(`prdp_petsc.lab.cli.arguments`) turns the same checks into usage errors.
-"""
+"""Values the lab reads from its users, checked one way: counts >= 1 and seed lists
+(the command line turns the same checks into usage errors)."""
 
 from __future__ import annotations
 
@@ -12,8 +9,7 @@ __all__ = ["check_epochs", "parse_seeds", "positive_int"]
 
 
 def positive_int(value, name: str) -> int:
-    """``value`` as an int, or ValueError naming `name` unless it is an integer >= 1
-    (`prdp_petsc.lab.cli.arguments.positive` reads one from the command line)."""
+    """``value`` as an int, or ValueError naming `name` unless it is an integer >= 1."""
     try:
         value = operator.index(value)
     except TypeError:

@@ -1,12 +1,8 @@
 """Provenance: what made a result file (versions, command line, commit, machine).
 
-The one implementation the lab has of it, machine facts included.  Every
-``results.json`` and ``summary.json`` the training harness writes carries a
-``provenance`` object from `provenance`; the benchmarks record `machine_info` (or
-`machine` and `versions`); ``prdp-petsc pages record``
-(`prdp_petsc.lab.reports.record`) records the command's `machine`, `versions` and
-`git_commit`.  A number can so be traced to the code and the
-libraries that produced it.
+Every ``results.json`` and ``summary.json`` carries `provenance`; the benchmarks record
+`machine_info`; ``prdp-petsc pages record`` records `machine`, `versions` and
+`git_commit`.
 """
 
 from __future__ import annotations
@@ -38,23 +34,9 @@ DISTRIBUTIONS = ("prdp-petsc", "petsc4py", "torch", "numpy", "scipy", "scikit-fe
 
 
 def provenance(threads: int, ranks: int) -> dict:
-    """What produced a result file, as plain JSON types.
-
-    Parameters
-    ----------
-    threads : int
-        torch threads the run used (`prdp_petsc.lab.training.threads.torch_threads`).
-    ranks : int
-        MPI ranks the run used (1 for a serial run).
-
-    Returns
-    -------
-    dict
-        ``versions`` (`versions`), ``command`` (``sys.argv``), ``git``
-        (`git_commit`, or None outside a git checkout), ``timestamp`` (ISO 8601,
-        local time with its UTC offset), ``host`` (``cpus``: ``os.cpu_count()``,
-        ``platform``), ``torch_threads`` and ``mpi_ranks``.
-    """
+    """What produced a result file run on `threads` torch threads and `ranks` MPI ranks:
+    ``versions``, ``command`` (``sys.argv``), ``git`` (`git_commit`), ``timestamp``
+    (local ISO 8601), ``host``, ``torch_threads`` and ``mpi_ranks``."""
     return {
         "versions": versions(),
         "command": list(sys.argv),
@@ -67,10 +49,12 @@ def provenance(threads: int, ranks: int) -> dict:
 
 
 def versions(*more: str) -> dict:
-    """The installed version of each of `DISTRIBUTIONS` and `more` (None for one that
-    is not installed), ``petsc`` (``PETSc.Sys.getVersion()``) and ``python``."""
+    """The installed version of each of `DISTRIBUTIONS` and `more` (None: not
+    installed), ``petsc`` and ``python``."""
     found = {name: _version(name) for name in (*DISTRIBUTIONS, *more)}
-    found["petsc"] = _petsc_version()
+    from petsc4py import PETSc  # a dependency of the library
+
+    found["petsc"] = ".".join(str(part) for part in PETSc.Sys.getVersion())
     found["python"] = platform.python_version()
     return found
 
@@ -86,8 +70,8 @@ def machine() -> dict:
 
 
 def machine_info() -> dict:
-    """What a benchmark records about where it ran: `machine`, torch's threads
-    (``torch_threads``) and `versions` (``versions``)."""
+    """What a benchmark records about where it ran: `machine`, ``torch_threads`` and
+    ``versions``."""
     import torch
 
     return {**machine(), "torch_threads": torch.get_num_threads(), "versions": versions()}
@@ -111,15 +95,10 @@ def load_average() -> list[float] | None:
 
 
 def git_commit(path: str | Path | None = None) -> dict | None:
-    """``{"commit": HEAD, "dirty": bool, "modified": [files]}`` of the git checkout
-    that holds `path`.
-
-    `path` (a folder) defaults to this package's.  None when the folder holds no file
-    tracked by a git checkout (an installed wheel, a virtual environment inside a
-    checkout) or git is missing or fails: provenance never stops a run.  ``modified``
-    lists the tracked files that differ from HEAD (untracked files do not count),
-    ``dirty`` says whether there are any.
-    """
+    """``{"commit": HEAD, "dirty": bool, "modified": [tracked files that differ]}`` of
+    the git checkout that holds the folder `path` (default: this package's); None where
+    no git checkout tracks it (an installed wheel) or git fails: provenance never stops
+    a run."""
     folder = Path(__file__).resolve().parent if path is None else Path(path)
     try:
         # its files must be tracked: a virtual environment inside a checkout is not
@@ -148,14 +127,6 @@ def _version(distribution: str) -> str | None:
         return version(distribution)
     except PackageNotFoundError:
         return None
-
-
-def _petsc_version() -> str | None:
-    try:
-        from petsc4py import PETSc
-    except ImportError:  # pragma: no cover - a dependency
-        return None
-    return ".".join(str(part) for part in PETSc.Sys.getVersion())
 
 
 def write_result(folder: str | Path, name: str, result: dict) -> Path:

@@ -13,14 +13,9 @@ _RUNTIME_NAMES = {"OMPI_MCA_ess", "OMPI_MCA_pmix", "IPATH_NO_BACKTRACE", "HFI_NO
 
 
 def child_env(extra: dict | None = None) -> dict:
-    """This process's environment without the MPI runtime's variables, plus `extra`.
-
-    For a child process that starts its own MPI job (``mpiexec``) or initialises MPI
-    itself: after ``MPI_Init`` in this process (PETSc started), Open MPI's variables
-    (``PMIX_*``, ``OMPI_MCA_ess``, …) are in ``os.environ``, and a child that inherits
-    them fails to start.  The user's own settings (``OMPI_ALLOW_RUN_AS_ROOT``,
-    ``OMPI_MCA_rmaps_base_oversubscribe``, …) are kept.
-    """
+    """This process's environment without the MPI runtime's variables, plus `extra`: a
+    child that starts its own MPI job fails with the variables Open MPI put into
+    ``os.environ`` after ``MPI_Init`` here (the user's own ``OMPI_*`` settings stay)."""
     env = {
         key: value
         for key, value in os.environ.items()

@@ -13,46 +13,16 @@ Sub-commands::
                    [--checkpoint-every N] [--resume]
                    --out DIR [PETSc options]
     prdp-petsc scene SCENE_FILE [NAME [ARGS ...]] [--debug] [PETSc options]
-    prdp-petsc bench bridge|elasticity|jax [--preset quick|paper] --out DIR
-    prdp-petsc bench mpi [SCENE_FILE] [--preset quick|paper] --out DIR
-    prdp-petsc work-precision PROBLEM [--preset quick|paper] [--k-max K]
-                   [--routes cg/gamg,...] --out DIR
-    prdp-petsc stability [--preset quick|paper] --out DIR
-    prdp-petsc pages --out docs/results
-    prdp-petsc rollouts --run NAME=DIR[,DIR...] ... [--ratio NAME/REF] --out DIR
-    prdp-petsc horizon SCENE_FILE [--preset P] [--m 2 4 8 16] [--k K] --out DIR
-    prdp-petsc ablation SCENE_FILE [--preset P] [--seeds 0-2] --lever NAME KEY=VALUE ...
-                   [--schedules prdp,rtol] [--routes R] [--no-twin] --out DIR
-    prdp-petsc unseen [--preset quick|paper] [--seeds 0-2] --out DIR
-    prdp-petsc defaults SCENE_FILE [--preset P] [--seeds 0-2] --out DIR
+    prdp-petsc COMMAND -h   (the report tools listed below: bench, work-precision, ...)
     prdp-petsc --version
 
 Every sub-command follows the same conventions: PETSc options (single dash, such as
 ``-heat_ksp_type cg -log_view``) start PETSc, ``--debug`` shows the traceback of an
-error (otherwise one line, exit status 1), a usage error exits 2, and a concept has
-one spelling: a positional SCENE_FILE, ``--preset NAME``, ``--routes ksp/pc,...``,
-``--seeds 0-3``, ``--k K`` for the fixed K of every solve and ``--k-max K`` for an
-upper bound on K (`prdp_petsc.lab.cli.arguments`).  Old spellings (``--quick``,
-``--ksp-type``/``--pc-type``, ``--scene FILE``, ``--seeds 0 1 2``, ``--ks 2,4,8``)
-still work for one release and say so on stderr.
-
-Exit status: 0 on success; 1 if a run stopped early (diverged solve, invalid
-input) or on an error, which prints one line (``--debug`` shows the traceback);
-2 for a usage error; 130 after Ctrl-C (the results written so far stay).
-
-Warning filters that name a category of this package, such as
-``python -W error::prdp_petsc.errors.UnusedOptionWarning -m prdp_petsc.lab.cli ...`` or
-``PYTHONWARNINGS=error::prdp_petsc.errors.UnusedOptionWarning prdp-petsc ...`` (a
-misspelt PETSc option then stops the run), are applied when the command starts
-(`apply_warning_options`): Python reads them before its site-packages are
-importable, drops them and says ``Invalid -W option ignored``.
-
-The package, one responsibility a module: `prdp_petsc.lab.cli.dispatch` (the table
-of sub-commands, `main`, `scene_main`), `prdp_petsc.lab.cli.arguments` (the shared
-arguments and the deprecated spellings), `prdp_petsc.lab.cli.petsc` (PETSc options
-and start-up), `prdp_petsc.lab.cli.guard` (errors, Ctrl-C, MPI), and the commands:
-`prdp_petsc.lab.cli.training` (``run``, ``compare``) and
-`prdp_petsc.lab.cli.scene_commands` (``scene``).
+error (otherwise one line, exit status 1), a usage error exits 2, Ctrl-C exits 130
+(the results written so far stay), and a concept has one spelling
+(`prdp_petsc.lab.cli.arguments`).  Warning filters that name a category of this
+package (``-W error::prdp_petsc.errors.UnusedOptionWarning``) apply from the start
+(`apply_warning_options`).
 """
 
 from .dispatch import main, scene_main

@@ -1,23 +1,10 @@
 """The command line's shared arguments: one spelling per concept, one parser per value.
 
-Every sub-command, the report tools' and the scenes' commands included, reads a
-concept the same way:
-
-* the scene: a positional ``SCENE_FILE``;
-* problem size: ``--preset NAME`` (the report tools: ``quick`` or ``paper``,
-  `add_size_preset`);
-* KSP/PC solvers: ``--routes ksp/pc,...`` (`routes`);
-* seeds: ``--seeds 0-3`` or ``--seeds 0,2,5`` (`seeds`);
-* the fixed K of every solve: ``--k K`` (several: ``--k K K ...``); an upper bound
-  on K: ``--k-max K``;
-* counts (``--epochs``, ``--threads``, ``--repeats``, ...): integers >= 1
-  (`positive`).
-
-Old spellings keep working for one release, each with one line on stderr
-(`deprecated`, `DeprecatedFlag`, `DeprecatedAlias`): ``--quick`` (``--preset
-quick``), ``--ksp-type``/``--pc-type`` (``--routes ksp/pc``), ``--scene FILE`` (the
-positional scene file), ``unseen --seeds 0 1 2`` (``--seeds 0-2``) and topopt3d's
-``results --ks 2,4,8`` (``--k 2 4 8``).
+A positional ``SCENE_FILE``; ``--preset NAME``; ``--routes ksp/pc,...``; ``--seeds 0-3``
+or ``0,2,5``; ``--k K [K ...]`` for fixed Ks and ``--k-max K`` for a bound; counts are
+integers >= 1.  Old spellings (``--quick``, ``--ksp-type``/``--pc-type``, ``--scene
+FILE``, ``--seeds 0 1 2``, ``--ks 2,4,8``) still parse and say on stderr that they go
+in the next release.
 """
 
 from __future__ import annotations
@@ -50,7 +37,7 @@ def deprecated(old: str, new: str) -> None:
 
 
 def positive(text: str) -> int:
-    """An argument that is an integer >= 1 (`prdp_petsc.lab.parsing.positive_int`)."""
+    """An argument that is an integer >= 1."""
     try:
         return positive_int(int(text), "the value")
     except ValueError:
@@ -58,7 +45,7 @@ def positive(text: str) -> int:
 
 
 def seeds(text: str) -> list[int]:
-    """``--seeds``: ``0-3``, ``0,2,5`` or a mix (`prdp_petsc.lab.parsing.parse_seeds`)."""
+    """``--seeds``: ``0-3``, ``0,2,5`` or a mix."""
     try:
         return parse_seeds(text)
     except ValueError as err:
@@ -66,26 +53,13 @@ def seeds(text: str) -> list[int]:
 
 
 def routes(text: str) -> tuple[str, ...]:
-    """``--routes``: the comma-separated routes, split (the command checks them against
-    the scene or problem: `prdp_petsc.lab.training.routes.parse_routes`)."""
+    """``--routes``: the comma-separated routes (the command checks them)."""
     return tuple(r.strip() for r in text.split(",") if r.strip())
 
 
-class DeprecatedFlag(argparse.Action):
-    """An old flag without a value that stands for ``NEW VALUE``: stores `const` in
-    `dest` (the new option's) and says so (`deprecated`)."""
-
-    def __init__(self, option_strings, dest, *, const, new: str, **kwargs):
-        super().__init__(option_strings, dest, nargs=0, const=const, **kwargs)
-        self.new = new
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        deprecated(option_string, self.new)
-        setattr(namespace, self.dest, self.const)
-
-
 class DeprecatedAlias(argparse.Action):
-    """An old option with a value, stored in `dest` as before, and said so."""
+    """An old option, stored in `dest` as the new one would, said so on stderr; without a
+    value (``nargs=0``) it stores `const`."""
 
     def __init__(self, option_strings, dest, *, new: str, **kwargs):
         super().__init__(option_strings, dest, **kwargs)
@@ -93,7 +67,14 @@ class DeprecatedAlias(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         deprecated(option_string, self.new)
-        setattr(namespace, self.dest, values)
+        setattr(namespace, self.dest, self.const if self.nargs == 0 else values)
+
+
+class DeprecatedFlag(DeprecatedAlias):
+    """An old flag without a value that stands for ``NEW VALUE`` (`const`)."""
+
+    def __init__(self, option_strings, dest, *, const, new: str, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, const=const, new=new, **kwargs)
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:
@@ -102,14 +83,11 @@ def add_debug(parser: argparse.ArgumentParser) -> None:
 
 
 def add_size_preset(parser: argparse.ArgumentParser, quick: str = "small sizes") -> None:
-    """A report tool's ``--preset quick|paper`` (default paper; `quick` says what quick
-    does), and the old ``--quick`` for ``--preset quick``."""
+    """A report tool's ``--preset quick|paper`` (default paper) and the old ``--quick``."""
     parser.add_argument(
-        "--preset",
-        choices=SIZE_PRESETS,
-        default="paper",
+        "--preset", choices=SIZE_PRESETS, default="paper",
         help=f"paper (the default) or quick: {quick}",
-    )
+    )  # fmt: skip
     parser.add_argument(
         "--quick", action=DeprecatedFlag, dest="preset", const="quick", new="--preset quick",
         help=argparse.SUPPRESS,

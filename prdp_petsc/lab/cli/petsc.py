@@ -1,13 +1,7 @@
 """PETSc on the command line: its options told from ours (`split_petsc_options`),
 PETSc started with them (`init_petsc`), and the warning filters that name this
-package's categories (`apply_warning_options`).
-
-Arguments that start with a single ``-`` and are not ours are PETSc options
-(``-heat_ksp_type cg -heat_ksp_monitor -log_view``): PETSc starts with them
-(``petsc4py.init``), so the scene's KSPs read them at ``KSPSetFromOptions`` and
-start-up options such as ``-log_view`` work as in any PETSc program.  Nothing here
-imports PETSc (or torch) at module level: `init_petsc` must run first.
-"""
+package's categories (`apply_warning_options`).  Nothing here imports PETSc or torch
+at module level: `init_petsc` must run first."""
 
 from __future__ import annotations
 
@@ -25,23 +19,12 @@ _ACTIONS = ("default", "always", "ignore", "module", "once", "error")
 
 
 def apply_warning_options(options: list[str] | None = None) -> None:
-    """Apply the warning filters of `options` whose category is one of prdp_petsc's.
+    """Apply the warning filters of `options` (default ``sys.warnoptions``) whose
+    category is one of prdp_petsc's, with Python's meaning.
 
-    Python reads ``-W`` and ``PYTHONWARNINGS`` (both end up in ``sys.warnoptions``,
-    the default of `options`) before its site-packages are on ``sys.path``, so it
-    cannot import ``prdp_petsc.errors`` for
-    ``-W error::prdp_petsc.errors.UnusedOptionWarning``: it prints ``Invalid -W
-    option ignored: invalid module name`` and drops the filter.  The command line
-    calls this first thing, so those filters apply after all.
-
-    Parameters
-    ----------
-    options : list of str, optional
-        Filters in Python's syntax, ``action:message:category:module:lineno``,
-        with Python's meaning (an abbreviated action, a message matched from its
-        start, a module matched whole, later filters first).  Filters whose
-        category is not in ``prdp_petsc`` are left to Python, which applied them.
-        They go before the filters Python set at start-up.
+    Python reads ``-W`` and ``PYTHONWARNINGS`` before site-packages are importable, so
+    it drops ``-W error::prdp_petsc.errors.UnusedOptionWarning`` (``Invalid -W option
+    ignored``); the command line calls this first thing, so the filter applies after all.
     """
     for option in sys.warnoptions if options is None else options:
         fields = [field.strip() for field in option.split(":")]
@@ -78,13 +61,9 @@ def _warning_action(text: str) -> str:
 
 
 def init_petsc(options: list[str]) -> None:
-    """Start PETSc with the command line's PETSc options, as petsc4py's demos do.
-
-    ``petsc4py.init`` must come before the first ``from petsc4py import PETSc``:
-    options read only at ``PetscInitialize`` (``-log_view``, ``-malloc_debug``)
-    work only then.  If PETSc is already running (the CLI called in-process, as in
-    tests), the options go into its options database instead.
-    """
+    """Start PETSc with the command line's PETSc options (``petsc4py.init``, before the
+    first ``from petsc4py import PETSc``, so that ``-log_view`` works); if PETSc already
+    runs (the CLI called in-process), insert them into its options database."""
     if "petsc4py.PETSc" in sys.modules:
         if options:
             from petsc4py import PETSc

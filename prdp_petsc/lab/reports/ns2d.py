@@ -129,7 +129,7 @@ def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> d
     but stays in phase; a corrector that restores energy can lose phase faster.
     """
     from ..training.building import release
-    from ..training.resume import load_trained
+    from ..training.checkpoint import load_trained
 
     trained = load_trained(folder, module=scene)
     record = json.loads((Path(folder) / "results.json").read_text())

@@ -10,33 +10,23 @@ import torch
 
 from .scene import preset_config, with_prdp_settings
 
-__all__ = ["build_scene", "release", "seed_everything"]
-
-
-def seed_everything(seed: int) -> None:
-    """Seed Python's, numpy's and torch's global generators (the shipped scenes draw
-    their data from a numpy Generator of their own; one that draws from numpy's
-    global state is then reproducible too, and resumes exactly)."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)  # noqa: NPY002 - the legacy global state, for such scenes
-    torch.manual_seed(seed)
+__all__ = ["build_scene", "release"]
 
 
 def build_scene(module, preset: str, seed: int, torch_seed: int | None = None):
     """``module.build(config, seed)``, Python and torch seeded with `torch_seed` (default
     `seed`): initial weights from torch, data from the scene's numpy Generator."""
     config = preset_config(module, preset)  # "paper modes=32": a preset, changed
-    seed_everything(seed if torch_seed is None else torch_seed)
+    torch_seed = seed if torch_seed is None else torch_seed
+    random.seed(torch_seed)  # the global generators, for scenes that draw from them
+    np.random.seed(torch_seed % 2**32)  # noqa: NPY002
+    torch.manual_seed(torch_seed)
     return with_prdp_settings(module.build(config, seed), preset, config)
 
 
 def release(scene) -> None:
-    """Free the PETSc objects of a scene's solvers now.
-
-    On one rank Python's garbage collector would; distributed PETSc objects are
-    only queued for a collective clean-up, so a long ``compare`` would keep every
-    run's matrices and KSPs until exit.
-    """
+    """Free the PETSc objects of a scene's solvers now (distributed ones would wait for
+    a collective clean-up at exit)."""
     for solver in scene.solvers:
         solver.destroy()
     from petsc4py import PETSc

@@ -1,12 +1,7 @@
-"""Scene data kept on disk between runs (``$PRDP_PETSC_CACHE``).
-
-Some scenes build their data with minutes of direct solves (``demos/ns2d.py``: the
-reference trajectories on the 2N grid).  `disk_cached` keeps such an array in
-``$PRDP_PETSC_CACHE`` (default ``~/.cache/prdp_petsc``; ``PRDP_PETSC_CACHE=""`` turns
-it off) under a name made of the scene's key and a hash of the source files that
-compute it, so that the runs of a comparison build it once and a changed scheme never
-reads old data.
-"""
+"""Scene data kept on disk between runs (``$PRDP_PETSC_CACHE``, default
+``~/.cache/prdp_petsc``; ``PRDP_PETSC_CACHE=""`` turns it off), such as ns2d's reference
+trajectories: the runs of a comparison build them once, and a changed scheme (its
+source files hashed into the name) never reads old data."""
 
 from __future__ import annotations
 
@@ -29,21 +24,10 @@ def cache_folder() -> Path | None:
 def disk_cached(
     prefix: str, key: str, compute: Callable[[], np.ndarray], *, sources: Iterable = ()
 ) -> np.ndarray:
-    """``compute()``, or the array an earlier call with the same arguments stored.
-
-    Parameters
-    ----------
-    prefix, key : str
-        The file is ``{prefix}_{hash}_{key}.npy`` in `cache_folder`: `key` names every
-        argument the array depends on (``"n48_count5_..."``).
-    compute : callable ``() -> numpy.ndarray``
-        Builds the array where no stored one exists (and always where the cache is off).
-    sources : iterable of path-like
-        The files whose code computes the array; the first 12 hex digits of the SHA-1
-        of their bytes are the file name's ``{hash}``.
-
-    The file is written under a temporary name and renamed: a concurrent run reads a
-    whole file or none.
+    """``compute()``, or the array an earlier call with the same arguments stored as
+    ``{prefix}_{hash}_{key}.npy``: `key` names every argument the array depends on, the
+    hash is that of the `sources` (the files whose code computes it).  Written under a
+    temporary name and renamed, so that a concurrent run reads a whole file or none.
     """
     folder = cache_folder()
     if folder is None:

@@ -1,39 +1,21 @@
-"""Checkpoints: the whole state of a training run, saved and restored.
+"""Checkpoints: a training run's whole state saved (`save_checkpoint`), and a run's
+folder read back, to resume it (`recorded_run`, `check_resume`, `continue_result`)
+or to load its trained model (`load_trained`).
 
-`prdp_petsc.lab.training.harness.run` saves ``checkpoint.pt`` (``torch.save``) at the end
-of every ``checkpoint_every``-th epoch and of the last one.  It holds what the next
-epoch depends on, so that a run resumed from it continues exactly as if it had not
-stopped (bitwise, on the same threads and machine):
-
-``parameters``
-    The tensors the optimizer trains (``scene.optimizer.param_groups``, in order):
-    the model.
-``optimizer``, ``scheduler``
-    Their ``state_dict()`` (moments, step counts, the current learning rate).
-``prdp``
-    `prdp_petsc.PRDP.state_dict` (history, EMA, checkpoint, K, the stop flag), or
-    None for a fixed schedule.
-``epoch``, ``k``
-    Epochs completed; the K of the next epoch.
-``rng``
-    The ``torch.Generator`` of the batch order, torch's global generator, Python's
-    ``random`` and numpy's global state.
-``result``
-    The run's results up to ``epoch`` (what ``results.json`` held then).
-
-A checkpoint is also the saved model: `prdp_petsc.lab.training.harness.load_trained`
-rebuilds the scene and loads it.  It holds tensors and plain Python values only and
-is read with ``torch.load(weights_only=True)``, which runs no code from the file.
-
-Notes
------
-State a scene keeps outside its optimizer's parameters (buffers such as a batch
-norm's running statistics, counters in its closures, a generator of its own) is not
-saved: a resumed run rebuilds it as ``build`` makes it.  The shipped scenes keep none.
+`prdp_petsc.lab.training.harness.run` saves ``checkpoint.pt`` after every
+``checkpoint_every``-th epoch and the last one.  It holds what the next epoch depends
+on, so that a resumed run continues bitwise as if it had not stopped (same threads and
+machine): the optimizer's parameters (the model), the optimizer's, scheduler's and
+`prdp_petsc.PRDP`'s ``state_dict()``, the epochs completed and the next K, the random
+states (batch order, torch, Python, numpy) and the results so far.  It holds tensors
+and plain values only, read with ``torch.load(weights_only=True)``.  State a scene
+keeps outside its optimizer (buffers, closures) is rebuilt as ``build`` makes it.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import random
 from pathlib import Path
 
@@ -42,7 +24,23 @@ import torch
 
 from prdp_petsc import InputError
 
-__all__ = ["CHECKPOINT", "load_checkpoint", "parameters", "restore", "save_checkpoint"]
+from .building import build_scene
+from .records import RESULTS
+from .scene import load_scene
+
+__all__ = [
+    "CHECKPOINT",
+    "check_resume",
+    "continue_result",
+    "load_checkpoint",
+    "load_trained",
+    "parameters",
+    "recorded_run",
+    "restore",
+    "save_checkpoint",
+]
+
+logger = logging.getLogger(__name__)
 
 #: File name of a run's checkpoint in its output folder.
 CHECKPOINT = "checkpoint.pt"
@@ -58,26 +56,10 @@ def parameters(scene) -> list[torch.Tensor]:
 def save_checkpoint(
     path, scene, *, epoch: int, k: int, controller, generator: torch.Generator, result: dict
 ) -> None:
-    """Save the training state after `epoch` completed epochs to `path` (atomically).
-
-    Parameters
-    ----------
-    path : str or Path
-        File to write (``DIR/checkpoint.pt``); written through a temporary file, so
-        an interrupted save leaves the previous checkpoint whole.
-    scene : Scene
-        Its optimizer's parameters and state, and its scheduler's, are saved.
-    epoch, k : int
-        Epochs completed; K of the next epoch.
-    controller : PRDP or None
-        The schedule's controller (None for a fixed K).
-    generator : torch.Generator
-        The generator of the batch order.
-    result : dict
-        The run's results so far, as plain JSON types.
-    """
-    # numpy's legacy global state, for scenes that draw from it (ours use Generators)
-    numpy_state = np.random.get_state(legacy=False)  # noqa: NPY002
+    """Save the state after `epoch` completed epochs, with the next epoch's `k`, the
+    `controller` (None for a fixed K), the batch order's `generator` and the JSON
+    `result` so far, to `path` (through a temporary file: a save is whole or absent)."""
+    numpy_state = np.random.get_state(legacy=False)  # noqa: NPY002 - for scenes that use it
     numpy_state["state"] = {
         "key": numpy_state["state"]["key"].tolist(),
         "pos": int(numpy_state["state"]["pos"]),
@@ -106,16 +88,8 @@ def save_checkpoint(
 
 
 def load_checkpoint(path) -> dict:
-    """Read a checkpoint `save_checkpoint` wrote (``torch.load(weights_only=True)``).
-
-    Raises
-    ------
-    FileNotFoundError
-        No checkpoint at `path` (a run without an output folder, or one stopped
-        before its first checkpoint).
-    InputError
-        A file of another format.
-    """
+    """Read a checkpoint `save_checkpoint` wrote (FileNotFoundError without one,
+    InputError for a file of another format)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(
@@ -131,20 +105,11 @@ def load_checkpoint(path) -> dict:
 def restore(
     scene, state: dict, *, controller=None, generator: torch.Generator | None = None
 ) -> None:
-    """Load a checkpoint into a freshly built `scene` (and `controller`, `generator`).
+    """Load a checkpoint into a freshly built `scene` (parameters, optimizer, scheduler),
+    its `controller` and, with a `generator` (a run that continues), the random states.
 
-    Parameters, optimizer and scheduler are always restored.  With a `generator`,
-    so are the random number generators (its state, torch's, Python's and numpy's),
-    for a run that continues; without one they are left alone (a model loaded for
-    inference).
-
-    Raises
-    ------
-    InputError
-        The scene's parameters differ in number or shape from the checkpoint's (the
-        scene file or its preset changed since), or it has a scheduler where the
-        checkpoint has none or the other way round.
-    """
+    InputError where the scene's parameters or scheduler differ from the checkpoint's
+    (the scene file or its preset changed since)."""
     saved, params = state["parameters"], parameters(scene)
     shapes = [tuple(p.shape) for p in params]
     if [tuple(p.shape) for p in saved] != shapes:
@@ -177,3 +142,84 @@ def restore(
             "pos": numpy_state["state"]["pos"],
         }
         np.random.set_state(numpy_state)  # noqa: NPY002
+
+
+def recorded_run(folder) -> dict:
+    """The ``results.json`` of a run to resume (FileNotFoundError without one)."""
+    path = Path(folder) / RESULTS
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"no {path}: nothing to resume there (give the --out folder of a run)"
+        )
+    recorded = json.loads(path.read_text())
+    if "scene_file" not in recorded or "requested_epochs" not in recorded:
+        raise InputError(f"{path} was written by an older prdp_petsc: it cannot be resumed")
+    return recorded
+
+
+def check_resume(folder, recorded: dict, scene_file, given: dict, prdp: dict | None) -> None:
+    """Refuse to resume a run with settings other than its recorded ones."""
+    changed = [
+        f"{name}={value!r} (recorded: {recorded[name]!r})"
+        for name, value in given.items()
+        if value is not None and value != recorded[name]
+    ]
+    if scene_file is not None and Path(scene_file).stem != recorded["scene"]:
+        changed.append(f"scene {Path(scene_file).stem!r} (recorded: {recorded['scene']!r})")
+    settings = recorded["prdp"]  # None for a fixed schedule, which ignores `prdp`
+    changed += [
+        f"prdp {key}={value!r} (recorded: {settings.get(key)!r})"
+        for key, value in (prdp or {}).items()
+        if settings is not None and (key not in settings or settings[key] != value)
+    ]
+    if changed:
+        raise InputError(
+            f"resume: {folder} holds a run with other settings: {', '.join(changed)}; a "
+            "resumed run keeps its scene, preset, seeds and schedule (leave them out, or "
+            "start a new run in another folder)"
+        )
+
+
+def continue_result(result: dict, state: dict) -> None:
+    """Put the checkpoint's epochs and provenance into a resumed run's `result`."""
+    before = state["result"]
+    result["epochs"] = list(before["epochs"])
+    result["resumed"] = [
+        *before.get("resumed", []),
+        {"epoch": state["epoch"], "provenance": result["provenance"]},
+    ]
+    result["provenance"] = before["provenance"]
+    result["checkpoint"] = {"file": CHECKPOINT, "epoch": state["epoch"]}
+
+
+def load_trained(folder, *, module=None):
+    """The scene of a finished (or checkpointed) run in `folder`, its trained model loaded.
+
+    The scene is rebuilt from ``folder/results.json`` (or from `module`), the
+    checkpoint's parameters loaded and every solver's ``max_it`` (and, after the
+    ``rtol`` schedule, ``rtol``) set to the last trained epoch's, so that
+    ``scene.validate()`` gives its ``val_metric``.  Random states are left alone;
+    `prdp_petsc.lab.training.building.release` frees the solvers.
+
+    Examples
+    --------
+    >>> scene = load_trained("results/heat2d/prdp")  # doctest: +SKIP
+    >>> scene.validate()  # doctest: +SKIP
+    """
+    recorded = recorded_run(folder)
+    state = load_checkpoint(Path(folder) / CHECKPOINT)
+    module = module or load_scene(recorded["scene_file"])
+    scene = build_scene(module, recorded["preset"], recorded["seed"], recorded["torch_seed"])
+    restore(scene, state)
+    trained = state["result"]["epochs"]
+    if trained:
+        for solver in scene.solvers:
+            solver.max_it = trained[-1]["k"]
+            if "rtol" in trained[-1]:  # the rtol schedule's last tolerance
+                solver.rtol = trained[-1]["rtol"]
+    if len(trained) < len(recorded["epochs"]):
+        logger.warning(
+            "%s: the checkpoint holds %d of the %d recorded epochs (checkpoint_every > 1)",
+            folder, len(trained), len(recorded["epochs"]),
+        )  # fmt: skip
+    return scene

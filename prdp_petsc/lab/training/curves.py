@@ -1,48 +1,23 @@
-"""Live training curves: TensorBoard event files beside a run's ``results.json``.
+"""Live training curves: TensorBoard event files beside a run's ``results.json``
+(``tensorboard --logdir results/`` draws the runs as they train).
 
-`Curves` writes a run's scalars after every epoch and flushes them, so
-``tensorboard --logdir results/`` draws a run while it trains; every run folder of a
-comparison (``prdp/``, ``fixed_43/``, ``prdp_on_cg-icc/``) is one TensorBoard run.
-The step is the epoch (``results.json``'s ``epoch``, from 0):
-
-* ``loss/train``: the epoch's mean training loss;
-* ``metric/validation``: the validation metric the controller reads;
-* ``solver/K``: the iteration cap (``max_it``) the epoch ran with; under the ``rtol``
-  schedule also ``solver/rtol``;
-* ``solver/inner_iterations``: forward + adjoint iterations PETSc ran since the run
-  began, the solves of the controller's checks included;
-* ``time/wall``: seconds of training since the run began (as ``results.json``'s
-  ``wall_time``: checkpoint saves and these writes not counted);
-* ``prdp/check_gap``: the fidelity gap of a check (the ``auto`` schedule), in the
-  epochs that made one, and ``prdp/check_iterations``: the inner iterations of the
-  controller's checks so far (`prdp_petsc.Certificate`'s ``cost``; they are part of
-  ``solver/inner_iterations`` too).
-
-The run's scene, preset, schedule, route (the KSP/PC types of its solvers) and seeds
-are its hparams (TensorBoard's HPARAMS tab).  A resumed run purges the steps from its
-checkpoint on, so epochs trained again are not drawn twice.
+Per epoch (the step): ``loss/train``, ``metric/validation``, ``solver/K`` (and
+``solver/rtol``), ``solver/inner_iterations`` and ``time/wall`` since the run began,
+and, for a controller's checks, ``prdp/check_gap`` and ``prdp/check_iterations``.  The
+scene, preset, schedule, route and seeds are the run's hparams.  A resumed run purges
+the steps from its checkpoint on.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["Curves", "route"]
-
-
-def route(solvers: list[dict]) -> str:
-    """The KSP/PC types PETSc used, ``ksp/pc`` per scene solver (`KSPSolver.describe`
-    records), comma-separated: ``"cg/icc"``, ``"richardson/jacobi,cg/gamg"``."""
-    return ",".join(f"{s['forward']['ksp_type']}/{s['forward']['pc_type']}" for s in solvers)
+__all__ = ["Curves"]
 
 
 class Curves:
-    """TensorBoard event files of one run, in its output folder `out`.
-
-    `result` is the run's ``results.json`` record as `prdp_petsc.lab.training.harness.run`
-    starts it (its hparams are read from it); `start` is the first epoch to be trained
-    (a resumed run's checkpoint epoch).  Use as a context manager, or `close`.
-    """
+    """TensorBoard event files of one run in `out`, from its `result` as
+    `prdp_petsc.lab.training.harness.run` starts it, from epoch `start` on."""
 
     def __init__(self, out: str | Path, result: dict, start: int = 0):
         from torch.utils.tensorboard import SummaryWriter
@@ -59,7 +34,9 @@ class Curves:
             "scene": result["scene"],
             "preset": result["preset"],
             "schedule": result["schedule"],
-            "route": route(result["solvers"]),
+            "route": ",".join(  # ksp/pc of every solver, as PETSc ran them
+                f"{s['forward']['ksp_type']}/{s['forward']['pc_type']}" for s in result["solvers"]
+            ),
             "seed": result["seed"],
             "torch_seed": result["torch_seed"],
         }
@@ -70,9 +47,7 @@ class Curves:
         self._writer.flush()
 
     def add(self, record: dict, totals: dict, controller=None) -> None:
-        """One epoch: its `record` (an entry of ``results.json``'s ``epochs``), the run's
-        `totals` after it and its `controller` (a `prdp_petsc.PRDP`, None for a constant
-        K), whose checks it reports; flushed to disk."""
+        """One epoch's `record`, the run's `totals` after it and its `controller`'s checks."""
         step = record["epoch"]
         scalars = {
             "loss/train": record["train_loss"],
@@ -97,9 +72,3 @@ class Curves:
     def close(self) -> None:
         """Flush and close the event file."""
         self._writer.close()
-
-    def __enter__(self) -> Curves:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

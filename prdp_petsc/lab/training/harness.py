@@ -1,46 +1,48 @@
-"""One training run: `run` trains a scene once under a schedule.
+"""One training run: `run` sets a scene up under a schedule and trains it epoch by epoch.
 
-`run` writes ``results.json`` after every epoch, so a run that stops early (a
-diverged solve, Ctrl-C) keeps everything measured so far, TensorBoard event files
-beside it (`prdp_petsc.lab.training.curves`: ``tensorboard --logdir DIR`` draws the
-run as it trains), and ``checkpoint.pt``
-(`prdp_petsc.lab.training.checkpoint`), from which ``run(resume=DIR)`` continues it
-exactly and `load_trained` loads the trained model.
-`prdp_petsc.lab.training.compare` builds the PRDP-against-K_full comparison on top of it.
-
-The pieces live one idea a module, and this one re-exports the names a user of a run
-needs:
-
-* `prdp_petsc.lab.training.building`: `build_scene` (seeded), `release`;
-* `prdp_petsc.lab.training.probe`: `find_k_full` and what the schedules take from it;
-* `prdp_petsc.lab.training.loop`: the epoch loop and its records;
-* `prdp_petsc.lab.training.curves`: the run's TensorBoard curves;
-* `prdp_petsc.lab.training.resume`: a run folder read back, `load_trained`;
-* `prdp_petsc.lab.training.records`: ``results.json``, `to_json`, `write_json`;
-* `prdp_petsc.lab.training.threads`: `torch_threads`;
-* `prdp_petsc.lab.training.schedules`: `parse_schedule` and the schedules' constants.
+`run` writes ``results.json`` after every epoch (a run that stops early keeps what it
+measured), TensorBoard curves beside it (`prdp_petsc.lab.training.curves`) and
+``checkpoint.pt`` (`prdp_petsc.lab.training.checkpoint`), from which
+``run(resume=DIR)`` continues it exactly and `load_trained` loads the trained model.
+A solver outcome (`SolverError`, `InputError`: a diverged solve, a non-finite loss)
+stops the run with a ``stopped`` record; any other error propagates.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
+import math
+import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from prdp_petsc import PRDP, InputError
+import numpy as np
+import torch
+
+from prdp_petsc import PRDP, InputError, SolverError
+from prdp_petsc.errors import NonFiniteError
 
 from ..parsing import check_epochs, positive_int
 from ..provenance import provenance
 from .building import build_scene, release
-from .checkpoint import CHECKPOINT, load_checkpoint
-from .loop import interrupted, totals, train
+from .checkpoint import (
+    CHECKPOINT,
+    check_resume,
+    continue_result,
+    load_checkpoint,
+    load_trained,
+    recorded_run,
+    restore,
+    save_checkpoint,
+)
+from .curves import Curves
 from .parallel import Parallel
 from .probe import find_k_full, k_cap, probe, rtol_plan
 from .records import RESULTS, to_json, write_json
-from .resume import check_resume, continue_result, load_trained, recorded_run
 from .scene import load_scene, preset_config
-from .schedules import parse_schedule
+from .schedules import Schedule, gradient_check, parse_schedule, rtol_from_level
 from .threads import torch_threads
 
 __all__ = [
@@ -57,18 +59,13 @@ __all__ = [
 ]
 
 
+logger = logging.getLogger(__name__)
+
+
 @dataclass(frozen=True)
 class RunSettings:
-    """How `run` trains: what it trains with, and where and how it runs.
-
-    What is trained (recorded in ``results.json``; a resumed run keeps its own):
-    ``preset`` (default ``"quick"``), ``epochs`` (>= 1; default: the scene's),
-    ``seed`` (default 0), ``torch_seed`` (default ``seed``) and ``prdp`` (settings of
-    `prdp_petsc.PRDP` that replace the scene's).  How and where it runs: ``out``,
-    ``progress``, ``threads`` (>= 1), ``parallel`` and ``checkpoint_every`` (>= 1).
-    `run` documents each.  ``run(scene, schedule, preset="paper")`` is short for
-    ``run(scene, schedule, RunSettings(preset="paper"))``.
-    """
+    """How `run` trains (`run` documents each setting); ``run(scene, schedule,
+    preset="paper")`` is short for ``run(scene, schedule, RunSettings(preset="paper"))``."""
 
     preset: str | None = None
     epochs: int | None = None
@@ -105,107 +102,53 @@ def run(
     Parameters
     ----------
     scene_file : str or Path
-        Scene file (see `prdp_petsc.lab.training.scene`); with `resume`, default: the
+        Scene file (`prdp_petsc.lab.training.scene`); with `resume`, default: the
         recorded one.
     schedule : str
-        ``"prdp"`` (the default), ``"fixed:K"`` or ``"rtol"`` (`parse_schedule`).
-        ``"rtol"`` runs every scene solver with PETSc's rtol test (``‖r‖ ≤ rtol ‖b‖``,
-        ``atol`` 0) under ``max_it`` = `RTOL_MAX_IT_FACTOR` × K_full, and rtol =
-        ``rtol_from_level(level, RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``
-        (0.1, 0.01, ... down to the scene's own tolerance): a `prdp_petsc.PRDP` with
-        the scene's plateau settings and ``k_init = k_step = k_min = 1`` raises the
-        level (``controller.level``) by one where it would raise K, and stops at
-        the level that reaches ``rtol_full``
-        (`prdp_petsc.lab.training.schedules.rtol_levels`).
+        ``"prdp"`` (the default), ``"auto"``, ``"fixed:K"`` or ``"rtol"``
+        (`prdp_petsc.lab.training.schedules`).
     settings : RunSettings, optional
-        The settings below, grouped; keyword arguments (``preset="paper"``) change
-        single ones.
+        The settings below; keyword arguments (``preset="paper"``) change single ones.
     module : module, optional
         The scene module, instead of importing `scene_file`.
     preset, epochs, seed, torch_seed
-        Preset name (default ``"quick"``); number of epochs (>= 1; default: the
-        scene's); random seed (default 0; of the data and, unless `torch_seed` is
-        given, of torch: initial weights, batch order, training noise; `compare`'s
-        ``twin`` changes only `torch_seed`).
+        Preset (default ``"quick"``), epochs (default: the scene's), the seed of the
+        data (default 0) and of torch (default `seed`: initial weights, batch order).
     out : str or Path, optional
-        Output folder for ``results.json``, ``checkpoint.pt`` and the TensorBoard
-        event files (`prdp_petsc.lab.training.curves.Curves`); with `resume`,
-        default: the `resume` folder.
+        Folder for ``results.json``, ``checkpoint.pt`` and the TensorBoard files.
     progress : bool
-        Show a progress bar (epoch, K, validation metric).
+        Show a progress bar.
     threads : int
-        torch threads for the run (``torch.set_num_threads``; restored afterwards).
-        The default 1 keeps wall times honest on a shared machine.
+        torch threads for the run (restored afterwards).
     prdp : dict, optional
-        Settings of `prdp_petsc.PRDP` that replace the scene's; recorded in results.
-        For ``"rtol"`` its ``k_init``, ``k_step``, ``k_min`` and ``k_max`` count
-        rtol levels and are set by the schedule.
-        Unless they (or the scene) set ``k_max``, a PRDP run caps K at K_full
-        (`find_k_full`, one converged solve of the scene's probe): refining past
-        full fidelity buys nothing, and a validation error that rises for another
-        reason (overfitting, drift) would otherwise ratchet K up without bound.
-        ``{"k_max": None}`` lifts the cap; so does a probe that does not converge
-        (with a warning).
+        Settings of `prdp_petsc.PRDP` that replace the scene's.  Unless they or the
+        scene set ``k_max``, PRDP caps K at K_full (`find_k_full`); ``{"k_max": None}``
+        lifts the cap.
     parallel : {None, "domain", "batch"}
-        Use the ranks of ``MPI.COMM_WORLD`` (start under ``mpiexec``): distributed
-        solves, or a split of every mini-batch (`prdp_petsc.lab.training.parallel`).
-        Rank 0 writes ``results.json`` and ``checkpoint.pt``; every rank returns
-        the same result.
+        Use the ranks of ``MPI.COMM_WORLD`` (`prdp_petsc.lab.training.parallel`).
     checkpoint_every : int
-        Save ``out/checkpoint.pt`` (`prdp_petsc.lab.training.checkpoint`) after every
-        this many epochs (>= 1) and after the last one.  A save (``torch.save`` of
-        the parameters, optimizer and random states and the results so far) is not
-        counted in an epoch's ``wall_time``; it matters only where epochs take
-        milliseconds, as on the quick presets: raise it there.
+        Save ``out/checkpoint.pt`` after every this many epochs and after the last.
     resume : str or Path, optional
-        Folder of an earlier run (its ``results.json`` and ``checkpoint.pt``):
-        rebuild its scene with the recorded preset, seeds, schedule and PRDP
-        settings, load the checkpoint and train on to `epochs` (default: the
-        recorded number; a finished run given more continues), appending to its
-        results.  On one thread the epochs equal those of a run that never
-        stopped, bitwise; epochs after the checkpoint that ``results.json`` already
-        held (with ``checkpoint_every > 1``) are trained again.  Every rank of a
-        ``parallel`` run reads the same files.
+        Folder of an earlier run: rebuild it with its recorded settings, load its
+        checkpoint and train on to `epochs` (default: the recorded number), appending
+        to its results; on one thread bitwise as if it had never stopped.
 
     Returns
     -------
     dict
-        ``epochs`` (per epoch: ``k``, ``train_loss``, ``val_metric``, ``wall_time``,
-        ``fwd_iterations``, ``adj_iterations``, the iterations PETSc ran; under
-        ``"rtol"`` also ``rtol``, ``rtol_level``, ``fwd_solves`` and ``adj_solves``,
-        with ``k`` the cap; where a scene solver reuses its PC (``pc_lag`` > 1) also
-        ``pc_setups`` and ``pc_quality_rebuilds``), ``totals``; under ``"rtol"``,
-        ``rtol`` (``rtol_init``, ``factor``, ``rtol_min``, ``levels``, ``k_full``,
-        ``max_it_factor``, ``max_it``); ``threads``, ``config``
-        (the preset's settings, as changed by the preset string), ``provenance``,
-        ``solvers`` (`KSPSolver.describe` of every scene solver: prefixes, options,
-        and the KSP/PC types PETSc used) and ``stopped``: None, or ``epoch`` (the
-        first epoch not completed), ``reason`` (a PETSc reason; ``NON_FINITE`` for a
-        NaN or Inf input, loss or metric; ``STRUCTURE``, ``INVALID_INPUT`` for the
-        other `prdp_petsc.errors.InputError` kinds; or ``interrupted``) and
-        ``message``; ``rollout``, the per-step error of the trained model, and
-        ``uncorrected_rollout``, that of the solver alone, for scenes that define
-        them; ``requested_epochs``; ``finished`` (True once all
-        of them trained and the rollout is recorded); ``checkpoint`` (``file`` and
-        ``epoch`` of the last save, or None); ``scene_file``; ``provenance``
-        (`prdp_petsc.lab.provenance.provenance` of the process that started
-        the run) and, after a resume, ``resumed``: per resume the ``epoch`` it
-        started from and its ``provenance``.
+        The ``results.json`` record: ``epochs`` (per epoch ``k``, ``train_loss``,
+        ``val_metric``, ``wall_time``, ``fwd_iterations``, ``adj_iterations``, ...),
+        ``totals``, ``config``, ``solvers``, ``provenance``, ``stopped`` (None, or the
+        ``epoch``, ``reason`` and ``message`` of a solver outcome or Ctrl-C),
+        ``finished``, ``checkpoint`` and, for scenes that define them, ``rollout`` and
+        ``uncorrected_rollout``.
 
     Raises
     ------
-    Exception
-        Anything but a `SolverError` or an `InputError` raised while training (a
-        bug in the scene, a plain ``ValueError`` from numpy) propagates: it is not
-        a solver outcome, and recording it as one would hide it.
-    KeyboardInterrupt
-        Re-raised after ``results.json`` records ``stopped: {"reason": "interrupted"}``.
-    FileNotFoundError
-        `resume` names a folder without ``results.json`` or ``checkpoint.pt``.
     InputError
-        `resume` with a `scene_file`, `schedule`, `preset`, `seed`, `torch_seed` or
-        `prdp` setting other than the recorded one, or with `epochs` fewer than
-        the checkpoint's.
+        `resume` with settings other than the recorded ones, or fewer `epochs` than
+        its checkpoint holds.  Errors other than `SolverError` and `InputError`
+        propagate: they are bugs, not solver outcomes.
     """
     settings = (settings or RunSettings()).replace(**changes)
     epochs, out, preset = settings.epochs, settings.out, settings.preset
@@ -300,7 +243,7 @@ def run(
             ranks.synchronize(scene)
             result["prdp"] = scene.prdp if plan.kind != "fixed" else None
             progress = settings.progress and ranks.root
-            train(
+            _train(
                 scene, result, plan, epochs, torch_seed, out, progress, ranks,
                 every=settings.checkpoint_every, state=state,
             )  # fmt: skip
@@ -311,7 +254,10 @@ def run(
                     result["uncorrected_rollout"] = ranks.rollout(scene.uncorrected_rollout)
                 result["finished"] = True
         except KeyboardInterrupt:
-            interrupted(result)
+            epoch = len(result["epochs"])
+            logger.error("epoch %d: interrupted (Ctrl-C)", epoch)
+            message = f"KeyboardInterrupt during epoch {epoch}; earlier epochs are complete"
+            result["stopped"] = {"epoch": epoch, "reason": "interrupted", "message": message}
             raise
         finally:
             result["solvers"] = [s.describe() for s in scene.solvers]
@@ -320,3 +266,150 @@ def run(
                 write_json(out / RESULTS, result)
             release(scene)
     return result
+
+
+def _train(
+    scene,
+    result: dict,
+    plan: Schedule,
+    epochs: int,
+    torch_seed: int,
+    out,
+    progress: bool,
+    ranks: Parallel,
+    *,
+    every: int = 1,
+    state: dict | None = None,
+) -> None:
+    """Fill ``result["epochs"]`` (and ``stopped``) in place, from a checkpoint's `state`
+    if given; into `out` a checkpoint every `every` epochs, ``results.json`` and the
+    TensorBoard curves after every epoch."""
+    from tqdm.auto import tqdm
+
+    generator = torch.Generator().manual_seed(torch_seed)
+    check = gradient_check(scene) if plan.kind == "auto" else None
+    if plan.kind == "auto":  # `run` has set k_full and k_init
+        controller = PRDP.for_problem(**scene.prdp, check=check)
+    else:
+        controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
+    levels = result.get("rtol") if plan.kind == "rtol" else None
+    start = 0
+    if state is not None:
+        restore(scene, state, controller=controller, generator=generator)
+        start = state["epoch"]
+    k = plan.k if plan.kind == "fixed" else levels["max_it"] if levels else controller.k
+    level = controller.level if levels else None  # rtol: the controller's K counts levels
+    bar = tqdm(
+        range(start, epochs),
+        desc=f"{result['scene']} {result['schedule']}",
+        initial=start,
+        total=epochs,
+        disable=None if progress else True,  # None: tqdm hides itself when not a terminal
+        leave=False,
+    )
+    curves = Curves(out, result, start) if out is not None else None
+    try:
+        for epoch in bar:
+            rtol = None
+            if levels:  # PRDP's level as PETSc's rtol (the adjoint follows unless set apart)
+                rtol = rtol_from_level(level, levels["rtol_init"], levels["factor"],
+                                       levels["rtol_min"])  # fmt: skip
+            for s in scene.solvers:
+                s.max_it = k
+                if rtol is not None:
+                    s.rtol = rtol
+                s.reset_stats()
+            t0 = time.perf_counter()
+            try:
+                losses = []
+                for batch in scene.batches(epoch, generator):
+                    losses.append(ranks.step(scene, batch))
+                    _check_finite(losses[-1], f"the training loss of batch {len(losses) - 1}")
+                if scene.scheduler is not None:
+                    scene.scheduler.step()
+                metric = ranks.validate(scene)
+                _check_finite(metric, "the validation metric")
+                if controller is not None:  # its checks' solves count in this epoch's costs
+                    following = ranks.agree(controller.update(metric))
+                if check is not None and epoch == epochs - 1:  # the certified end
+                    cert = controller.certify()
+                    result["certificate"] = {**asdict(cert), "certified": cert.certified}
+                    logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
+            except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
+                logger.error("epoch %d: %s", epoch, err)
+                result["stopped"] = {"epoch": epoch, "reason": err.reason, "message": str(err)}
+                return
+            wall = time.perf_counter() - t0
+            stats = [s.stats for s in scene.solvers]
+            names = ["forward_iterations", "adjoint_iterations"]
+            if any(s.pc_lag > 1 for s in scene.solvers):  # what reusing the PC saved
+                names += ["pc_setups", "pc_quality_rebuilds"]
+            if rtol is not None:  # what the tolerance bought: solves and real iterations
+                names += ["forward_solves", "adjoint_solves"]
+            counts, solver_time = ranks.totals(
+                [sum(getattr(s, name) for s in stats) for name in names],
+                sum(s.forward_time + s.adjoint_time for s in stats),
+            )
+            counts = dict(zip(names, counts, strict=True))
+            record = {
+                "epoch": epoch,
+                "k": k,
+                "train_loss": float(np.mean(losses)) if losses else math.nan,
+                "val_metric": metric,
+                "wall_time": wall,
+                "fwd_iterations": counts.pop("forward_iterations"),
+                "adj_iterations": counts.pop("adjoint_iterations"),
+                "solver_time": solver_time,
+            }
+            if rtol is not None:
+                record.update(rtol=rtol, rtol_level=level, fwd_solves=counts.pop("forward_solves"),
+                              adj_solves=counts.pop("adjoint_solves"))  # fmt: skip
+            record.update(counts)
+            result["epochs"].append(record)
+            bar.set_postfix(K=k, val=f"{metric:.3e}", **({"rtol": f"{rtol:.0e}"} if rtol else {}))
+            if controller is not None:
+                if levels:  # rtol: the level moves, the cap stays
+                    level = following - controller.k_min
+                else:
+                    k = following
+            result["totals"] = totals(result["epochs"])
+            if out is not None:
+                done = epoch + 1
+                if done % every == 0 or done == epochs:
+                    save_checkpoint(
+                        out / CHECKPOINT, scene, epoch=done, k=k, controller=controller,
+                        generator=generator, result=to_json(result),
+                    )  # fmt: skip
+                    result["checkpoint"] = {"file": CHECKPOINT, "epoch": done}
+                write_json(out / RESULTS, result)
+                curves.add(record, result["totals"], controller)
+    finally:
+        bar.close()
+        if curves is not None:
+            curves.close()
+
+
+def _check_finite(value: float, what: str) -> None:
+    """A NaN or Inf loss or metric stops the run (`NonFiniteError`), never trains on."""
+    if not math.isfinite(value):
+        raise NonFiniteError(
+            f"{what} is {value}: training cannot continue (a diverged network, a too large "
+            "learning rate, or a solve that lost accuracy); earlier epochs are complete"
+        )
+
+
+def totals(log: list[dict]) -> dict:
+    """A run's totals over the epochs of `log` and its final and best validation error."""
+    if not log:
+        return {"epochs": 0}
+    return {
+        "epochs": len(log),
+        "wall_time": sum(e["wall_time"] for e in log),
+        "solver_time": sum(e["solver_time"] for e in log),
+        "fwd_iterations": sum(e["fwd_iterations"] for e in log),
+        "adj_iterations": sum(e["adj_iterations"] for e in log),
+        "final_val_error": log[-1]["val_metric"],
+        "best_val_error": min(e["val_metric"] for e in log),
+        "k_final": log[-1]["k"],
+        **({"rtol_final": log[-1]["rtol"]} if "rtol" in log[-1] else {}),
+    }

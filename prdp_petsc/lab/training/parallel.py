@@ -1,27 +1,13 @@
 """Training on more than one process: ``--parallel domain`` and ``--parallel batch``.
 
-Start the command under MPI (``mpiexec -n P prdp-petsc run SCENE --parallel ...``);
-scenes need no change.
-
-``domain``
-    Every solver the scene builds lives on ``COMM_WORLD``: each solve is one
-    distributed PETSc solve (MPIAIJ, rows split across the ranks), and every rank
-    sees the same tensors (the replicated layout of `prdp_petsc.core.parallel`).
-    The network and the loss run on every rank alike.  Pays off when the solve
-    dominates and is large.
-``batch``
-    Every rank keeps serial solvers and trains on its share of each mini-batch
-    (samples ``rank, rank + P, ...``).  Its loss is weighted by its share of the
-    batch, the gradients are summed across ranks (one ``MPI_Allreduce``), and
-    every rank takes the same optimizer step: the parameters equal those of serial
-    training with the same global batch, to round-off.  Rank 0 validates, and its
-    PRDP decision (the next K) is broadcast.  This needs a scene whose batches are
-    index tensors and whose loss is the mean of a per-sample loss over the batch;
-    the first step of a run checks the loss (see `Parallel`) and refuses any other.
-
-Rank 0 writes results and shows progress; iteration counts are totals over the
-ranks (``batch``) or those of the collective solves (``domain``); solver time is
-the mean over the ranks.
+Start the command under MPI (``mpiexec -n P prdp-petsc run SCENE --parallel ...``).
+``domain`` builds every solver on ``COMM_WORLD`` (each solve one distributed PETSc
+solve; every rank sees the same tensors).  ``batch`` keeps serial solvers and trains
+every rank on its share of each mini-batch (samples ``rank, rank + P, ...``), its loss
+weighted by its share and the gradients summed across the ranks, so that the
+parameters equal those of serial training to round-off; rank 0 validates and its PRDP
+decision is broadcast.  Rank 0 writes results; iteration counts are totals over the
+ranks (``batch``) or those of the collective solves (``domain``), solver time the mean.
 """
 
 from __future__ import annotations
@@ -35,58 +21,30 @@ import torch
 from prdp_petsc import InputError, SolverError
 from prdp_petsc.errors import MeshError, NonFiniteError, StructureError
 
+from .checkpoint import parameters
+
 __all__ = ["MEAN_RTOL", "MODES", "Parallel"]
 
 MODES = ("domain", "batch")
 
 #: Relative difference beyond which ``batch`` mode refuses a loss: the ranks' weighted
-#: share losses against the whole batch's (float64; ``100 eps`` for coarser dtypes).
-#: The shipped scenes differ by 1e-16 to 1e-14, a sum over the batch by 1 - 1/P.
+#: share losses against the whole batch's (float64; ``100 eps`` for coarser dtypes)
 MEAN_RTOL = 1e-9
 
 
 class Parallel:
-    """How a training run uses the ranks of ``MPI.COMM_WORLD``.
-
-    One object serves one training run (`prdp_petsc.lab.training.harness.run` makes it).
-
-    Parameters
-    ----------
-    mode : {None, "domain", "batch"}
-        None: every rank trains alone (one process: the serial run).
+    """How one training run uses the ranks of ``MPI.COMM_WORLD`` (`mode` None: alone).
 
     Notes
     -----
-    ``batch`` mode is exact only for a loss that is the mean of per-sample losses:
-    then the ranks' share losses, weighted by their shares, sum to the loss of the
-    whole batch, and so do their gradients.  A sum over the batch, or a
-    normalisation by a batch total, gives another training run with no error, so
-    the first step of a run checks it, from the numbers rather than the scene's
-    code: every rank also computes the loss of the whole batch once, under
-    ``torch.no_grad()``, and when the sum of the weighted share losses differs from
-    it by more than `MEAN_RTOL` (relative) every rank raises `InputError` before
-    the optimizer steps, pointing to ``--parallel domain``.  A step whose losses
-    are NaN or Inf proves nothing; the check then runs again on the next step.
-
-    Cost: one forward pass of one batch per run on every rank, without backward
-    (for a loss through capped solves, one batch of forward solves), and one small
-    ``MPI_Allreduce``.  Its solves are left out of the solvers' `stats`, so the
-    iteration counts and solver times of the first epoch are those of training;
-    its wall time is in the first epoch's.  The loss must run under
-    ``torch.no_grad()``, as validation does.
-
-    A loss that draws from torch's random number generator (noise on the inputs,
-    dropout) cannot be checked: the ranks' shares and the whole batch draw other
-    numbers, so their losses differ whatever the loss is.  Nor could batch mode
-    reproduce the serial run for it: every rank starts from the same generator
-    state, so the ranks would draw the same noise for different samples.  Such a
-    loss is refused as well (the check sees torch's generator state change), with
-    ``--parallel domain`` as the alternative, where every rank draws what the serial
-    run draws.  The check saves and restores torch's generator state around the
-    whole-batch forward, so it changes no random number the run draws.  A loss
-    that draws from a generator of its own (a ``torch.Generator``, numpy) is not
-    seen as random; its whole-batch forward advances that generator, and its
-    losses will almost surely differ, which refuses it as not being a mean.
+    ``batch`` is exact only for a loss that is the mean of per-sample losses.  The
+    first step of a run checks it from the numbers: every rank also computes the whole
+    batch's loss once under ``torch.no_grad()`` (its solves left out of the `stats`),
+    and where the weighted share losses sum to something else (by more than
+    `MEAN_RTOL`) every rank raises `InputError`, pointing to ``--parallel domain``; a
+    NaN or Inf proves nothing and the next step checks again.  A loss that draws from
+    torch's generator (noise, dropout) is refused too: the ranks' shares would draw
+    other numbers than the serial run.
     """
 
     def __init__(self, mode: str | None = None):
@@ -122,18 +80,16 @@ class Parallel:
 
     # -- one optimisation step ---------------------------------------------------------
     def step(self, scene, batch) -> float:
-        """Zero the gradients, back-propagate the loss of `batch`, step; return the loss.
-
-        ``batch`` mode splits `batch` and sums the weighted gradients across ranks;
-        on the run's first step it checks that the loss is a mean of per-sample
-        losses (see the class notes) and raises `InputError` on every rank if not.
-        """
+        """Zero the gradients, back-propagate the loss of `batch`, step; return the loss
+        (``batch``: of the whole batch, the gradients summed over the ranks)."""
         scene.optimizer.zero_grad()
+        params = parameters(scene)
         if self.mode != "batch":
             loss = scene.loss(batch)
             loss.backward()
-            if self.mode == "domain" and _owned(scene):
-                self._sum_replicated_gradients(scene)
+            if self.mode == "domain" and _owned(scene):  # each rank has its part of the rest
+                owned = {id(p) for p in _owned(scene)}
+                self._sum_gradients([p for p in params if id(p) not in owned], 0.0, None)
             scene.optimizer.step()
             return float(loss.detach())
         share, weight = self._share(batch)
@@ -149,25 +105,11 @@ class Parallel:
                 loss = float(value.detach())
         except Exception as err:  # every rank must learn of it, or they wait forever
             error = err
-        loss = self._sum_gradients(scene.optimizer, loss, error)
+        loss = self._sum_gradients(params, loss, error)
         if check:
             self._check_mean(loss, whole)
         scene.optimizer.step()
         return loss
-
-    def _sum_replicated_gradients(self, scene) -> None:
-        """Owned layout: sum over the ranks the gradients of the parameters every rank
-        holds alike (each rank's backward pass gave its own part of them)."""
-        from mpi4py import MPI
-
-        owned = {id(p) for p in _owned(scene)}
-        params = [
-            p for group in scene.optimizer.param_groups for p in group["params"]
-            if id(p) not in owned
-        ]  # fmt: skip
-        has = np.array([p.grad is not None for p in params], dtype=np.int8)
-        self.comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)  # a rank without one adds zeros
-        self._sum_in_place(params, has, 0.0)
 
     def _check_mean(self, shares: float, whole: torch.Tensor) -> None:
         """Refuse, on every rank, a loss whose split `shares` (summed) is not `whole`."""
@@ -200,46 +142,29 @@ class Parallel:
         share = batch[self.rank :: self.size]
         return share, len(share) / len(batch)
 
-    def _sum_gradients(self, optimizer, loss: float, error) -> float:
-        """Sum the gradients (and the weighted losses) of all ranks in place.
-
-        A failed solve on any rank stops every rank with the same error (no rank
-        is left waiting in a collective call).
-        """
+    def _sum_gradients(self, params: list, value: float, error) -> float:
+        """Sum over the ranks, in place and in one ``MPI_Allreduce``, the gradients of the
+        `params` some rank has (a rank without one adds zeros) and `value`; return the
+        summed `value`.  An `error` on any rank is raised on every rank (none is left
+        waiting in a collective call)."""
         from mpi4py import MPI
 
-        params = [p for group in optimizer.param_groups for p in group["params"]]
         has = np.array([p.grad is not None for p in params] + [error is not None], dtype=np.int8)
         self.comm.Allreduce(MPI.IN_PLACE, has, op=MPI.MAX)
         if has[-1]:
             failures = self.comm.allgather(_describe(error))
             rank, failure = next((r, f) for r, f in enumerate(failures) if f)
             raise error if error is not None else _remote_error(rank, failure)
-        return self._sum_in_place(params, has[:-1], loss)
-
-    def _sum_in_place(self, params: list, has, value: float) -> float:
-        """Sum over the ranks, in one ``MPI_Allreduce``, the gradients of the `params`
-        that some rank has (`has`, agreed; a rank without one adds zeros) and `value`;
-        return the summed `value`."""
-        from mpi4py import MPI
-
-        live = [p for p, h in zip(params, has, strict=True) if h]
-        flat = np.empty(sum(p.numel() for p in live) + 1)
-        offset = 0
-        for p in live:
-            size = p.numel()
-            flat[offset : offset + size] = (
-                p.grad.detach().reshape(-1).numpy() if p.grad is not None else 0.0
-            )
-            offset += size
+        live = [p for p, h in zip(params, has[:-1], strict=True) if h]
+        bounds = np.cumsum([0, *(p.numel() for p in live)])
+        flat = np.zeros(bounds[-1] + 1)
+        for p, lo, hi in zip(live, bounds[:-1], bounds[1:], strict=True):
+            if p.grad is not None:
+                flat[lo:hi] = p.grad.detach().reshape(-1).numpy()
         flat[-1] = value
         self.comm.Allreduce(MPI.IN_PLACE, flat, op=MPI.SUM)
-        offset = 0
-        for p in live:
-            size = p.numel()
-            grad = torch.from_numpy(flat[offset : offset + size].copy()).reshape(p.shape)
-            p.grad = grad.to(dtype=p.dtype)
-            offset += size
+        for p, lo, hi in zip(live, bounds[:-1], bounds[1:], strict=True):
+            p.grad = torch.from_numpy(flat[lo:hi].copy()).reshape(p.shape).to(dtype=p.dtype)
         return float(flat[-1])
 
     # -- agreement across ranks ----------------------------------------------------------
@@ -296,17 +221,17 @@ class Parallel:
         """Rank 0's `value` on every rank (PRDP's next K)."""
         return value if self.comm is None else self.comm.bcast(value, root=0)
 
-    def totals(self, fwd: int, adj: int, solver_time: float) -> tuple[int, int, float]:
-        """Forward and adjoint iterations of the epoch over all ranks, mean solver time."""
+    def totals(self, counts: list[int], solver_time: float) -> tuple[list[int], float]:
+        """The epoch's `counts` (iterations, solves) over all ranks and the mean solver time."""
         if self.mode is None:
-            return fwd, adj, solver_time
+            return counts, solver_time
         from mpi4py import MPI
 
-        total = np.array([fwd, adj, solver_time], dtype=np.float64)
+        total = np.array([*counts, solver_time], dtype=np.float64)
         self.comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
         if self.mode == "batch":  # domain: collective solves, every rank counted the same
-            fwd, adj = int(total[0]), int(total[1])
-        return fwd, adj, float(total[2] / self.size)
+            counts = [int(c) for c in total[:-1]]
+        return counts, float(total[-1] / self.size)
 
 
 def _owned(scene) -> list:
@@ -315,12 +240,9 @@ def _owned(scene) -> list:
 
 
 def _whole_batch_loss(scene, batch) -> torch.Tensor:
-    """The loss of the whole `batch` under ``no_grad``, leaving no trace in the run.
-
-    torch's random number generator is restored afterwards, and a loss that drew
-    from it is refused (`Parallel`); the solvers' `stats` are restored too, so the
-    check's solves are not counted as training work.
-    """
+    """The loss of the whole `batch` under ``no_grad``, leaving no trace in the run:
+    torch's generator and the solvers' `stats` are restored (a loss that drew from the
+    generator is refused)."""
     solvers = getattr(scene, "solvers", None) or []
     stats = [copy.deepcopy(s.stats) for s in solvers]
     try:

@@ -1,6 +1,6 @@
-"""K_full of a scene (`find_k_full`, one converged solve of its probe; `probe` with the
-capped solves' errors that choose PRDP's start) and what the schedules take from it:
-PRDP's cap on K (`k_cap`) and the ``rtol`` schedule's plan (`rtol_plan`)."""
+"""K_full of a scene (`find_k_full`: one converged solve of its probe; `probe` also
+has the errors that choose PRDP's start), PRDP's cap (`k_cap`) and the ``rtol``
+schedule's plan (`rtol_plan`)."""
 
 from __future__ import annotations
 
@@ -17,10 +17,9 @@ __all__ = ["find_k_full", "k_cap", "probe", "rtol_plan"]
 logger = logging.getLogger(__name__)
 
 
-def probe(scene, max_it: int = 100_000) -> KFull:
+def probe(scene) -> KFull:
     """`prdp_petsc.find_k_full` of the scene's first solver on its probe, at
-    ``scene.rtol_full``: K_full with the capped solves' errors that choose
-    `PRDP.for_problem`'s start."""
+    ``scene.rtol_full``."""
     system = scene.probe()
     if not (isinstance(system, tuple) and len(system) == 3):
         got = f"a {len(system)}-tuple" if isinstance(system, tuple) else type(system).__name__
@@ -30,14 +29,14 @@ def probe(scene, max_it: int = 100_000) -> KFull:
         )
     A, b, x0 = system
     try:
-        return probe_k_full(A, b, scene.solvers[0], rtol=scene.rtol_full, x0=x0, max_it=max_it)
+        return probe_k_full(A, b, scene.solvers[0], rtol=scene.rtol_full, x0=x0, max_it=100_000)
     except SolverError as err:
         raise SolverError(f"the scene's solver: {err}", reason=err.reason) from err
 
 
-def find_k_full(scene, max_it: int = 100_000) -> int:
-    """K_full of the scene (`probe`) as a plain ``int``, as results and checkpoints keep it."""
-    return int(probe(scene, max_it))
+def find_k_full(scene) -> int:
+    """K_full of the scene (`probe`) as a plain ``int``."""
+    return int(probe(scene))
 
 
 def k_cap(scene) -> int | None:

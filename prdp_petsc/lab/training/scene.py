@@ -4,36 +4,25 @@ A scene file (the shipped ones live in ``demos/``) defines
 
 ``PRESETS``
     ``{"quick": {...}, "paper": {...}}``: plain dicts of settings (sizes, epochs,
-    learning rate, ...).  ``quick`` is for tests and CI, ``paper`` for the
-    reference settings.  Every preset names the same keys, those of the first one
-    (`check_presets`, run by `load_scene` and `preset_config`): so ``--set
-    key=value`` reaches a setting on any preset, and the results record it.
+    learning rate, ...), ``quick`` for tests, ``paper`` for the reference settings.
+    Every preset names the keys of the first one (`check_presets`).
 ``build(config: dict, seed: int) -> Scene``
-    builds the physics, data, network, loss and validation metric for one preset,
-    and nothing the scene does not need.  ``config`` is the preset's dict
-    (`preset_config`); reading a key it lacks raises a ``KeyError`` that names the
-    key and the preset.
+    builds the physics, data, network, loss and validation metric of one preset's
+    settings ``config`` (`preset_config`; a key it lacks raises a ``KeyError`` that
+    names the preset).
 ``COMMANDS`` (optional)
-    ``{"adjoint": adjoint_command, ...}``: the scene's own commands besides ``run``
-    and ``compare`` (a report, a plot), run by ``prdp-petsc scene SCENE_FILE NAME
-    [args]`` and ``python SCENE_FILE NAME [args]`` (`prdp_petsc.lab.cli`).  Each function
-    is called with an ``argparse.ArgumentParser`` whose ``prog`` names the command
-    and which has ``--debug``; it adds its arguments and returns the function that
-    runs the parsed ``argparse.Namespace`` and returns the exit status.  The first
-    line of its docstring is the command's summary.  The command line does the rest
-    as for ``run``: PETSc options start PETSc, an error prints one line, a usage
-    error exits 2, and an argument ``--preset`` is checked against ``PRESETS`` (the
-    command reads it with `preset_config`).
+    ``{"adjoint": adjoint_command, ...}``: the scene's own commands besides ``run`` and
+    ``compare``, run by ``prdp-petsc scene SCENE_FILE NAME [ARGS]`` and ``python
+    SCENE_FILE NAME [ARGS]``.  Each function receives an ``argparse.ArgumentParser``
+    (with ``--debug``), adds its arguments and returns the function that runs the
+    parsed arguments and returns the exit status; its docstring's first line is the
+    command's summary.  An argument ``--preset`` is checked against ``PRESETS``.
 
 A preset name may carry changed settings, ``"paper modes=32 k_step=10"``
 (`preset_config`; the command line's ``--set modes=32``): each value takes the type
-the presets give its key (``false`` for a switch, ``net=mlp`` a string).  A key
-that names a setting of `prdp_petsc.PRDP` (``k_init``, ``k_step``, ``tau_stop``,
-...) also goes into ``Scene.prdp`` (`with_prdp_settings`), so it changes the
-controller in every scene.
-
-The harness (`prdp_petsc.lab.training.harness`) does the rest: training loop, K schedule
-(PRDP or fixed), finding K_full, cost accounting, results, plots, command line.
+the presets give its key.  A key that names a setting of `prdp_petsc.PRDP` also goes
+into ``Scene.prdp`` (`with_prdp_settings`).  The harness
+(`prdp_petsc.lab.training.harness`) does the rest.
 """
 
 from __future__ import annotations
@@ -73,8 +62,7 @@ class Scene:
     Parameters
     ----------
     solvers : list of KSPSolver
-        The capped solvers whose ``max_it`` the schedule controls (forward and
-        adjoint together).
+        The capped solvers whose ``max_it`` the schedule controls.
     optimizer : torch.optim.Optimizer
         Optimises whatever the scene trains (network weights, or θ itself).
     batches : callable ``(epoch, generator) -> iterable``
@@ -82,18 +70,12 @@ class Scene:
     loss : callable ``batch -> torch.Tensor``
         Scalar training loss of one batch (through the solvers); the harness
         back-propagates it and steps the optimizer.  A scene may take optimizer steps
-        of its own inside it and return the last step's loss (``poisson_field``,
-        ``poisson3d``: several steps per batch); the ``auto`` schedule's check calls it
-        too and restores the parameters and the optimizer's state afterwards.
+        of its own inside it and return the last step's loss.
     validate : callable ``() -> float``
-        Validation metric, lower is better; this is what PRDP watches.
+        Validation metric, lower is better: what PRDP watches.
     probe : callable ``() -> (A, b, x0)``
-        A representative operator and right-hand side(s) (numpy); the harness
-        solves it to tolerance `rtol_full` to find K_full.  ``x0`` is None where the
-        scene's solves start from zero; a scene whose solves start from a guess
-        (``solve(..., x0=)``) returns that guess: K_full then counts the iterations
-        from x0 to PETSc's default test, ``‖r‖ ≤ rtol_full ‖b‖``.  A 2-tuple
-        ``(A, b)`` is refused (TypeError from `~.harness.find_k_full`).
+        A representative operator and right-hand side (numpy) whose solve to
+        `rtol_full` gives K_full; ``x0`` is the scene's initial guess, or None.
     rtol_full : float
         Relative tolerance that defines a "converged" solve for this scene.
     epochs : int
@@ -103,27 +85,19 @@ class Scene:
     scheduler : torch.optim.lr_scheduler.LRScheduler, optional
         Stepped once per epoch.
     compare_ks : list of int, optional
-        Constant coarse Ks for ``compare`` (default: 1, K_full/4, K_full/2; an empty
-        list: none).
+        Constant coarse Ks for ``compare`` (default: 1, K_full/4, K_full/2).
     info : dict
         Free-form description written into results (sizes, settings).
     rollout : callable ``() -> sequence of float``, optional
-        Per-step error of the trained model over a long autoregressive rollout
-        (`prdp_petsc.lab.training.rollout.rollout_errors`); recorded after training
-        and plotted by ``compare``.  Emulator scenes validate on its mean.
-    owned_parameters : list of torch.Tensor, optional
-        Parameters of the owned MPI layout (`prdp_petsc.fem.distributed`): each rank
-        holds its own part (θ of its own elements), so their shapes and values differ
-        between ranks.  The harness does not start them from rank 0's values, and
-        under ``--parallel domain`` it sums the gradients of every *other* parameter
-        over the ranks before the optimizer step: the loss is then a sum over the
-        ranks of local parts (`prdp_petsc.sum_over_ranks`), so each rank's backward
-        pass gives only its part of a replicated parameter's gradient.  Such a run
-        cannot be resumed on several ranks (its checkpoint holds rank 0's part).
+        Per-step error of the trained model over a long rollout
+        (`prdp_petsc.lab.training.rollout.rollout_errors`), recorded after training.
     uncorrected_rollout : callable ``() -> sequence of float``, optional
-        For scenes whose network corrects a solver: the same rollout with the
-        solver alone (what the corrector has to beat at every step); recorded
-        after training next to ``rollout``.
+        The same rollout with the solver alone, for scenes whose network corrects it.
+    owned_parameters : list of torch.Tensor, optional
+        Parameters of the owned MPI layout (`prdp_petsc.fem.distributed`), each rank's
+        own part: not synchronised from rank 0, and under ``--parallel domain`` every
+        other parameter's gradient is summed over the ranks.  Such a run cannot be
+        resumed on several ranks.
     """
 
     solvers: list[KSPSolver]
@@ -184,22 +158,10 @@ def load_scene(path: str | Path) -> ModuleType:
 
 
 def check_presets(module) -> None:
-    """Refuse a scene whose presets do not all name the same settings.
-
-    The first preset of ``module.PRESETS`` (in the dict's order; ``quick`` in the
-    shipped scenes) names the scene's settings.  Every other preset must name exactly
-    those keys: a key it lacks (which ``build`` would read as ``config["key"]`` and
-    not find) or a key the first preset does not name (which ``--set`` could not
-    reach on the first preset) is refused here, when the scene is loaded, with the
-    preset and the key named, instead of as a ``KeyError`` in the middle of a run.
-
-    Raises
-    ------
-    TypeError
-        ``PRESETS`` is not a non-empty dict of dicts with string keys.
-    ValueError
-        A preset lacks a key of the first preset, or names one it does not.
-    """
+    """Refuse a scene whose presets do not all name the keys of the first one: a key
+    another preset lacks would be a ``KeyError`` mid-run, a key the first one lacks
+    out of ``--set``'s reach on it (TypeError for malformed ``PRESETS``, ValueError
+    naming the preset and the key)."""
     where = _scene_name(module)
     presets = getattr(module, "PRESETS", None)
     if not isinstance(presets, dict) or not presets:
@@ -255,47 +217,30 @@ class Settings(dict):
             "belongs in all its presets"
         )
 
-    def __reduce__(self):  # pickles (and copies) as the dict it holds, with its names
-        return (_settings, (dict(self), self.scene, self.preset))
-
-
-def _settings(settings: dict, scene: str, preset: str) -> Settings:
-    return Settings(settings, scene=scene, preset=preset)
-
 
 def preset_config(module: ModuleType, preset: str) -> dict:
     """The settings of ``"name [key=value ...]"``: the scene's preset ``name``, changed.
 
-    A value takes the type the scene's presets give that key (``true``/``false`` for
-    a bool, an integer for an int, a number for a float; anything else refused), so
-    that ``solver_grad=false`` means False, not the string ``"false"``.  A key that
-    no preset names is still set, as a Python literal or else a string, with a
-    warning (once per key): a scene reads only the keys of its presets, so such a
-    key is most likely misspelt and would otherwise change nothing silently.
-
-    The presets are checked first (`check_presets`), and the result is a `Settings`:
-    a dict whose ``KeyError`` names the preset.
+    A value takes the type the presets give its key (``solver_grad=false`` is False);
+    a key no preset names is set as a Python literal or else a string, with a warning
+    (it most likely is misspelt).  The result is a `Settings`.
     """
     name, pairs = _parse(preset)
     check_presets(module)
     if name not in module.PRESETS:
         raise ValueError(f"preset must be one of {sorted(module.PRESETS)}, got {name!r}")
     config = Settings(module.PRESETS[name], scene=_scene_name(module), preset=str(preset))
-    known = {}
-    for settings in module.PRESETS.values():
-        for key, value in settings.items():
-            known.setdefault(key, value)
-    for key, text in pairs:
-        if key in known:
-            config[key] = _typed(key, text, config.get(key, known[key]))
-            continue
-        if key in PRDP_SETTINGS:  # a setting of the controller: `with_prdp_settings`
-            config[key] = _typed(key, text, PRDP_SETTINGS[key])
-            continue
-        if (_scene_name(module), key) not in _WARNED:
-            _WARNED.add((_scene_name(module), key))
-            logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
-        config[key] = _typed(key, text, None)
+    for key, text in pairs:  # every preset names the same keys (`check_presets`)
+        if key in config:
+            like = config[key]
+        elif key in PRDP_SETTINGS:  # a setting of the controller: `with_prdp_settings`
+            like = PRDP_SETTINGS[key]
+        else:
+            like = None
+            if (_scene_name(module), key) not in _WARNED:
+                _WARNED.add((_scene_name(module), key))
+                logger.warning("setting %r is in no preset of this scene; it may be ignored", key)
+        config[key] = _typed(key, text, like)
     return config
 
 

@@ -1,13 +1,10 @@
 """K schedules of a training run: ``"prdp"``, ``"auto"``, ``"fixed:K"`` and ``"rtol"``.
 
-``prdp`` lets `prdp_petsc.PRDP` raise the iteration cap K (``max_it``, with
-``rtol = atol = 0``) with the scene's own settings; ``auto`` does the same with the
-default construction, ``PRDP.for_problem(K_full)`` and a gradient check (the scene's
-settings ignored); ``fixed:K`` keeps K; ``rtol`` is the same controller moving
-PETSc's own relative tolerance instead, one refinement level at a time
-(`rtol_from_level`), under a generous cap.  The harness
-(`prdp_petsc.lab.training.harness.run`) applies them; `gradient_check` is the ``auto``
-schedule's check.
+``prdp`` lets `prdp_petsc.PRDP` raise the iteration cap K (``max_it``, ``rtol = atol
+= 0``) with the scene's settings; ``auto`` with the default construction,
+``PRDP.for_problem(K_full)``, certified by a gradient check (`gradient_check`);
+``fixed:K`` keeps K; ``rtol`` moves PETSc's relative tolerance instead, a decade per
+refinement level (`rtol_from_level`), under a cap of `RTOL_MAX_IT_FACTOR` × K_full.
 """
 
 from __future__ import annotations
@@ -48,12 +45,7 @@ RTOL_FACTOR = 1e-1
 def rtol_from_level(
     level: int, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR, rtol_min: float = 1e-10
 ) -> float:
-    """Krylov rtol for refinement level ``level``: max(rtol_init * factor**level, rtol_min).
-
-    The defaults (`RTOL_INIT`, `RTOL_FACTOR`: 0.1, then a decade per refinement) are
-    the ``rtol`` schedule's: the `prdp_petsc.PRDP` controller's level
-    (``controller.level``) read as PETSc's rtol.
-    """
+    """Krylov rtol of refinement level ``level``: max(rtol_init * factor**level, rtol_min)."""
     if operator.index(level) < 0:
         raise ValueError(f"level must be >= 0, got {level}")
     if not 0 < rtol_min <= rtol_init:
@@ -72,17 +64,7 @@ class Schedule(NamedTuple):
 
 
 def parse_schedule(schedule: str) -> Schedule:
-    """``"prdp"``, ``"auto"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`.
-
-    ``"prdp"`` raises the iteration cap K (``max_it``, with ``rtol = atol = 0``) as
-    `prdp_petsc.PRDP` decides with the scene's settings; ``"auto"`` as
-    ``PRDP.for_problem(K_full)`` decides, certifying with the gradient of the training
-    loss on a fixed batch at K against K_full; ``"fixed:K"`` keeps it at K; ``"rtol"``
-    is PRDP moving PETSc's rtol instead of K: every solve stops at ``‖r‖ ≤ rtol ‖b‖``
-    under a generous cap (`RTOL_MAX_IT_FACTOR` × K_full), rtol =
-    ``rtol_from_level(level, RTOL_INIT, RTOL_FACTOR, rtol_min=scene.rtol_full)``, and
-    the same controller's plateau test raises the level by one (see `run`).
-    """
+    """``"prdp"``, ``"auto"``, ``"rtol"`` or ``"fixed:K"`` (K >= 1) as a `Schedule`."""
     if schedule in ("prdp", "auto", "rtol"):
         return Schedule(schedule)
     if isinstance(schedule, str) and schedule.startswith("fixed:"):
@@ -98,11 +80,8 @@ def parse_schedule(schedule: str) -> Schedule:
 
 
 def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = RTOL_FACTOR):
-    """Refinements from `rtol_init` until `rtol_from_level` reaches `rtol_full` (>= 0).
-
-    The ``rtol`` schedule stops refining there: a tighter rtol than the scene's own
-    definition of a converged solve buys nothing, as K past K_full does not.
-    """
+    """Refinements from `rtol_init` until `rtol_from_level` reaches `rtol_full`: the
+    ``rtol`` schedule stops there, as PRDP stops at K_full."""
     rtol_init = max(rtol_init, rtol_full)
     level = 0
     while rtol_from_level(level, rtol_init, factor, rtol_full) > rtol_full * (1 + 1e-9):
@@ -112,13 +91,9 @@ def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = 
 
 def gradient_check(scene):
     """The ``auto`` schedule's check: `prdp_petsc.gradient_check` of the training loss
-    on one fixed batch, through every scene solver (see `prdp_petsc.PRDP`).
-
-    The batch is the first of ``scene.batches(0, ...)`` under a generator seeded
-    `CHECK_SEED`, the same for every check of the run; parameters the loss does not
-    reach contribute zeros.  A scene's ``loss`` may change state (some take optimiser
-    steps of their own before returning the last loss): the parameters' values and
-    the optimiser's state are restored after every check, so a check never trains.
+    on one fixed batch (the first of ``scene.batches`` under `CHECK_SEED`), through
+    every scene solver.  The parameters and the optimizer's state are restored after
+    every check (a scene's loss may take optimizer steps), so a check never trains.
     """
     batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
     params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]

@@ -14,11 +14,9 @@ __all__ = ["torch_threads"]
 
 @contextmanager
 def torch_threads(threads: int) -> Iterator[int]:
-    """Run the body with ``torch.set_num_threads(threads)``; restore the old count after.
-
-    torch's default (one thread per core) oversubscribes a machine that other
-    processes share, and OpenMP spin-waiting then makes wall times meaningless.
-    """
+    """Run the body with ``torch.set_num_threads(threads)``, then restore the old count
+    (torch's default, one thread per core, makes wall times meaningless on a shared
+    machine)."""
     threads = positive_int(threads, "threads")
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)

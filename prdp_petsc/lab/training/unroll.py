@@ -1,31 +1,16 @@
 """Long unrolls: m steps of (capped solve ↔ network) under autograd, memory bounded.
 
 Solver-in-the-loop training feeds a corrector its own output for m steps and
-differentiates the whole chain, so the network sees the states its rollouts reach
-and gets gradients about how its errors grow.  Two hybrids of a solver step P
-(`physics`) and a network C (`network`) are supported (`Hybrid`):
+differentiates the whole chain.  Two hybrids of a solver step P and a network C
+(`Hybrid`): ``"direct"``, s ← P(s) + C(P(s)) (Um et al. 2020), and ``"indirect"``,
+s ← P(s; f = C(s)), the correction a forcing of the implicit step's right-hand side
+(Wei et al. 2025), whose gradient reaches C through the solve's adjoint.
 
-``"direct"``
-    s ← P(s) + C(P(s)): the correction is added to the solver's output state
-    (Um et al. 2020, "Solver-in-the-Loop").
-``"indirect"``
-    s ← P(s; f = C(s)): the correction enters the implicit step as a forcing of
-    its right-hand side and the solve carries it (the Indirect Neural Corrector,
-    Wei et al. 2025).  The solve then damps what the network adds instead of
-    passing it on unchanged; the gradient reaches C through the right-hand side
-    of the solve (its adjoint).
-
-Memory.  An implicit solve (`prdp_petsc.solve`) keeps only its solution and
-parameters for the backward pass, one state per step; the network's activations
-are what grows with m.  With ``checkpoint=True`` every network call runs under
-``torch.utils.checkpoint`` (non-reentrant): only its input is kept and its forward
-is recomputed during the backward pass, so an unroll stores the step boundaries and
-the solves' states and recomputes one network at a time.  No solve runs twice: the
-recomputation covers the network only, and the gradient is the same as without
-checkpointing (to round-off).
-
-The K of every solve in the unroll is the solver's ``max_it``, which the training
-schedule (PRDP) sets: all m solves of an unroll share it.
+An implicit solve keeps one state per step for the backward pass; the network's
+activations are what grows with m.  With ``checkpoint=True`` every network call runs
+under ``torch.utils.checkpoint``: its forward is recomputed during the backward pass
+(no solve runs twice, the gradient is unchanged to round-off).  All m solves of an
+unroll share the solver's ``max_it``, which the schedule sets.
 """
 
 from __future__ import annotations
@@ -51,7 +36,7 @@ Physics = Callable[..., torch.Tensor]
 
 
 class Hybrid:
-    """One corrected solver step, direct or indirect (module notes).
+    """One corrected solver step, direct or indirect.
 
     Parameters
     ----------
@@ -92,10 +77,6 @@ class Hybrid:
             return coarse + self._net(coarse)
         return self.physics(state, self._net(state), keys)
 
-    def uncorrected(self, state: torch.Tensor) -> torch.Tensor:
-        """The solver step alone, P(s)."""
-        return self.physics(state, None, None)
-
 
 def unrolled_loss(
     step: Callable[..., torch.Tensor],
@@ -117,8 +98,7 @@ def unrolled_loss(
         m (default: all of `targets` after the first).
     solver_grad : bool
         False detaches each step's input: the network is still trained on the states
-        its own rollout reaches (the unrolled distribution), without gradients
-        through earlier steps (List et al. 2024's "no solver gradient" variant).
+        its own rollout reaches, without gradients through earlier steps.
     keys : callable ``t -> keys``, optional
         The keys of step t (1-based) handed to `step` (warm starts).
 
@@ -141,14 +121,8 @@ def unrolled_loss(
 
 def windows(trajectories: torch.Tensor, length: int, stride: int = 1) -> torch.Tensor:
     """Windows of `length` consecutive states of trajectories (T + 1, N, n), starting
-    at every `stride`-th step (0, stride, 2·stride, … while the window fits).
-
-    Returns
-    -------
-    torch.Tensor, shape (length, N · S, n)
-        Windows ordered by start step, then by trajectory; S = ⌊(T + 1 − length) /
-        stride⌋ + 1 starts per trajectory.
-    """
+    at every `stride`-th step: shape (length, N · S, n), ordered by start, then
+    trajectory."""
     if not 1 <= length <= len(trajectories) or stride < 1:
         raise ValueError(
             f"need 1 <= length <= {len(trajectories)} and stride >= 1, got {length}, {stride}"
@@ -158,11 +132,8 @@ def windows(trajectories: torch.Tensor, length: int, stride: int = 1) -> torch.T
 
 
 def horizon(epoch: int, steps: int, *, start: int = 1, every: int = 0) -> int:
-    """The unroll length m of `epoch` under a doubling curriculum.
-
-    ``every = 0``: always `steps`.  Else m starts at `start` and doubles every
-    `every` epochs up to `steps` (1, 2, 4, … with ``start=1``).
-    """
+    """The unroll length m of `epoch`: `steps` (``every = 0``), or `start` doubled every
+    `every` epochs up to `steps`."""
     if every < 0 or start < 1:
         raise ValueError(f"need every >= 0 and start >= 1, got {every}, {start}")
     if every == 0:
@@ -171,19 +142,9 @@ def horizon(epoch: int, steps: int, *, start: int = 1, every: int = 0) -> int:
 
 
 class SavedTensorMeter:
-    """Bytes of the tensors autograd keeps for the backward pass, at their peak.
-
-    A CPU process has no allocator statistics like CUDA's; what an unroll adds with
-    m is what autograd saves, and this counts it exactly: storages are counted once
-    however many tensors view them, while a graph is alive (enter before the
-    forward pass, leave after the backward pass).  Inside a checkpointed region
-    torch keeps its own hooks: the activations it recomputes during the backward
-    pass (one network call at a time) are not counted.
-
-    Attributes
-    ----------
-    peak : int
-        The largest number of saved bytes alive at once.
+    """Bytes of the tensors autograd saves for the backward pass, at their peak
+    (``peak``): storages counted once, while a graph is alive (enter before the forward
+    pass, leave after the backward pass); what checkpointing recomputes is not counted.
     """
 
     def __init__(self):
