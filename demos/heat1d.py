@@ -44,6 +44,7 @@ from prdp_petsc.lab.components.networks import mlp
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.scene import shuffled_batches
 from prdp_petsc.lab.training.unroll import windows
+from prdp_petsc.prdp import PAPER
 
 PRESETS = {
     "quick": {
@@ -143,16 +144,10 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, val_traj[1].numpy(), None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        # the paper's settings, plus restart_window: at the smallest K the rollout blows
-        # up, and with the reference's EMA that spike would mask the plateaus that follow
-        prdp={
-            "k_init": config["k_init"],
-            "k_step": 1,
-            "tau_step": 0.98,
-            "ema_window": 8,
-            "window": 3,
-            "restart_window": True,
-        },
+        # the paper's controller with a longer EMA and restart_window: at the smallest K
+        # the rollout blows up, and with the reference's EMA that spike would mask the
+        # plateaus that follow
+        prdp={**PAPER, "k_init": config["k_init"], "ema_window": 8, "restart_window": True},
         scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=config["gamma"]),
         info={"n": n, "nu_dt": NU_DT, "jacobi_scale": JACOBI_SCALE, **config},
     )

@@ -62,6 +62,7 @@ from prdp_petsc.lab.components.networks import MeshNet
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.routes import parse_routes
 from prdp_petsc.lab.training.scene import shuffled_batches
+from prdp_petsc.prdp import PAPER
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
 # Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG.
@@ -235,13 +236,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=probe,
         rtol_full=1e-6,
         epochs=config["epochs"],
-        prdp={
-            "k_init": config["k_init"],
-            "k_step": config["k_step"],
-            "tau_step": 0.9,
-            "ema_window": 6,
-            "window": 3,
-        },
+        prdp={**PAPER, "k_init": config["k_init"], "k_step": config["k_step"], "tau_step": 0.9},
         scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=config["gamma"]),
         info={
             "n": heat.n,

@@ -94,6 +94,7 @@ from prdp_petsc.lab.training.cache import disk_cached
 from prdp_petsc.lab.training.routes import parse_routes, route_string
 from prdp_petsc.lab.training.scene import shuffled_batches
 from prdp_petsc.lab.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
+from prdp_petsc.prdp import PAPER
 
 _BASE = {
     "dt": 0.1,
@@ -477,6 +478,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         rtol_full=config["rtol_full"],
         epochs=epochs,
         prdp={
+            **PAPER,
             "k_init": config["k_init"],
             "k_step": config["k_step"],
             "tau_step": 0.95,

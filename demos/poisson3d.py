@@ -45,6 +45,7 @@ from prdp_petsc.autograd.owned import sum_over_ranks
 from prdp_petsc.core.parallel import default_comm
 from prdp_petsc.fem.distributed import DistributedParametricMatrix
 from prdp_petsc.fem.partition import PartitionedMesh
+from prdp_petsc.prdp import PAPER
 
 _BASE = {
     "steps": 5,
@@ -167,6 +168,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={
+            **PAPER,
             "k_init": config["k_init"],
             "k_step": config["k_step"],
             "tau_step": 0.95,

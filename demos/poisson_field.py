@@ -45,6 +45,7 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.lab.components.emulators import torch_sparse
 from prdp_petsc.lab.reports import poisson_field as field_reports
+from prdp_petsc.prdp import PAPER
 
 PRESETS = {
     "quick": {
@@ -158,6 +159,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={
+            **PAPER,
             "k_init": config["k_init"],
             "k_step": config["k_step"],
             "tau_step": 0.95,

@@ -59,6 +59,7 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.lab.components.emulators import gaussian_bumps
 from prdp_petsc.lab.training.scene import shuffled_batches
+from prdp_petsc.prdp import PAPER
 
 METHODS = ("dp_adam", "dp_sgd", "sip")
 
@@ -190,13 +191,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, (M @ x_true[val].numpy().T).T, None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        prdp={
-            "k_init": config["k_init"],
-            "k_step": config["k_step"],
-            "tau_step": 0.9,
-            "ema_window": 6,
-            "window": 3,
-        },
+        prdp={**PAPER, "k_init": config["k_init"], "k_step": config["k_step"], "tau_step": 0.9},
         info=info,
     )
 
