@@ -9,7 +9,7 @@ variant, where P's singular values spread over many more decades.
 
 Learning problem (Holl et al., "Scale-invariant learning by physics inversion"): a
 network f(y*; φ) maps an observed solution y* = P(x_true) to the source x, for random
-smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``:
+smooth sources x_true (sums of Gaussian bumps, as in ``heat``:
 `prdp_petsc.lab.components.emulators.gaussian_bumps`).  f is a learnable sparse linear map
 on A's pattern (`SparseLinear`, one value per entry, starting at zero; input divided
 and output multiplied by fixed data scales): the class of the inverse physics

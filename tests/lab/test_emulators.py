@@ -12,7 +12,6 @@ from petsc4py import PETSc
 
 from prdp_petsc import load_mesh, solve
 from prdp_petsc.lab.components.emulators import gaussian_bumps, torch_sparse
-from prdp_petsc.lab.components.networks import MeshNet, ResidualMLP, _EdgeSum, _Pattern
 from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import build_scene, run
 from prdp_petsc.lab.training.rollout import rollout_errors
@@ -21,26 +20,30 @@ from prdp_petsc.lab.training.scene import load_scene
 from prdp_petsc.lab.training.summary import fastest, format_table
 from prdp_petsc.lab.training.unroll import unrolled_loss
 
-HEAT = Path(__file__).resolve().parents[2] / "demos" / "heat.py"
+DEMOS = Path(__file__).resolve().parents[2] / "demos"
+HEAT = DEMOS / "heat.py"
 heat = load_scene(HEAT)  # the scene's physics: heat_step_system, bubble, training_windows, ...
+heat_nonlinear = load_scene(DEMOS / "heat_nonlinear.py")  # MeshNet
 
 
 def test_edge_sum_gradcheck():
     A = fd_poisson(3).tocsr()
-    pattern = _Pattern(A.indptr, A.indices, A.shape)
+    pattern = heat_nonlinear._Pattern(A.indptr, A.indices, A.shape)
+    edge_sum = heat_nonlinear._EdgeSum.apply
     values = torch.from_numpy(np.random.default_rng(0).standard_normal(A.nnz))
     X = torch.from_numpy(np.random.default_rng(1).standard_normal((9, 4)))
     values.requires_grad_(True)
     X.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda v, x: _EdgeSum.apply(v, x, pattern), (values, X))
+    assert torch.autograd.gradcheck(lambda v, x: edge_sum(v, x, pattern), (values, X))
     W = A.copy()
     W.data = values.detach().numpy()
-    assert np.allclose(_EdgeSum.apply(values, X, pattern).detach().numpy(), W @ X.detach().numpy())
+    assert np.allclose(edge_sum(values, X, pattern).detach().numpy(), W @ X.detach().numpy())
 
 
 def test_meshnet_starts_as_identity_and_is_local():
     A = fd_poisson(6)
-    net = MeshNet(A, channels=3, layers=2, features=np.random.default_rng(0).random((36, 2)))
+    features = np.random.default_rng(0).random((36, 2))
+    net = heat_nonlinear.MeshNet(A, channels=3, layers=2, features=features)
     u = torch.from_numpy(np.random.default_rng(1).standard_normal((5, 36)))
     assert torch.equal(net(u), u)  # identity map at initialisation
     with torch.no_grad():  # perturb the weights: output at node 0 sees 2 rings only
@@ -120,7 +123,7 @@ def test_compare_with_a_route_reports_the_fastest(tmp_path):
 
 
 def test_residual_mlp_starts_as_identity():
-    net = ResidualMLP(7, width=5, depth=2)
+    net = heat.ResidualMLP(7, width=5, depth=2)
     u = torch.from_numpy(np.random.default_rng(0).standard_normal((3, 7)))
     assert torch.equal(net(u), u)
     assert sum(p.numel() for p in net.parameters()) == 7 * 5 + 5 + 5 * 5 + 5 + 5 * 7 + 7

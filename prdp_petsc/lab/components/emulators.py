@@ -14,8 +14,11 @@ import torch
 __all__ = ["gaussian_bumps", "torch_sparse"]
 
 
-def gaussian_bumps(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Random smooth fields: each a sum of 4 Gaussian bumps.
+def gaussian_bumps(
+    points: np.ndarray, count: int, rng: np.random.Generator, *, bumps: int = 4,
+    widths: tuple[float, float] = (0.08, 0.25),
+) -> np.ndarray:  # fmt: skip
+    """Random smooth fields: each a sum of `bumps` Gaussian bumps.
 
     Parameters
     ----------
@@ -25,7 +28,12 @@ def gaussian_bumps(points: np.ndarray, count: int, rng: np.random.Generator) -> 
         Number of fields.
     rng : numpy.random.Generator
         Draws, per bump, a centre (uniform in the bounding box of `points`), a width
-        (8-25 % of the box's largest side) and an amplitude (uniform in [-1, 1]).
+        (a fraction of the box's largest side, uniform in `widths`) and an amplitude
+        (uniform in [-1, 1]).
+    bumps : int
+        Bumps per field.
+    widths : (float, float)
+        Range of the widths, as fractions of the box's largest side.
 
     Returns
     -------
@@ -35,9 +43,9 @@ def gaussian_bumps(points: np.ndarray, count: int, rng: np.random.Generator) -> 
     size = float(np.max(hi - lo))
     fields = np.zeros((count, points.shape[1]))
     for i in range(count):
-        for _ in range(4):
+        for _ in range(bumps):
             centre = lo + (hi - lo) * rng.random(len(lo))
-            width = size * rng.uniform(0.08, 0.25)
+            width = size * rng.uniform(*widths)
             r2 = ((points - centre[:, None]) ** 2).sum(axis=0)
             fields[i] += rng.uniform(-1, 1) * np.exp(-r2 / (2 * width**2))
     return fields
