@@ -40,7 +40,7 @@ from prdp_petsc.prdp import PAPER
 
 # -- 1. The mesh --------------------------------------------------------------------------
 # ``load_mesh(name, refine=r)`` reads a shipped gmsh mesh and refines it r times:
-# ``lshape`` has 1 281 interior nodes, 5 457 once refined; ``box3d`` 465 and 5 146.
+# ``lshape`` has 1 325 interior nodes, 5 457 once refined; ``box3d`` 465 and 5 146.
 # The setting ``mesh`` picks it, and with it the solver's options prefix (below).
 
 # -- 2. Assembly: one implicit-Euler step --------------------------------------------------
