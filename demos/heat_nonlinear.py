@@ -91,28 +91,16 @@ PRESETS = {
         "k_step": 1,
         "routes": "gmres/ilu",
     },
-    "paper": {
-        "mesh": "lshape",
-        "refine": 0,
-        "dt": 2e-3,
-        "alpha": 2.0,
-        "n_train": 12,
-        "train_steps": 6,
-        "n_val": 4,
-        "val_steps": 10,
-        "rollout_steps": 20,
-        "max_newton": 2,
-        "channels": 8,
-        "epochs": 40,
-        "batch": 8,
-        "lr": 3e-3,
-        "gamma": 0.97,
-        "warm_start_epochs": False,
-        "pc_lag": 1,
-        "k_init": 1,
-        "k_step": 1,
-        "routes": "gmres/ilu,gmres/gamg",
-    },
+}
+PRESETS["paper"] = {
+    **PRESETS["quick"],
+    "n_train": 12,
+    "train_steps": 6,
+    "n_val": 4,
+    "rollout_steps": 20,
+    "epochs": 40,
+    "batch": 8,
+    "routes": "gmres/ilu,gmres/gamg",
 }
 
 GMRES = {"ksp_type": "gmres", "pc_type": "jacobi", "ksp_gmres_restart": 200}
