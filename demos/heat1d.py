@@ -59,18 +59,13 @@ PRESETS = {
         "unroll": 1,
         "k_init": 1,
     },
-    "paper": {
-        "n": 30,
-        "n_train": 200,
-        "n_val": 5,
-        "modes": 5,
-        "epochs": 200,
-        "batch": 20,
-        "lr": 2e-3,
-        "gamma": 0.985,
-        "unroll": 1,
-        "k_init": 1,
-    },
+}
+PRESETS["paper"] = {
+    **PRESETS["quick"],
+    "n_train": 200,
+    "epochs": 200,
+    "lr": 2e-3,
+    "gamma": 0.985,
 }
 # PRDP from K = 10: past the Ks whose learned map amplifies over the rollout (above)
 PRESETS["paper_k10"] = {**PRESETS["paper"], "k_init": 10}

@@ -59,17 +59,13 @@ PRESETS = {
         "k_step": 10,
         "mode": "implicit",
     },
-    "paper": {
-        "refine": 1,
-        "epochs": 40,
-        "steps": 10,
-        "lr": 0.1,
-        "beta": 1e-5,
-        "noise": 0.01,
-        "k_init": 40,
-        "k_step": 20,
-        "mode": "implicit",
-    },
+}
+PRESETS["paper"] = {
+    **PRESETS["quick"],
+    "refine": 1,
+    "epochs": 40,
+    "k_init": 40,
+    "k_step": 20,
 }
 
 PREFIX = "pf_"
