@@ -148,6 +148,14 @@ def build(config: dict, seed: int) -> lab.Scene:
     )
 
 
+# -- Things to try --------------------------------------------------------------------------
+# * PRDP from K = 10, past the Ks whose learned map amplifies: ``--preset paper_k10``.
+# * Two chained solver steps per sample: ``--set unroll=2``.
+# * A constant K against PRDP: ``run --schedule fixed:10 --out DIR``.
+# * Another solver in the loop: ``-heat_ksp_type cg -heat_pc_type jacobi``; watch it with
+#   ``-heat_ksp_monitor``.
+
+
 if __name__ == "__main__":
     from prdp_petsc.lab.cli import scene_main
 

@@ -368,6 +368,14 @@ def build(config: dict, seed: int) -> lab.Scene:
     )
 
 
+# -- Things to try --------------------------------------------------------------------------
+# * Newton from last epoch's capped results: ``--set warm_start_epochs=true``.
+# * GAMG on the Newton systems, set up at every fourth Jacobian:
+#   ``compare --routes gmres/gamg --set pc_lag=4``.
+# * The linear step as a control: ``--set alpha=0``.
+# * Watch the capped GMRES: ``-heatnl_ksp_monitor``.
+
+
 if __name__ == "__main__":
     from prdp_petsc.lab.cli import scene_main
 

@@ -562,6 +562,14 @@ def build(config: dict, seed: int) -> lab.Scene:
 COMMANDS = ns2d_reports.commands(sys.modules[__name__])
 
 
+# -- Things to try --------------------------------------------------------------------------
+# * The reference's effective gradient, the solver detached: ``--preset quick_detached``.
+# * Correct through the implicit step's forcing: ``--set correction=indirect``.
+# * Train on the Schur route: ``--set train_solver=schur``; or ``compare --routes schur``.
+# * What the capped adjoint costs and changes:
+#   ``prdp-petsc scene demos/ns2d.py adjoint --preset quick --k 8 64``.
+
+
 if __name__ == "__main__":
     from prdp_petsc.lab.cli import scene_main
 

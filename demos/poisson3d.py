@@ -189,3 +189,14 @@ def build(config: dict, seed: int) -> lab.Scene:
 def _gather(comm, value: int) -> list[int]:
     """`value` of every rank, in rank order."""
     return comm.tompi4py().allgather(value) if comm.getSize() > 1 else [value]
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * Another preconditioner: ``--set pc=jacobi``; watch the solves with ``-p3_ksp_monitor``.
+# * Two ranks, each assembling its own tetrahedra:
+#   ``mpiexec -n 2 prdp-petsc run demos/poisson3d.py --parallel domain --out DIR``.
+
+if __name__ == "__main__":
+    from prdp_petsc.lab.cli import scene_main
+
+    raise SystemExit(scene_main(__file__))

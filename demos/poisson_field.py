@@ -177,6 +177,13 @@ def build(config: dict, seed: int) -> lab.Scene:
 COMMANDS = field_reports.commands(sys.modules[__name__])
 
 
+# -- Things to try --------------------------------------------------------------------------
+# * Unrolled gradients (the CG iteration in torch) instead of the adjoint:
+#   ``--set mode=unrolled``.
+# * GAMG in the loop: ``-pf_pc_type gamg``, or ``compare --routes cg/gamg``.
+# * True against recovered κ: ``python demos/poisson_field.py plot --out fields.png``.
+
+
 if __name__ == "__main__":
     from prdp_petsc.lab.cli import scene_main
 

@@ -75,6 +75,11 @@ def build(config: dict, seed: int) -> lab.Scene:
     )
 
 
+# -- Things to try --------------------------------------------------------------------------
+# * A constant K, and the biased θ it converges to: ``run --schedule fixed:100 --out DIR``.
+# * CG instead of damped Jacobi: ``-poisson_ksp_type cg``.
+
+
 if __name__ == "__main__":
     from prdp_petsc.lab.cli import scene_main
 

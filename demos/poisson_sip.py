@@ -239,6 +239,12 @@ def _count(net: torch.nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())
 
 
+# -- Things to try --------------------------------------------------------------------------
+# * The three training rules on the ill-conditioned problem: ``--preset contrast_dp_adam``,
+#   ``contrast_dp_sgd`` and ``contrast_sip``.
+# * Another preconditioner: ``-sip_pc_type icc``; watch the solves with ``-sip_ksp_monitor``.
+
+
 if __name__ == "__main__":
     from prdp_petsc.lab.cli import scene_main
 
