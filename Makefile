@@ -36,7 +36,7 @@ test: $(STAMP)
 	$(MPI_ENV) timeout 600 $(MPIEXEC) -n 3 $(PY) -m pytest -q -p no:cacheprovider tests/mpi/test_owned.py
 
 demo: $(STAMP)
-	$(PY) -m prdp_petsc.lab.cli compare demos/heat2d.py --preset paper --routes cg/icc --out $(OUT)/heat2d
+	$(PY) -m prdp_petsc.lab.cli compare demos/heat.py --preset paper --routes cg/icc --out $(OUT)/heat2d
 
 bench: $(STAMP)
 	$(PY) -m prdp_petsc.lab.cli bench bridge --out $(OUT)

@@ -44,6 +44,7 @@ from prdp_petsc.lab.components.networks import mlp
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.scene import shuffled_batches
 from prdp_petsc.lab.training.unroll import windows
+from prdp_petsc.prdp import PAPER
 
 PRESETS = {
     "quick": {
@@ -58,18 +59,13 @@ PRESETS = {
         "unroll": 1,
         "k_init": 1,
     },
-    "paper": {
-        "n": 30,
-        "n_train": 200,
-        "n_val": 5,
-        "modes": 5,
-        "epochs": 200,
-        "batch": 20,
-        "lr": 2e-3,
-        "gamma": 0.985,
-        "unroll": 1,
-        "k_init": 1,
-    },
+}
+PRESETS["paper"] = {
+    **PRESETS["quick"],
+    "n_train": 200,
+    "epochs": 200,
+    "lr": 2e-3,
+    "gamma": 0.985,
 }
 # PRDP from K = 10: past the Ks whose learned map amplifies over the rollout (above)
 PRESETS["paper_k10"] = {**PRESETS["paper"], "k_init": 10}
@@ -143,19 +139,21 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, val_traj[1].numpy(), None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        # the paper's settings, plus restart_window: at the smallest K the rollout blows
-        # up, and with the reference's EMA that spike would mask the plateaus that follow
-        prdp={
-            "k_init": config["k_init"],
-            "k_step": 1,
-            "tau_step": 0.98,
-            "ema_window": 8,
-            "window": 3,
-            "restart_window": True,
-        },
+        # the paper's controller with a longer EMA and restart_window: at the smallest K
+        # the rollout blows up, and with the reference's EMA that spike would mask the
+        # plateaus that follow
+        prdp={**PAPER, "k_init": config["k_init"], "ema_window": 8, "restart_window": True},
         scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=config["gamma"]),
         info={"n": n, "nu_dt": NU_DT, "jacobi_scale": JACOBI_SCALE, **config},
     )
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * PRDP from K = 10, past the Ks whose learned map amplifies: ``--preset paper_k10``.
+# * Two chained solver steps per sample: ``--set unroll=2``.
+# * A constant K against PRDP: ``run --schedule fixed:10 --out DIR``.
+# * Another solver in the loop: ``-heat_ksp_type cg -heat_pc_type jacobi``; watch it with
+#   ``-heat_ksp_monitor``.
 
 
 if __name__ == "__main__":

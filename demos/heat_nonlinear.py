@@ -19,12 +19,12 @@ outer steps, hence fewer assemblies, and the adjoint needs J either way.
 one transpose GMRES solve with J(u*) per sample.  K_full is measured with rtol 1e-6 on
 the first Newton system of a held-out step.
 
-Learning problem (the paper's mixed chain, as heat1d and heat2d): a network N maps uⁿ
+Learning problem (the paper's mixed chain, as heat1d and heat): a network N maps uⁿ
 to ûⁿ⁺¹, and the loss compares the capped Newton step ``Newton_K(ûⁿ⁺¹)`` with the
 exact uⁿ⁺²; with small K the step falls short and N learns a biased map.  N is
-`prdp_petsc.lab.components.networks.MeshNet` (message passing over the mesh's edges, 3
-layers, 8 channels, node coordinates as extra inputs; heat2d's network before it moved
-to `ModalNet`), here with GELU, since the step is nonlinear.  Validation metric: the
+`MeshNet` (below: message passing over the mesh's edges, 3 layers, 8 channels, node
+coordinates as extra inputs; the linear heat scene's network before it moved to
+``ModalNet``), here with GELU, since the step is nonlinear.  Validation metric: the
 mean normalised error ``mean_t ‖ûₜ − uₜ‖/‖uₜ‖`` of a 10-step autoregressive rollout of
 N against the exact trajectories of held-out initial conditions (the harness also
 records a 20-step curve); the exact steps are Newton with a PETSc LU solve to ‖R‖ ≤
@@ -50,6 +50,7 @@ Run ``python demos/heat_nonlinear.py compare --preset paper --out results/heat_n
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 import torch
@@ -57,11 +58,13 @@ from petsc4py import PETSc
 
 import prdp_petsc as pp
 from prdp_petsc import lab
+from prdp_petsc.autograd.once import once_differentiable
 from prdp_petsc.autograd.warm_starts import WarmStarts
-from prdp_petsc.lab.components.networks import MeshNet
+from prdp_petsc.lab.components.emulators import gaussian_bumps
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.routes import parse_routes
 from prdp_petsc.lab.training.scene import shuffled_batches
+from prdp_petsc.prdp import PAPER
 
 # ``routes``: the KSP/PC pairs `compare` also runs (``--routes`` overrides them).  The
 # Newton Jacobian is not symmetric (CG and ICC are refused), so GMRES with ILU or GAMG.
@@ -88,28 +91,16 @@ PRESETS = {
         "k_step": 1,
         "routes": "gmres/ilu",
     },
-    "paper": {
-        "mesh": "lshape",
-        "refine": 0,
-        "dt": 2e-3,
-        "alpha": 2.0,
-        "n_train": 12,
-        "train_steps": 6,
-        "n_val": 4,
-        "val_steps": 10,
-        "rollout_steps": 20,
-        "max_newton": 2,
-        "channels": 8,
-        "epochs": 40,
-        "batch": 8,
-        "lr": 3e-3,
-        "gamma": 0.97,
-        "warm_start_epochs": False,
-        "pc_lag": 1,
-        "k_init": 1,
-        "k_step": 1,
-        "routes": "gmres/ilu,gmres/gamg",
-    },
+}
+PRESETS["paper"] = {
+    **PRESETS["quick"],
+    "n_train": 12,
+    "train_steps": 6,
+    "n_val": 4,
+    "rollout_steps": 20,
+    "epochs": 40,
+    "batch": 8,
+    "routes": "gmres/ilu,gmres/gamg",
 }
 
 GMRES = {"ksp_type": "gmres", "pc_type": "jacobi", "ksp_gmres_restart": 200}
@@ -129,15 +120,7 @@ def initial_conditions(heat, count: int, rng: np.random.Generator) -> np.ndarray
     K, load = laplace.assemble(basis), unit_load.assemble(basis)
     bubble = spla.spsolve(K[interior][:, interior].tocsc(), load[interior])
     points = basis.doflocs[:, interior]
-    lo, hi = points.min(axis=1), points.max(axis=1)
-    fields = np.zeros((count, len(interior)))
-    for i in range(count):
-        for _ in range(3):
-            centre = lo + (hi - lo) * rng.random(len(lo))
-            width = float(np.max(hi - lo)) * rng.uniform(0.1, 0.25)
-            r2 = ((points - centre[:, None]) ** 2).sum(axis=0)
-            fields[i] += rng.uniform(-1, 1) * np.exp(-r2 / (2 * width**2))
-    fields *= bubble
+    fields = gaussian_bumps(points, count, rng, bumps=3, widths=(0.1, 0.25)) * bubble
     peak = np.abs(fields).max(axis=1, keepdims=True)
     return fields * rng.uniform(0.75, 1.5, size=(count, 1)) / peak
 
@@ -162,6 +145,143 @@ def trajectories(heat, u0: np.ndarray, steps: int, alpha: float) -> np.ndarray:
             out.append(np.stack(row))
     solver.destroy()
     return np.stack(out)
+
+
+# -- The network: message passing over the mesh's edges -----------------------------------
+# Each layer sums the neighbours' channel vectors with a learnable weight per edge (the
+# sparsity pattern of the Jacobian), mixes the channels and applies GELU: its receptive
+# field grows by one ring of neighbours per layer, its cost is linear in the number of
+# edges, and it runs on any mesh without a regular grid.  The edge sum is a SciPy CSR
+# product inside a small autograd function (no torch-geometric dependency).
+
+
+class MeshNet(torch.nn.Module):
+    """Residual message passing on a mesh graph: ``h ← h + σ(Θ_l (W_l h))``.
+
+    Parameters
+    ----------
+    adjacency : scipy.sparse matrix, shape (n, n)
+        Graph of the nodes (e.g. the pattern of the FE operator on the unknowns);
+        self-loops are added.  Edge weights start at the row-normalised adjacency.
+    channels : int
+        Hidden channels per node.
+    layers : int
+        Message-passing layers (receptive field: `layers` rings of neighbours).
+    features : array_like, shape (n, f), optional
+        Fixed per-node inputs appended to u (e.g. coordinates), so the network can
+        tell the boundary layer from the interior.
+    activation : {"gelu", None}
+        Nonlinearity after each layer; None makes the network linear in its inputs
+        (a product of learnable sparse operators), the right class for the step of
+        a linear PDE.
+
+    Notes
+    -----
+    Input and output have shape (B, n) (float64).  u is lifted to `channels`
+    channels (channel 0 carries u itself), each layer adds ``σ(Θ_l (W_l h))`` with
+    ``W_l`` the edge-weighted neighbour sum, and a linear readout gives û.  All
+    channel mixings start at zero, so the network starts as the identity map, the
+    natural first guess for a small time step, and trains like a residual network.
+    """
+
+    def __init__(
+        self, adjacency, channels: int = 4, layers: int = 3, features=None, activation="gelu"
+    ):
+        super().__init__()
+        if activation not in ("gelu", None):
+            raise ValueError(f"activation must be 'gelu' or None, got {activation!r}")
+        self.activation = activation
+        A = sp.csr_matrix(adjacency, dtype=np.float64)
+        A = (abs(A) + sp.identity(A.shape[0], format="csr")).tocsr()
+        A.data[:] = 1.0
+        A = sp.diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
+        A = A.tocsr()
+        A.sort_indices()
+        self._pattern = _Pattern(A.indptr, A.indices, A.shape)
+        feats = np.zeros((A.shape[0], 0)) if features is None else np.asarray(features)
+        if feats.shape[0] != A.shape[0]:
+            raise ValueError(f"features must have {A.shape[0]} rows, got {feats.shape}")
+        self.register_buffer("features", torch.from_numpy(feats.astype(np.float64)))
+        self.n = A.shape[0]
+        start = torch.from_numpy(A.data)
+        self.edge_weights = torch.nn.ParameterList(
+            [torch.nn.Parameter(start.clone()) for _ in range(layers)]
+        )
+        self.lift = torch.nn.Linear(1 + feats.shape[1], channels).double()
+        self.mix = torch.nn.ModuleList(
+            [torch.nn.Linear(channels, channels).double() for _ in range(layers)]
+        )
+        self.readout = torch.nn.Linear(channels, 1).double()
+        with torch.no_grad():  # start as the identity map: channel 0 carries u through
+            self.lift.weight[0].zero_()
+            self.lift.weight[0, 0] = 1.0
+            self.lift.bias[0] = 0.0
+            for mix in self.mix:
+                mix.weight.zero_()
+                mix.bias.zero_()
+            self.readout.weight.zero_()
+            self.readout.weight[0, 0] = 1.0
+            self.readout.bias.zero_()
+
+    def _propagate(self, h: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Edge-weighted neighbour sum of h, shape (n, B, C)."""
+        flat = h.reshape(self.n, -1)
+        return _EdgeSum.apply(weights, flat, self._pattern).reshape(h.shape)
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        if u.shape[-1] != self.n:
+            raise ValueError(f"MeshNet expects (batch, {self.n}), got {tuple(u.shape)}")
+        squeeze = u.ndim == 1
+        u = u[None] if squeeze else u
+        inputs = [u.T[..., None]]  # nodes first: (n, B, 1)
+        if self.features.shape[1]:
+            inputs.append(self.features[:, None, :].expand(-1, u.shape[0], -1))
+        h = self.lift(torch.cat(inputs, dim=-1))
+        for weights, mix in zip(self.edge_weights, self.mix, strict=True):
+            update = mix(self._propagate(h, weights))
+            h = h + (torch.nn.functional.gelu(update) if self.activation else update)
+        out = self.readout(h)[..., 0].T
+        return out[0] if squeeze else out
+
+
+class _Pattern:
+    """CSR pattern of the graph with the positions needed by `_EdgeSum`'s backward."""
+
+    def __init__(self, indptr, indices, shape):
+        self.indptr, self.indices, self.shape = indptr, indices, shape
+        self.rows = np.repeat(np.arange(shape[0]), np.diff(indptr))
+
+
+class _EdgeSum(torch.autograd.Function):
+    """``Y = W X`` for a sparse W with learnable values on a fixed pattern (scipy CSR)."""
+
+    @staticmethod
+    def forward(ctx, values, X, pattern):
+        W = sp.csr_matrix(
+            (values.detach().numpy(), pattern.indices, pattern.indptr), shape=pattern.shape
+        )
+        ctx.W, ctx.pattern = W, pattern
+        ctx.save_for_backward(X)
+        return torch.from_numpy(W @ X.detach().numpy())
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        (X,) = ctx.saved_tensors
+        g = grad.contiguous().numpy()
+        pattern = ctx.pattern
+        grad_values = grad_X = None
+        if ctx.needs_input_grad[0]:
+            x = X.detach().numpy()
+            grad_values = torch.from_numpy(
+                np.einsum("km,km->k", g[pattern.rows], x[pattern.indices])
+            )
+        if ctx.needs_input_grad[1]:
+            grad_X = torch.from_numpy(ctx.W.T @ g)
+        return grad_values, grad_X, None
+
+
+# -- The scene -------------------------------------------------------------------------------
 
 
 def build(config: dict, seed: int) -> lab.Scene:
@@ -235,13 +355,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=probe,
         rtol_full=1e-6,
         epochs=config["epochs"],
-        prdp={
-            "k_init": config["k_init"],
-            "k_step": config["k_step"],
-            "tau_step": 0.9,
-            "ema_window": 6,
-            "window": 3,
-        },
+        prdp={**PAPER, "k_init": config["k_init"], "k_step": config["k_step"], "tau_step": 0.9},
         scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=config["gamma"]),
         info={
             "n": heat.n,
@@ -252,6 +366,14 @@ def build(config: dict, seed: int) -> lab.Scene:
             **config,
         },
     )
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * Newton from last epoch's capped results: ``--set warm_start_epochs=true``.
+# * GAMG on the Newton systems, set up at every fourth Jacobian:
+#   ``compare --routes gmres/gamg --set pc_lag=4``.
+# * The linear step as a control: ``--set alpha=0``.
+# * Watch the capped GMRES: ``-heatnl_ksp_monitor``.
 
 
 if __name__ == "__main__":

@@ -19,13 +19,13 @@ The adjoint (transpose) solve runs the same K iterations as the forward solve;
 PETSc solver is one option away (``-ns2d_pc_type fieldsplit ...``); ``SCHUR`` is the
 fieldsplit Schur-complement route that ``compare --routes schur`` runs.
 
-Learning problem (solver-in-the-loop correction, as the reference): a
-`~prdp_petsc.lab.components.networks.ConvResNet` C (3 → 3 channels u, v, p; circular
-padding; ``hidden`` channels, ``blocks`` blocks; float32 inside) corrects the coarse
-step after every step, s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the MSE of the
-states of an ``unroll``-step rollout through solver and network against the
-reference, summed.  Training windows start every ``window_stride`` steps of
-``n_train`` reference trajectories of ``train_steps`` steps.  Reference data: the same
+Learning problem (solver-in-the-loop correction, as the reference): a `ConvResNet` C
+(below; 3 → 3 channels u, v, p; circular padding; ``hidden`` channels, ``blocks``
+blocks; float32 inside) corrects the coarse step after every step,
+s_{t+1} = P_K(s_t) + C(P_K(s_t)); the loss is the MSE of the states of an
+``unroll``-step rollout through solver and network against the reference, summed.
+Training windows start every ``window_stride`` steps of ``n_train`` reference
+trajectories of ``train_steps`` steps.  Reference data: the same
 scheme on a 2N × 2N grid (direct sparse solve) restricted to N × N by face averages
 (which keep the discrete divergence zero), built once per process and kept on disk
 (`reference_data`).  Initial velocities: random smooth divergence-free fields from a
@@ -87,13 +87,13 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.autograd.warm_starts import WarmStarts
 from prdp_petsc.lab.components import mac
-from prdp_petsc.lab.components.networks import ConvResNet
 from prdp_petsc.lab.reports import ns2d as ns2d_reports
 from prdp_petsc.lab.training import unroll
 from prdp_petsc.lab.training.cache import disk_cached
 from prdp_petsc.lab.training.routes import parse_routes, route_string
 from prdp_petsc.lab.training.scene import shuffled_batches
 from prdp_petsc.lab.training.unroll import CORRECTIONS, Hybrid, unrolled_loss
+from prdp_petsc.prdp import PAPER
 
 _BASE = {
     "dt": 0.1,
@@ -257,6 +257,69 @@ def reference_data(n: int, count: int, steps: int, dt: float, nu: float, seed: i
 
     key = f"n{n}_count{count}_steps{steps}_dt{dt!r}_nu{nu!r}_seed{seed}"
     return torch.from_numpy(disk_cached("ns2d", key, compute, sources=[mac.__file__]))
+
+
+class ConvResNet(torch.nn.Module):
+    """Residual CNN on periodic 2D grids: 1×1 lift, residual blocks, 1×1 projection.
+
+    Each block is ``h ← h + conv(σ(conv(σ(h))))`` with 3×3 convolutions and circular
+    padding (the grid is periodic), σ = GELU.
+
+    Parameters
+    ----------
+    in_channels, out_channels : int
+    hidden : int
+        Channels inside the blocks.
+    blocks : int
+        Residual blocks (two 3×3 convolutions each).
+    dtype : torch.dtype
+        Parameter dtype (float32 by default: the convolutions dominate the cost and
+        a corrector needs no float64); `forward` casts its input to it and its
+        output back.
+    zero_init : bool
+        Zero the projection, so the network starts as the zero map (a corrector
+        that starts by changing nothing).
+
+    Notes
+    -----
+    Input and output have shape (B, C, H, W).  With ``hidden=64, blocks=3`` and 3
+    channels in and out it has 222 019 parameters.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        hidden: int = 64,
+        blocks: int = 3,
+        *,
+        dtype: torch.dtype = torch.float32,
+        zero_init: bool = True,
+    ):
+        super().__init__()
+
+        def conv(cin, cout, k):
+            return torch.nn.Conv2d(cin, cout, k, padding=k // 2, padding_mode="circular")
+
+        self.lift = conv(in_channels, hidden, 1)
+        self.blocks = torch.nn.ModuleList(
+            [torch.nn.ModuleList([conv(hidden, hidden, 3), conv(hidden, hidden, 3)])
+             for _ in range(blocks)]
+        )  # fmt: skip
+        self.project = conv(hidden, out_channels, 1)
+        if zero_init:
+            with torch.no_grad():
+                self.project.weight.zero_()
+                self.project.bias.zero_()
+        self.to(dtype)
+        self.dtype = dtype
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        act = torch.nn.functional.gelu
+        h = self.lift(x.to(self.dtype))
+        for first, second in self.blocks:
+            h = h + second(act(first(act(h))))
+        return self.project(h).to(x.dtype)
 
 
 class Corrector:
@@ -477,6 +540,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         rtol_full=config["rtol_full"],
         epochs=epochs,
         prdp={
+            **PAPER,
             "k_init": config["k_init"],
             "k_step": config["k_step"],
             "tau_step": 0.95,
@@ -496,6 +560,14 @@ def build(config: dict, seed: int) -> lab.Scene:
 
 # the scene's report commands: ``prdp-petsc scene demos/ns2d.py adjoint|energy ...``
 COMMANDS = ns2d_reports.commands(sys.modules[__name__])
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * The reference's effective gradient, the solver detached: ``--preset quick_detached``.
+# * Correct through the implicit step's forcing: ``--set correction=indirect``.
+# * Train on the Schur route: ``--set train_solver=schur``; or ``compare --routes schur``.
+# * What the capped adjoint costs and changes:
+#   ``prdp-petsc scene demos/ns2d.py adjoint --preset quick --k 8 64``.
 
 
 if __name__ == "__main__":

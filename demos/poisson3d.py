@@ -45,6 +45,7 @@ from prdp_petsc.autograd.owned import sum_over_ranks
 from prdp_petsc.core.parallel import default_comm
 from prdp_petsc.fem.distributed import DistributedParametricMatrix
 from prdp_petsc.fem.partition import PartitionedMesh
+from prdp_petsc.prdp import PAPER
 
 _BASE = {
     "steps": 5,
@@ -167,6 +168,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={
+            **PAPER,
             "k_init": config["k_init"],
             "k_step": config["k_step"],
             "tau_step": 0.95,
@@ -187,3 +189,14 @@ def build(config: dict, seed: int) -> lab.Scene:
 def _gather(comm, value: int) -> list[int]:
     """`value` of every rank, in rank order."""
     return comm.tompi4py().allgather(value) if comm.getSize() > 1 else [value]
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * Another preconditioner: ``--set pc=jacobi``; watch the solves with ``-p3_ksp_monitor``.
+# * Two ranks, each assembling its own tetrahedra:
+#   ``mpiexec -n 2 prdp-petsc run demos/poisson3d.py --parallel domain --out DIR``.
+
+if __name__ == "__main__":
+    from prdp_petsc.lab.cli import scene_main
+
+    raise SystemExit(scene_main(__file__))

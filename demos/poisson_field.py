@@ -45,6 +45,7 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.lab.components.emulators import torch_sparse
 from prdp_petsc.lab.reports import poisson_field as field_reports
+from prdp_petsc.prdp import PAPER
 
 PRESETS = {
     "quick": {
@@ -58,17 +59,13 @@ PRESETS = {
         "k_step": 10,
         "mode": "implicit",
     },
-    "paper": {
-        "refine": 1,
-        "epochs": 40,
-        "steps": 10,
-        "lr": 0.1,
-        "beta": 1e-5,
-        "noise": 0.01,
-        "k_init": 40,
-        "k_step": 20,
-        "mode": "implicit",
-    },
+}
+PRESETS["paper"] = {
+    **PRESETS["quick"],
+    "refine": 1,
+    "epochs": 40,
+    "k_init": 40,
+    "k_step": 20,
 }
 
 PREFIX = "pf_"
@@ -158,6 +155,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         rtol_full=1e-6,
         epochs=config["epochs"],
         prdp={
+            **PAPER,
             "k_init": config["k_init"],
             "k_step": config["k_step"],
             "tau_step": 0.95,
@@ -177,6 +175,13 @@ def build(config: dict, seed: int) -> lab.Scene:
 
 # ``prdp-petsc scene demos/poisson_field.py plot ...``: true against recovered κ
 COMMANDS = field_reports.commands(sys.modules[__name__])
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * Unrolled gradients (the CG iteration in torch) instead of the adjoint:
+#   ``--set mode=unrolled``.
+# * GAMG in the loop: ``-pf_pc_type gamg``, or ``compare --routes cg/gamg``.
+# * True against recovered κ: ``python demos/poisson_field.py plot --out fields.png``.
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import torch
 import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.fem.fd import grid_points, laplacian
+from prdp_petsc.prdp import PAPER
 
 PRESETS = {
     "quick": {"n": 30, "steps": 60, "lr": 275.0},
@@ -60,7 +61,8 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, THETA_REF * shape, None),
         rtol_full=1e-6,
         epochs=config["steps"],
-        prdp={
+        prdp={  # the paper's Poisson runs
+            **PAPER,
             "k_init": 25,
             "k_step": 10,
             "k_max": 600,
@@ -71,6 +73,11 @@ def build(config: dict, seed: int) -> lab.Scene:
         compare_ks=[25, 100, 300],
         info={"n": n, "theta_ref": THETA_REF, "theta_init": THETA_INIT, **config},
     )
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * A constant K, and the biased θ it converges to: ``run --schedule fixed:100 --out DIR``.
+# * CG instead of damped Jacobi: ``-poisson_ksp_type cg``.
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ variant, where P's singular values spread over many more decades.
 
 Learning problem (Holl et al., "Scale-invariant learning by physics inversion"): a
 network f(y*; φ) maps an observed solution y* = P(x_true) to the source x, for random
-smooth sources x_true (sums of Gaussian bumps, as in ``heat2d``:
+smooth sources x_true (sums of Gaussian bumps, as in ``heat``:
 `prdp_petsc.lab.components.emulators.gaussian_bumps`).  f is a learnable sparse linear map
 on A's pattern (`SparseLinear`, one value per entry, starting at zero; input divided
 and output multiplied by fixed data scales): the class of the inverse physics
@@ -59,6 +59,7 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.lab.components.emulators import gaussian_bumps
 from prdp_petsc.lab.training.scene import shuffled_batches
+from prdp_petsc.prdp import PAPER
 
 METHODS = ("dp_adam", "dp_sgd", "sip")
 
@@ -190,13 +191,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (A, (M @ x_true[val].numpy().T).T, None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        prdp={
-            "k_init": config["k_init"],
-            "k_step": config["k_step"],
-            "tau_step": 0.9,
-            "ema_window": 6,
-            "window": 3,
-        },
+        prdp={**PAPER, "k_init": config["k_init"], "k_step": config["k_step"], "tau_step": 0.9},
         info=info,
     )
 
@@ -242,6 +237,12 @@ def _mass_product(M, x):
 
 def _count(net: torch.nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())
+
+
+# -- Things to try --------------------------------------------------------------------------
+# * The three training rules on the ill-conditioned problem: ``--preset contrast_dp_adam``,
+#   ``contrast_dp_sgd`` and ``contrast_sip``.
+# * Another preconditioner: ``-sip_pc_type icc``; watch the solves with ``-sip_ksp_monitor``.
 
 
 if __name__ == "__main__":

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -67,6 +68,7 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.lab.components.emulators import torch_sparse
 from prdp_petsc.lab.reports import topopt as topopt_reports
+from prdp_petsc.prdp import PAPER
 
 #: the settings every preset shares: SIMP p = 3, E_min = 1e-9 E_0, 30 % volume, a filter
 #: of 1.5 element widths, OC's move limit 0.2, fixed-K solves (rtol 0)
@@ -211,7 +213,17 @@ def load_case(seed: int) -> float:
     return LOAD_HEIGHTS[seed % len(LOAD_HEIGHTS)]
 
 
-def build(config: dict, seed: int) -> lab.Scene:
+@dataclass
+class TopOptScene(lab.Scene):
+    """A `~prdp_petsc.lab.training.scene.Scene` that keeps what scoring its designs
+    afterwards needs (the ``results`` command, the tests): the problem and the filtered
+    design ρ after every design iteration."""
+
+    problem: Cantilever | None = None
+    designs: list[np.ndarray] = field(default_factory=list)
+
+
+def build(config: dict, seed: int) -> TopOptScene:
     n = config["n"]
     problem = Cantilever((2 * n, n, n), z_c=load_case(seed))
     H = density_filter(problem.centroids, config["rmin"] / n)
@@ -249,7 +261,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         return change
 
     probe_theta = simp(torch.full((count,), volfrac, dtype=torch.float64), penal, e_min)
-    scene = lab.Scene(
+    return TopOptScene(
         solvers=[solver],
         optimizer=optimizer,
         batches=lambda epoch, generator: [None],
@@ -258,17 +270,16 @@ def build(config: dict, seed: int) -> lab.Scene:
         probe=lambda: (problem.bc.A_II.matrix(probe_theta.numpy()), problem.b, None),
         rtol_full=1e-6,
         epochs=config["epochs"],
-        prdp={"k_init": config["k_init"], "k_step": config["k_step"]},
+        prdp={**PAPER, "k_init": config["k_init"], "k_step": config["k_step"]},
         info={
             "elements": int(count),
             "unknowns": int(len(problem.bc.interior)),
             "load_height": load_case(seed),
             **config,
         },
+        problem=problem,
+        designs=designs,
     )
-    scene.problem, scene.designs = problem, designs  # for scoring (`results`, the tests)
-    scene.design_parameters = x
-    return scene
 
 
 # the comparison of schedules on three load cases (`prdp_petsc.lab.reports.topopt`):

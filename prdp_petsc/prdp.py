@@ -29,6 +29,7 @@ import numpy as np
 __all__ = [
     "ACCURACY_BAND",
     "Certificate",
+    "PAPER",
     "PRDP",
     "PRDPStep",
     "savings",

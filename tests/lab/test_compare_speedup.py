@@ -28,7 +28,7 @@ from prdp_petsc.lab.training.summary import format_table, speedup_vs_best_full, 
 from prdp_petsc.prdp import PRDP
 
 DEMOS = Path(__file__).resolve().parents[2] / "demos"
-HEAT1D, HEAT2D = DEMOS / "heat1d.py", DEMOS / "heat2d.py"
+HEAT1D, HEAT2D = DEMOS / "heat1d.py", DEMOS / "heat.py"
 
 #: Student's t quantile t_{0.975} with one degree of freedom (two seeds)
 T_1 = 12.706204736174707

@@ -5,7 +5,7 @@ found by reading the file (nothing is imported at collection), so a new scene is
 the moment its file lands, and fails `test_every_scene_has_a_physical_check` until
 `CHECKS` holds a check of a physical or learned number of it.
 
-Each check runs on the quick preset's full PRDP training, once per seed of `SEEDS`;
+Each check runs on its preset's full PRDP training (`CASES`), once per seed of `SEEDS`;
 the bounds hold on seeds 0-3 (the values measured on them are in each check).
 """
 
@@ -26,8 +26,6 @@ import prdp_petsc as pp
 from prdp_petsc import lab
 from prdp_petsc.fem.fd import laplacian
 from prdp_petsc.lab.components import mac
-from prdp_petsc.lab.components.emulators import heat_step_system
-from prdp_petsc.lab.components.modal import laplacian_modes
 from prdp_petsc.lab.reports import topopt as topopt_reports
 from prdp_petsc.lab.training.harness import build_scene, find_k_full, run
 from prdp_petsc.lab.training.scene import load_scene
@@ -49,10 +47,17 @@ def is_scene(path: Path) -> bool:
 
 
 SCENES = sorted(p for p in DEMOS.glob("*.py") if is_scene(p))
+#: What the physical checks train: every scene's quick preset, and the presets of a
+#: scene's other settings (heat.py's cube); a check is keyed ``stem`` or ``stem:preset``.
+CASES = [(p, "quick") for p in SCENES] + [(DEMOS / "heat.py", "quick3d")]
 
 
-def train(path: Path, seed: int, out: Path) -> types.SimpleNamespace:
-    """PRDP on the quick preset; also the untrained metric, K_full and the trained scene.
+def case_name(path: Path, preset: str) -> str:
+    return path.stem if preset == "quick" else f"{path.stem}:{preset}"
+
+
+def train(path: Path, seed: int, out: Path, preset: str = "quick") -> types.SimpleNamespace:
+    """PRDP on `preset`; also the untrained metric, K_full and the trained scene.
 
     The scene's ``build`` is wrapped so that the metric of the freshly built model
     (before any step) and K_full of its probe are taken on the very scene that trains.
@@ -67,7 +72,8 @@ def train(path: Path, seed: int, out: Path) -> types.SimpleNamespace:
         return scene
 
     wrapper = types.SimpleNamespace(PRESETS=module.PRESETS, build=build)
-    trained.result = run(path, "prdp", seed=seed, out=out, progress=False, module=wrapper)
+    trained.result = run(path, "prdp", preset=preset, seed=seed, out=out, progress=False,
+                         module=wrapper)  # fmt: skip
     trained.errors = [e["val_metric"] for e in trained.result["epochs"]]
     trained.losses = [e["train_loss"] for e in trained.result["epochs"]]
     return trained
@@ -75,13 +81,15 @@ def train(path: Path, seed: int, out: Path) -> types.SimpleNamespace:
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """``trained(path, seed)``: one quick PRDP run per scene and seed, shared by the tests."""
+    """``trained(path, seed, preset)``: one PRDP run per scene, preset and seed, shared by
+    the tests."""
     runs = {}
 
-    def get(path: Path, seed: int):
-        if (path, seed) not in runs:
-            runs[path, seed] = train(path, seed, tmp_path_factory.mktemp(f"{path.stem}_{seed}"))
-        return runs[path, seed]
+    def get(path: Path, seed: int, preset: str = "quick"):
+        if (path, seed, preset) not in runs:
+            out = tmp_path_factory.mktemp(f"{path.stem}_{preset}_{seed}")
+            runs[path, seed, preset] = train(path, seed, out, preset)
+        return runs[path, seed, preset]
 
     return get
 
@@ -136,7 +144,7 @@ def check_heat1d(t):
 
 
 def _modal_emulator(t, *, error_ratio, multiplier_gap):
-    """Learned numbers of the ModalNet heat emulators (heat2d, heat3d)."""
+    """Learned numbers of the ModalNet heat emulator (heat.py on the L-shape and the cube)."""
     # the rollout error falls far below that of the untrained network (the projection
     # onto the kept modes, which does not decay)
     assert t.errors[-1] < error_ratio * t.untrained
@@ -144,8 +152,8 @@ def _modal_emulator(t, *, error_ratio, multiplier_gap):
     # decay 1 / (1 + Δt λ₁) from its start at 1 (a capped solve leaves some bias)
     mesh = pp.load_mesh(t.config["mesh"], refine=t.config["refine"])
     dt = t.config["dt"]
-    A, B, _, _ = heat_step_system(mesh, dt)
-    lam, _ = laplacian_modes((A - B) / dt, B, 3)
+    A, B, _, _ = t.module.heat_step_system(mesh, dt)
+    lam, _ = t.module.laplacian_modes((A - B) / dt, B, 3)
     (weights,) = t.scene.optimizer.param_groups[0]["params"]
     assert weights.shape == (t.config["modes"],)
     exact = 1 / (1 + dt * lam[0])
@@ -153,7 +161,7 @@ def _modal_emulator(t, *, error_ratio, multiplier_gap):
     return lam
 
 
-def check_heat2d(t):
+def check_heat(t):
     # Rollout error after training over the untrained one: 0.22, 0.21, 0.21, 0.19 on
     # seeds 0-3; the slowest mode's multiplier misses 1/(1 + Δt λ₁) = 0.963 by 15-21 %
     # of its distance from 1 (0.955-0.957 learned).
@@ -330,8 +338,8 @@ def check_topopt3d(t):
 
 CHECKS = {
     "heat1d": check_heat1d,
-    "heat2d": check_heat2d,
-    "heat3d": check_heat3d,
+    "heat": check_heat,
+    "heat:quick3d": check_heat3d,
     "heat_nonlinear": check_heat_nonlinear,
     "ns2d": check_ns2d,
     "poisson_field": check_poisson_field,
@@ -343,16 +351,18 @@ CHECKS = {
 
 
 def test_every_scene_has_a_physical_check():
-    missing = {p.stem for p in SCENES} - set(CHECKS)
+    cases = {case_name(*case) for case in CASES}
+    missing = cases - set(CHECKS)
     assert not missing, f"add a check of a physical number to CHECKS for {sorted(missing)}"
+    assert set(CHECKS) <= cases  # no check of a scene or preset that is gone
 
 
 @pytest.mark.parametrize("seed", SEEDS, ids=lambda s: f"seed{s}")
-@pytest.mark.parametrize("path", [p for p in SCENES if p.stem in CHECKS], ids=lambda p: p.stem)
-def test_quick_training_meets_the_scenes_physics(path, seed, trained):
-    t = trained(path, seed)
+@pytest.mark.parametrize(("path", "preset"), CASES, ids=lambda c: getattr(c, "stem", c))
+def test_quick_training_meets_the_scenes_physics(path, preset, seed, trained):
+    t = trained(path, seed, preset)
     assert t.result["stopped"] is None
-    CHECKS[path.stem](t)
+    CHECKS[case_name(path, preset)](t)
 
 
 def test_poisson_inverse_recovers_theta_with_prdp(trained):

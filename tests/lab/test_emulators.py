@@ -11,15 +11,7 @@ from _core import fd_poisson
 from petsc4py import PETSc
 
 from prdp_petsc import load_mesh, solve
-from prdp_petsc.lab.components.emulators import (
-    bubble,
-    emulator_net,
-    gaussian_bumps,
-    heat_step_system,
-    torch_sparse,
-    training_windows,
-)
-from prdp_petsc.lab.components.networks import MeshNet, ResidualMLP, _EdgeSum, _Pattern
+from prdp_petsc.lab.components.emulators import gaussian_bumps, torch_sparse
 from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import build_scene, run
 from prdp_petsc.lab.training.rollout import rollout_errors
@@ -28,25 +20,30 @@ from prdp_petsc.lab.training.scene import load_scene
 from prdp_petsc.lab.training.summary import fastest, format_table
 from prdp_petsc.lab.training.unroll import unrolled_loss
 
-HEAT2D = Path(__file__).resolve().parents[2] / "demos" / "heat2d.py"
+DEMOS = Path(__file__).resolve().parents[2] / "demos"
+HEAT = DEMOS / "heat.py"
+heat = load_scene(HEAT)  # the scene's physics: heat_step_system, bubble, training_windows, ...
+heat_nonlinear = load_scene(DEMOS / "heat_nonlinear.py")  # MeshNet
 
 
 def test_edge_sum_gradcheck():
     A = fd_poisson(3).tocsr()
-    pattern = _Pattern(A.indptr, A.indices, A.shape)
+    pattern = heat_nonlinear._Pattern(A.indptr, A.indices, A.shape)
+    edge_sum = heat_nonlinear._EdgeSum.apply
     values = torch.from_numpy(np.random.default_rng(0).standard_normal(A.nnz))
     X = torch.from_numpy(np.random.default_rng(1).standard_normal((9, 4)))
     values.requires_grad_(True)
     X.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda v, x: _EdgeSum.apply(v, x, pattern), (values, X))
+    assert torch.autograd.gradcheck(lambda v, x: edge_sum(v, x, pattern), (values, X))
     W = A.copy()
     W.data = values.detach().numpy()
-    assert np.allclose(_EdgeSum.apply(values, X, pattern).detach().numpy(), W @ X.detach().numpy())
+    assert np.allclose(edge_sum(values, X, pattern).detach().numpy(), W @ X.detach().numpy())
 
 
 def test_meshnet_starts_as_identity_and_is_local():
     A = fd_poisson(6)
-    net = MeshNet(A, channels=3, layers=2, features=np.random.default_rng(0).random((36, 2)))
+    features = np.random.default_rng(0).random((36, 2))
+    net = heat_nonlinear.MeshNet(A, channels=3, layers=2, features=features)
     u = torch.from_numpy(np.random.default_rng(1).standard_normal((5, 36)))
     assert torch.equal(net(u), u)  # identity map at initialisation
     with torch.no_grad():  # perturb the weights: output at node 0 sees 2 rings only
@@ -105,7 +102,7 @@ def test_fastest_is_the_first_run_within_5_percent_of_full_fidelity():
 
 
 def test_compare_with_a_route_reports_the_fastest(tmp_path):
-    s = compare(HEAT2D, preset="quick", out=tmp_path, progress=False, routes=["cg/icc"])
+    s = compare(HEAT, preset="quick", out=tmp_path, progress=False, routes=["cg/icc"])
     route = s["routes"]["cg/icc"]
     assert 1 <= route["k_full"] < s["k_full"]  # CG + ICC needs far fewer iterations
     assert {"prdp@cg/icc", f"fixed:{route['k_full']}@cg/icc"} <= set(s["runs"])
@@ -126,7 +123,7 @@ def test_compare_with_a_route_reports_the_fastest(tmp_path):
 
 
 def test_residual_mlp_starts_as_identity():
-    net = ResidualMLP(7, width=5, depth=2)
+    net = heat.ResidualMLP(7, width=5, depth=2)
     u = torch.from_numpy(np.random.default_rng(0).standard_normal((3, 7)))
     assert torch.equal(net(u), u)
     assert sum(p.numel() for p in net.parameters()) == 7 * 5 + 5 + 5 * 5 + 5 + 5 * 7 + 7
@@ -134,7 +131,7 @@ def test_residual_mlp_starts_as_identity():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_heat2d_mlp_emulator_fits_the_step_but_not_the_rollout(seed):
-    """paper_mlp, 3 epochs at K = 8: the control experiment of heat2d's docstring.
+    """paper_mlp, 3 epochs at K = 8: the control experiment of the heat scene's presets.
 
     The ResidualMLP learns the capped step it is trained on: the training loss falls
     27-32x (0.0080-0.0111 -> 0.00029-0.00040 on seeds 0-3).  Its 10-step rollout
@@ -143,12 +140,12 @@ def test_heat2d_mlp_emulator_fits_the_step_but_not_the_rollout(seed):
     0-3.  (This test used to claim < 0.9x the identity's error, true on seed 0
     only.)
     """
-    module = load_scene(HEAT2D)
+    module = load_scene(HEAT)
     scene = build_scene(module, "paper_mlp", seed)
     n, width = scene.info["n"], module.PRESETS["paper_mlp"]["width"]  # a ResidualMLP's count
     assert scene.info["network_parameters"] == n * width + width + width**2 + width + width * n + n
     identity = scene.validate()  # the network starts as the identity
-    result = run(HEAT2D, "fixed:8", preset="paper_mlp", epochs=3, seed=seed, progress=False,
+    result = run(HEAT, "fixed:8", preset="paper_mlp", epochs=3, seed=seed, progress=False,
                  module=module)  # fmt: skip
     errors = [e["val_metric"] for e in result["epochs"]]
     losses = [e["train_loss"] for e in result["epochs"]]
@@ -160,7 +157,7 @@ def test_heat2d_mlp_emulator_fits_the_step_but_not_the_rollout(seed):
 
 def test_heat2d_network_is_a_setting_of_every_preset():
     """``--set net=mlp`` on quick: a ResidualMLP of the preset's width and depth."""
-    module = load_scene(HEAT2D)
+    module = load_scene(HEAT)
     scene = build_scene(module, "quick net=mlp", 0)
     n, width = scene.info["n"], module.PRESETS["quick"]["width"]
     assert (scene.info["net"], module.PRESETS["quick"]["depth"]) == ("mlp", 2)
@@ -170,7 +167,7 @@ def test_heat2d_network_is_a_setting_of_every_preset():
 
 
 def test_heat2d_refuses_an_unknown_network():
-    module = load_scene(HEAT2D)
+    module = load_scene(HEAT)
     module.PRESETS["bad"] = {**module.PRESETS["quick"], "net": "transformer"}
     with pytest.raises(ValueError, match="net must be"):
         build_scene(module, "bad", 0)
@@ -183,36 +180,37 @@ def test_training_windows_of_one_step_are_the_pairs_and_of_two_chain_the_step():
     traj = torch.from_numpy(np.random.default_rng(0).standard_normal((9, 3, 5)))
     inputs = traj[:4].reshape(-1, 5)  # the pairs as the scene made them before `unroll`
     norms = inputs.norm(dim=-1, keepdim=True)
-    one = training_windows(traj, 4, 1)
+    one = heat.training_windows(traj, 4, 1)
     assert one.shape == (2, 12, 5)
     assert torch.equal(one[0], inputs / norms)
     assert torch.equal(one[1], traj[2:6].reshape(-1, 5) / norms)
-    two = training_windows(traj, 4, 2)  # window t · 3 + i: uₜ, uₜ₊₂, uₜ₊₄ of trajectory i
+    two = heat.training_windows(traj, 4, 2)  # window t · 3 + i: uₜ, uₜ₊₂, uₜ₊₄ of trajectory i
     assert two.shape == (3, 12, 5)
     assert torch.equal(two[:2], one)
     t, i = 3, 2
     assert torch.allclose(two[:, t * 3 + i], traj[[t, t + 2, t + 4], i] / traj[t, i].norm())
     with pytest.raises(ValueError, match="need 12 states"):
-        training_windows(traj, 4, 4)
+        heat.training_windows(traj, 4, 4)
 
 
 def _heat2d_quick(preset: str):
     """heat2d's scene on `preset`, and what its loss is made of, rebuilt from the public
     pieces as the scene builds them: the step matrices, the exact trajectories of the
     training samples, and a copy of its network."""
-    module = load_scene(HEAT2D)
+    module = load_scene(HEAT)
     scene = build_scene(module, preset, 0)
     c = module.PRESETS["quick"]
     mesh = load_mesh(c["mesh"], refine=c["refine"])
-    A, B, interior, _ = heat_step_system(mesh, c["dt"])
+    A, B, interior, _ = heat.heat_step_system(mesh, c["dt"])
     rng = np.random.default_rng(0)
-    u0 = gaussian_bumps(mesh.p[:, interior], c["n_train"] + c["n_val"], rng) * bubble(A, B, c["dt"])
+    u0 = gaussian_bumps(mesh.p[:, interior], c["n_train"] + c["n_val"], rng)
+    u0 = u0 * heat.bubble(A, B, c["dt"])
     lu = spla.splu(A.tocsc())
     traj = [u0]
     for _ in range(c["spans"] + 4):
         traj.append(lu.solve(B @ traj[-1].T).T)
     traj = torch.from_numpy(np.stack(traj))[:, : c["n_train"]]
-    net = emulator_net(c["net"], A, B, dt=c["dt"], modes=c["modes"], width=c["width"],
+    net = heat.emulator_net(c["net"], A, B, dt=c["dt"], modes=c["modes"], width=c["width"],
                        depth=c["depth"])  # fmt: skip
     for mine, theirs in zip(net.parameters(), scene.optimizer.param_groups[0]["params"]):
         mine.data.copy_(theirs.detach())
@@ -244,7 +242,7 @@ def test_heat2d_unroll_2_sums_two_chained_steps():
     scene, A, B, traj, net, c = _heat2d_quick("quick unroll=2")
     (solver,) = scene.solvers
     solver.max_it = 3
-    targets = training_windows(traj, c["spans"], 2)
+    targets = heat.training_windows(traj, c["spans"], 2)
     scale = float(targets[1].norm(dim=-1).mean())
     idx = torch.tensor([5, 0, 30, 12])
     B_t = torch_sparse(B)
@@ -261,21 +259,16 @@ def test_heat2d_unroll_2_sums_two_chained_steps():
     assert loss.item() > 1.5 * one_step.item()  # the second step adds its own misfit
 
 
-@pytest.mark.parametrize(
-    ("scene_file", "error_ratio"),
-    [(HEAT2D, 0.3), (HEAT2D.parent / "heat3d.py", 0.05)],
-    ids=["2d", "3d"],
-)
-def test_heat_emulators_train_with_unroll_2_on_quick(scene_file, error_ratio):
+@pytest.mark.parametrize(("preset", "error_ratio"), [("quick", 0.3), ("quick3d", 0.05)])
+def test_heat_emulators_train_with_unroll_2_on_quick(preset, error_ratio):
     """PRDP on quick with two chained solves per window: twice unroll = 1's inner
     iterations at each K, and the rollout error falls as far below the untrained
     network's as with one step (the bounds of test_demos' checks): 0.24, 0.23, 0.24,
     0.20 in 2D, 0.023, 0.016, 0.017, 0.016 in 3D on seeds 0-3."""
-    module = load_scene(scene_file)
-    c = module.PRESETS["quick"]
-    untrained = build_scene(module, "quick unroll=2", 0).validate()
-    result = run(scene_file, "prdp", preset="quick unroll=2", seed=0, progress=False,
-                 module=module)  # fmt: skip
+    c = heat.PRESETS[preset]
+    untrained = build_scene(heat, f"{preset} unroll=2", 0).validate()
+    result = run(HEAT, "prdp", preset=f"{preset} unroll=2", seed=0, progress=False,
+                 module=heat)  # fmt: skip
     windows = c["n_train"] * c["spans"]
     for e in result["epochs"]:
         assert e["fwd_iterations"] == e["adj_iterations"] == 2 * e["k"] * windows

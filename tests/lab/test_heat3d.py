@@ -1,4 +1,5 @@
-"""heat3d: the implicit-Euler P1 step on the tetrahedral box, ModalNet, quick-preset numbers."""
+"""demos/heat.py on the cube: the implicit-Euler P1 step on the tetrahedral box, ModalNet,
+quick3d-preset numbers."""
 
 from pathlib import Path
 
@@ -8,21 +9,20 @@ import scipy.sparse.linalg as spla
 import torch
 
 import prdp_petsc as pp
-from prdp_petsc.lab.components.emulators import bubble, gaussian_bumps, heat_step_system
-from prdp_petsc.lab.components.modal import ModalNet, laplacian_modes
+from prdp_petsc.lab.components.emulators import gaussian_bumps
 from prdp_petsc.lab.training.harness import build_scene, find_k_full, run
 from prdp_petsc.lab.training.rollout import rollout_errors
 from prdp_petsc.lab.training.scene import load_scene
 
 DEMOS = Path(__file__).resolve().parents[2] / "demos"
-HEAT3D = load_scene(DEMOS / "heat3d.py")
-DT = HEAT3D.PRESETS["quick"]["dt"]
+HEAT = load_scene(DEMOS / "heat.py")
+DT = HEAT.PRESETS["quick3d"]["dt"]
 
 
 @pytest.fixture(scope="module")
 def system():
     mesh = pp.load_mesh("box3d", refine=0)
-    A, B, interior, basis = heat_step_system(mesh, DT)
+    A, B, interior, basis = HEAT.heat_step_system(mesh, DT)
     return mesh, A, B, interior
 
 
@@ -40,9 +40,9 @@ def test_jacobi_at_k_full_matches_a_direct_solve(system):
     _, A, B, interior = system
     rng = np.random.default_rng(0)
     mesh = pp.load_mesh("box3d", refine=0)
-    u0 = gaussian_bumps(mesh.p[:, interior], 2, rng) * bubble(A, B, DT)
+    u0 = gaussian_bumps(mesh.p[:, interior], 2, rng) * HEAT.bubble(A, B, DT)
     exact = spla.spsolve(A.tocsc(), B @ u0[0])
-    scene = build_scene(HEAT3D, "quick", 0)
+    scene = build_scene(HEAT, "quick3d", 0)
     k_full = find_k_full(scene)
     solver = scene.solvers[0]
     solver.max_it = k_full
@@ -57,7 +57,7 @@ def test_jacobi_at_k_full_matches_a_direct_solve(system):
 
 def test_energy_decays_at_the_rate_of_the_first_mode(system):
     _, A, B, _ = system
-    lam, phi = laplacian_modes((A - B) / DT, B, 4)
+    lam, phi = HEAT.laplacian_modes((A - B) / DT, B, 4)
     assert lam[0] == pytest.approx(3 * np.pi**2, rel=0.06)  # unit cube: 3π² (P1, h ≈ 0.13)
     assert lam[1] == pytest.approx(6 * np.pi**2, rel=0.15)  # threefold (2,1,1)
     assert np.allclose(phi.T @ B @ phi, np.eye(4), atol=1e-10)  # M-orthonormal
@@ -77,8 +77,8 @@ def test_energy_decays_at_the_rate_of_the_first_mode(system):
 def test_modal_net_starts_as_projection_and_represents_the_step(system):
     mesh, A, B, interior = system
     rng = np.random.default_rng(2)
-    u0 = gaussian_bumps(mesh.p[:, interior], 6, rng) * bubble(A, B, DT)
-    net = ModalNet((A - B) / DT, B, 16)
+    u0 = gaussian_bumps(mesh.p[:, interior], 6, rng) * HEAT.bubble(A, B, DT)
+    net = HEAT.ModalNet((A - B) / DT, B, 16)
     phi = net.phi.numpy()
     u = torch.from_numpy(u0)
     expected = (phi @ (phi.T @ B @ u0.T)).T
@@ -102,13 +102,13 @@ def test_modal_net_starts_as_projection_and_represents_the_step(system):
 
 def test_quick_preset_learns_the_step():
     """K_full and a PRDP run on the quick preset: numbers, not only 'it ran'."""
-    scene = build_scene(HEAT3D, "quick", 0)
+    scene = build_scene(HEAT, "quick3d", 0)
     assert scene.info["n"] == 465
     assert 40 <= find_k_full(scene) <= 100
     initial = scene.validate()  # the network starts as the projection (no decay)
-    result = run(DEMOS / "heat3d.py", "prdp", preset="quick", progress=False)
+    result = run(DEMOS / "heat.py", "prdp", preset="quick3d", progress=False)
     errors = [e["val_metric"] for e in result["epochs"]]
-    assert result["stopped"] is None and len(errors) == HEAT3D.PRESETS["quick"]["epochs"]
+    assert result["stopped"] is None and len(errors) == HEAT.PRESETS["quick3d"]["epochs"]
     assert errors[-1] < 0.2 * initial
-    assert len(result["rollout"]) == HEAT3D.PRESETS["quick"]["rollout_steps"]
+    assert len(result["rollout"]) == HEAT.PRESETS["quick3d"]["rollout_steps"]
     assert np.all(np.isfinite(result["rollout"]))

@@ -10,7 +10,6 @@ import torch
 import prdp_petsc as pp
 from prdp_petsc.errors import NotConvergedWarning
 from prdp_petsc.lab.components import mac
-from prdp_petsc.lab.components.networks import ConvResNet
 from prdp_petsc.lab.reports import ns2d as ns2d_reports
 from prdp_petsc.lab.training.harness import build_scene, run
 from prdp_petsc.lab.training.scene import load_scene
@@ -139,7 +138,7 @@ def test_gradcheck_of_one_corrected_step_through_the_operator():
     """float64 gradcheck of s ↦ P(s) + C(P(s)): rhs and Picard operator both depend on s."""
     n = 4
     torch.manual_seed(0)
-    net = ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
+    net = NS2D.ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
     config = {"n": n, "dt": DT, "nu": NU}
     hybrid = NS2D.Corrector({**NS2D.PRESETS["quick"], **config}, net)
     s0 = state(n, 2).requires_grad_(True)
@@ -163,7 +162,7 @@ def test_net_gradient_matches_finite_difference_with_capped_adjoint_converged():
     """With converged forward and adjoint solves the loss gradient is the exact one."""
     n = 4
     torch.manual_seed(1)
-    net = ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
+    net = NS2D.ConvResNet(3, 3, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
     hybrid = NS2D.Corrector({**NS2D.PRESETS["quick"], "n": n, "dt": DT, "nu": NU}, net)
     s0, target = state(n, 2, seed=3), state(n, 2, seed=4)
     weight = next(net.parameters())
@@ -295,7 +294,7 @@ def test_gradcheck_of_one_indirectly_corrected_step():
     the right-hand side, the continuity rows stay zero (the system stays consistent)."""
     n = 4
     torch.manual_seed(0)
-    net = ConvResNet(3, 2, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
+    net = NS2D.ConvResNet(3, 2, hidden=4, blocks=1, dtype=torch.float64, zero_init=False)
     config = {**NS2D.PRESETS["quick"], "n": n, "correction": "indirect"}
     hybrid = NS2D.Corrector(config, net)
     s0 = state(n, 2).requires_grad_(True)

@@ -17,7 +17,7 @@ from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import load_trained, release, run, torch_threads
 
 ROOT = Path(__file__).resolve().parents[2]
-HEAT2D = ROOT / "demos" / "heat2d.py"
+HEAT2D = ROOT / "demos" / "heat.py"
 POISSON = ROOT / "demos" / "poisson_inverse.py"
 
 # A network trained through a capped solve, with everything a resume must restore:

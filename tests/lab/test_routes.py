@@ -133,7 +133,7 @@ def test_routes_auto_runs_the_route_a_pilot_picks(tmp_path, monkeypatch):
         return result
 
     monkeypatch.setattr(compare_module, "pilot_routes", pilot)
-    heat2d = DEMOS / "heat2d.py"
+    heat2d = DEMOS / "heat.py"
     s = compare(heat2d, preset="quick routes=cg/icc,cg/gamg", epochs=2, out=tmp_path,
                 progress=False, plots=False, routes="auto")  # fmt: skip
     assert calls == [("cg/icc", "cg/gamg")]

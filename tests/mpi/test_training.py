@@ -60,7 +60,7 @@ def _epochs(result, key):
     "scene, mode",
     [
         ("heat1d.py", "batch"),
-        ("heat2d.py", "domain"),
+        ("heat.py", "domain"),
         ("poisson_inverse.py", "domain"),
         ("heat_nonlinear.py", "domain"),
         ("poisson_sip.py", "batch"),
