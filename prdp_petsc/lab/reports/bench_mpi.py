@@ -13,12 +13,12 @@
     rank 0 split the mesh (`prdp_petsc.fem.partition`) and every rank assemble and
     hold its own piece (`prdp_petsc.fem.distributed`).
 ``epoch``
-    Training epochs of SCENE_FILE (default ``demos/heat3d.py``) serial, under
-    ``--parallel domain`` and ``--parallel batch``: the median epoch time after the
-    first, and the speed-up.  ``--epochs 0`` leaves it out.
+    Training epochs of SCENE_FILE (default ``demos/heat.py``, ``--preset paper3d``: the
+    cube) serial, under ``--parallel domain`` and ``--parallel batch``: the median epoch
+    time after the first, and the speed-up.  ``--epochs 0`` leaves it out.
 
 The page of an owned record adds `scaling_model`, a model of memory and halo traffic
-beyond the ranks measured.  ``--preset quick`` runs tiny sizes (a smoke test); timings
+beyond the ranks measured.  A quick preset (``quick3d``) runs tiny sizes (a smoke test); timings
 mean something only on an idle machine (one torch thread per rank; the record has the
 load average).
 """
@@ -82,16 +82,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=positive, default=200, help="K of the capped 3D solve (200)")
     p.add_argument("--repeats", type=positive, default=5, help="timed solves after one warm-up (5)")
     p.add_argument(
-        "scene", nargs="?", default="demos/heat3d.py",
-        help="scene file of the epoch benchmark (demos/heat3d.py)",
+        "scene", nargs="?", default="demos/heat.py",
+        help="scene file of the epoch benchmark (demos/heat.py)",
     )  # fmt: skip
     p.add_argument(
         "--scene", dest="scene_option", action=DeprecatedAlias, new="the positional SCENE_FILE",
         help=argparse.SUPPRESS,
     )  # fmt: skip
     p.add_argument(
-        "--preset", default="paper",
-        help="the scene's preset (paper); quick also runs tiny sizes (a smoke test)",
+        "--preset", default="paper3d",
+        help="the scene's preset (paper3d); a quick one (quick, quick3d) also runs tiny sizes",
     )  # fmt: skip
     p.add_argument("--schedule", default="fixed:96", help="K schedule of the epochs (K_full)")
     p.add_argument(
@@ -286,7 +286,7 @@ def main(argv: list[str]) -> int:
         return _worker(args)
     if args.out is None:
         raise SystemExit("prdp-petsc bench mpi: --out is required")
-    if args.preset == "quick":  # tiny sizes: a smoke test
+    if args.preset.startswith("quick"):  # tiny sizes: a smoke test
         args.refine, args.k, args.repeats, args.epochs = 0, 20, 2, 2
     ranks = [int(r) for r in args.ranks.split(",")]
     if 1 not in ranks:

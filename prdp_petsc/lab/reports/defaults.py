@@ -172,7 +172,7 @@ def main(argv: list[str]) -> int:
     from ..training.threads import torch_threads
 
     parser = argparse.ArgumentParser(prog="prdp-petsc defaults", description=__doc__.split("\n")[0])
-    parser.add_argument("scene_file", help="scene file (demos/heat2d.py)")
+    parser.add_argument("scene_file", help="scene file (demos/heat.py)")
     parser.add_argument("--preset", default="paper", help="preset (default paper)")
     parser.add_argument("--seeds", default=[0, 1, 2], type=seeds, help="seeds (default 0-2)")
     parser.add_argument("--threads", default=1, type=positive, help="torch threads (default 1)")
