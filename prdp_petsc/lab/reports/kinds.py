@@ -124,11 +124,12 @@ def percent(value: float) -> str:
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence], align: str = "") -> str:
-    """A Markdown table: `header`, then one line per row of `rows` (sequences of
-    cells); `align` has one letter per column, ``l`` (the default) or ``r``."""
-    rule = "|" + "|".join("---:" if a == "r" else "---" for a in align.ljust(len(header), "l"))
-    return "\n".join([_cells(header), rule + "|", *map(_cells, rows)])
+    """A Markdown table (pandas `DataFrame.to_markdown`): `header`, then one line per row
+    of `rows` (sequences of cells, written as they are); `align` has one letter per
+    column, ``l`` (the default) or ``r``."""
+    import pandas as pd
 
-
-def _cells(cells: Sequence) -> str:
-    return "| " + " | ".join(map(str, cells)) + " |"
+    cells = [[str(cell) for cell in row] for row in rows]
+    sides = ["right" if a == "r" else "left" for a in align.ljust(len(header), "l")]
+    frame = pd.DataFrame(cells, columns=list(header))
+    return frame.to_markdown(index=False, disable_numparse=True, colalign=sides)

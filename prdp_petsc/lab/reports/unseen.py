@@ -163,47 +163,38 @@ def _equal(summary: dict) -> bool:
 
 
 def table(result: dict) -> str:
-    """A markdown table of `compare`'s result."""
-    rows = [
-        "| problem | K_full | error ratio (geo. mean) | worst seed | iterations saved | "
-        "checks' share | certified | wall time ratio |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+    """A markdown table of `compare`'s result (and of its baselines, where it has them)."""
+    header = ["problem", "K_full", "error ratio (geo. mean)", "worst seed", "iterations saved",
+              "checks' share", "certified", "wall time ratio"]  # fmt: skip
+    rows = []
     for name, p in result["problems"].items():
-        walls = [r["prdp"]["wall_time"] / r["full"]["wall_time"] for r in p["runs"]]
-        k_full = sorted({r["k_full"] for r in p["runs"]})
+        prdp = [r["prdp"] for r in p["runs"]]
         shares = [  # of the PRDP run's inner iterations; not recorded before check_iterations
-            "–" if "check_iterations" not in r["prdp"]
-            else f"{100 * r['prdp']['check_iterations'] / r['prdp']['iterations']:.0f} %"
-            for r in p["runs"]
+            f"{100 * r['check_iterations'] / r['iterations']:.0f} %" if "check_iterations" in r
+            else "–"
+            for r in prdp
         ]  # fmt: skip
-        rows.append(
-            f"| `{name}` | {', '.join(map(str, k_full))} | {p['geomean_ratio']:.3f} | "
-            f"{p['worst_ratio']:.3f} | "
-            + ", ".join(f"{100 * s:.0f} %" for s in p["saved"])
-            + f" | {', '.join(shares)}"
-            + f" | {sum(bool(c) for c in p['certified'])}/{len(p['certified'])} | "
-            + ", ".join(f"{w:.2f}" for w in walls)
-            + " |"
-        )
+        walls = [r["prdp"]["wall_time"] / r["full"]["wall_time"] for r in p["runs"]]
+        rows.append((f"`{name}`", ", ".join(map(str, sorted({r["k_full"] for r in p["runs"]}))),
+                     f"{p['geomean_ratio']:.3f}", f"{p['worst_ratio']:.3f}",
+                     ", ".join(f"{100 * s:.0f} %" for s in p["saved"]), ", ".join(shares),
+                     f"{sum(map(bool, p['certified']))}/{len(p['certified'])}",
+                     ", ".join(f"{w:.2f}" for w in walls)))  # fmt: skip
+    text = markdown_table(header, rows)
     if all("baselines" in p for p in result["problems"].values()):
-        rows += ["", *_baseline_table(result)]
-    return "\n".join(rows)
+        text += "\n\n" + _baseline_table(result)
+    return text
 
 
-def _baseline_table(result: dict) -> list[str]:
+def _baseline_table(result: dict) -> str:
     """The default against the hand schedule and the best constant cap: error ratio
     (geometric mean, worst seed) and the iterations saved (mean over the seeds)."""
-    rows = [
-        "| problem | default: ratio, saved | hand schedule: ratio, saved | best constant K at "
-        "equal accuracy: saved | every constant K: ratio, saved |",
-        "|---|---|---|---|---|",
-    ]
 
     def cell(s: dict) -> str:
         mean = sum(s["saved"]) / len(s["saved"])
         return f"{s['geomean_ratio']:.3f} ({s['worst_ratio']:.3f}), {100 * mean:.0f} %"
 
+    rows = []
     for name, p in result["problems"].items():
         b = p["baselines"]
         best = b["best_constant"]
@@ -211,12 +202,12 @@ def _baseline_table(result: dict) -> list[str]:
         best_cell = "none" if best is None else (
             f"{best}: {100 * sum(b[best]['saved']) / len(b[best]['saved']):.0f} %"
         )  # fmt: skip
-        rows.append(
-            f"| `{name}` | {cell(p)} | {cell(b['hand'])} | {best_cell} | "
-            + "; ".join(f"{lab}: {cell(b[lab])}" for lab in constants)
-            + " |"
-        )
-    return rows
+        every = "; ".join(f"{lab}: {cell(b[lab])}" for lab in constants)
+        rows.append((f"`{name}`", cell(p), cell(b["hand"]), best_cell, every))
+    header = ["problem", "default: ratio, saved", "hand schedule: ratio, saved",
+              "best constant K at equal accuracy: saved",
+              "every constant K: ratio, saved"]  # fmt: skip
+    return markdown_table(header, rows)
 
 
 def parse_arguments(argv=None):
