@@ -2,27 +2,12 @@
 
 ``prdp-petsc ablation SCENE_FILE --preset P --seeds 0-2 --lever NAME KEY=VALUE ...
 --out DIR`` runs `prdp_petsc.lab.training.seeds.compare_seeds` for the preset as given
-(``baseline``) and once more per ``--lever``, the preset with that lever's settings
-(``--lever warm warm_start_epochs=true``; several levers may be named, each runs on
-its own), into ``DIR/<name>/``.  Every run of a configuration uses the same seeds,
-schedules and routes.  ``DIR/ablation.json`` keeps each configuration's seeds result
-and, per lever, its effect against the baseline seed by seed:
-
-``reduced_vs_baseline``
-    The baseline's best reduced time to full-fidelity accuracy over the lever's
-    (`prdp_petsc.lab.training.summary.speedup_vs_best_full`'s ``reduced_seconds``):
-    above 1, the lever made the fastest reduced run reach the target sooner.
-``full_vs_baseline``
-    The same for the fastest full-fidelity run (a lever such as preconditioner
-    reuse helps full fidelity too).
-
-each as a geometric mean with its 95 % interval over the seeds where both reached
-the target (`prdp_petsc.lab.training.seeds.ratio_statistics`).  The target differs a
-little between configurations (each one's own full-fidelity run sets it), which
-the twin's spread in every seeds result puts in proportion.
-
-Timings: one torch thread per process; configurations run one after another in one
-process, so compare them on an otherwise idle machine (the record keeps the load).
+(``baseline``) and once per ``--lever`` (the preset with that lever's settings alone),
+into ``DIR/<name>/``, with the same seeds, schedules and routes.  ``DIR/ablation.json``
+keeps each configuration's result and, per lever, the baseline's time to full-fidelity
+accuracy over the lever's, for the fastest reduced and the fastest full-fidelity run
+(`lever_effect`; above 1 the lever got there sooner).  One torch thread per process,
+configurations one after another: compare them on an otherwise idle machine.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The pages of ``prdp-petsc compare`` and ``compare --seeds``: their two report kinds.
 
-The training harness (`prdp_petsc.lab.training.compare`, `prdp_petsc.lab.training.seeds`)
-writes ``summary.json`` and ``seeds.json`` and prints their tables; this module says what
-a results page of each shows and which figures reach the headline table.
+`prdp_petsc.lab.training.compare` and `prdp_petsc.lab.training.seeds` write
+``summary.json`` and ``seeds.json`` and print their tables; this module says what a
+page of each shows and which figures reach the headline table.
 """
 
 from __future__ import annotations

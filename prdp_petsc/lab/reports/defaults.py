@@ -1,25 +1,22 @@
 """A shipped scene with PRDP's default construction beside its tuned settings.
 
 ``prdp-petsc defaults SCENE_FILE --preset P --seeds 0-2 --out DIR`` trains, per seed,
-full fidelity (constant K_full), the scene's tuned PRDP (schedule ``prdp``, its
-preset's ``k_init``, ``k_step``, ``tau_step``, ...) and the default construction
-(schedule ``auto``: ``PRDP.for_problem(K_full)`` with a gradient check, the scene's
-settings unused), and writes ``DIR/defaults.json``: every run's final validation
-error, inner iterations (forward and adjoint, the checks included), final K and
-certificate, and per schedule the geometric mean of the error ratios over full
-fidelity with the savings over the seeds at equal accuracy.
+full fidelity (constant K_full), the scene's tuned PRDP (schedule ``prdp``) and the
+default construction (schedule ``auto``: ``PRDP.for_problem(K_full)`` with a gradient
+check) and writes ``DIR/defaults.json``: every run's final validation error, inner
+iterations (checks included), final K and certificate, and per schedule the error ratios
+over full fidelity with the savings at equal accuracy.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
 from prdp_petsc import PRDP
 
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, write_result
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
 
@@ -182,8 +179,7 @@ def main(argv: list[str]) -> int:
     with torch_threads(args.threads):
         result = defaults(args.scene_file, args.preset, args.seeds, threads=args.threads,
                           out=args.out)  # fmt: skip
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "defaults.json").write_text(json.dumps(result, indent=1))
+    write_result(args.out, "defaults.json", result)
     print(format_defaults(result))
     return 0
 

@@ -1,24 +1,12 @@
 """Memory and time of m-step training against m (`prdp_petsc.lab.training.unroll`).
 
 ``prdp-petsc horizon SCENE_FILE --preset P --m 2 4 8 16 --k K --out DIR`` trains the
-scene with ``unroll = m`` (the scene's preset key) for ``--epochs`` epochs at a fixed
-``max_it = K`` for every m, with and without activation checkpointing (the preset key
-``checkpoint``), each in a fresh process, and writes ``DIR/horizon.json``:
-per (m, checkpoint) the wall time of each epoch, the time per unrolled step
-(epoch time over windows × m), and three memory figures:
-
-``rss_at_start_mb``
-    The resident size when training starts (data, operators, network: the same
-    for every m).
-``peak_rss_mb``
-    The peak resident size while training (Linux ``VmHWM``, reset when training
-    starts, so that building the data does not count).
-``saved_tensors_mb``
-    The largest number of bytes autograd kept for one batch's backward pass
-    (`prdp_petsc.lab.training.unroll.SavedTensorMeter`).
-
-One torch thread per process.  Timings compare rows of one report on an otherwise
-idle machine (the record keeps the load average).
+scene with ``unroll = m`` for ``--epochs`` epochs at a fixed ``max_it = K``, with and
+without activation checkpointing (preset key ``checkpoint``), each row in a fresh process
+with one torch thread, and writes ``DIR/horizon.json``: per row the epoch times, the time
+per unrolled step, the resident size when training starts, its peak while training
+(``VmHWM``, reset at the start) and the most bytes autograd kept for one batch's backward
+pass (`prdp_petsc.lab.training.unroll.SavedTensorMeter`).
 """
 
 from __future__ import annotations
@@ -33,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, positive
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, write_result
 from .memory import peak_rss_mb, reset_peak
 
 __all__ = ["KIND", "format_horizon_report", "horizon_row", "main"]
@@ -146,9 +134,7 @@ def main(argv: list[str]) -> int:
     report = {"scene": Path(args.scene).name, "preset": args.preset, "k": args.k, "rows": rows}
     print(format_horizon_report(report))
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "horizon.json").write_text(json.dumps(report, indent=1))
+        write_result(args.out, "horizon.json", report)
     return 0
 
 

@@ -1,21 +1,20 @@
 """A kind of recorded data set, and what its page says: one `ReportKind` per kind.
 
-Each report module declares the kind of data set its command records beside the code
-that prints it (``KIND = ReportKind(...)`` in `prdp_petsc.lab.reports.bench_jax`, next
-to its ``format_report``).  `prdp_petsc.lab.reports.pages` collects every `ReportKind`
-of this package, reads the data sets under ``docs/data/`` into `DataSet` objects and
-renders each page from the template ``templates/page.md.j2``: the title, the
-provenance table, then the kind's intro, its output, what comes after and the plots.
-Adding a kind is one module.
+Each report module declares its kind beside the code that prints it (``KIND =
+ReportKind(...)``); `prdp_petsc.lab.reports.pages` collects them, reads the data sets
+under ``docs/data/`` into `DataSet` objects and renders each page from
+``templates/page.md.j2``.  Adding a kind is one module.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from fnmatch import fnmatch
+from pathlib import Path
 
-__all__ = ["DataSet", "ReportKind", "markdown_table", "percent"]
+__all__ = ["DataSet", "ReportKind", "markdown_table", "percent", "write_result"]
 
 
 def _nothing(ds: DataSet) -> list[str]:
@@ -116,6 +115,15 @@ class DataSet:
     def main(self) -> dict:
         """The JSON file the page is made from, parsed."""
         return self.files[self.main_file]
+
+
+def write_result(out, file_name: str, data: dict, **options) -> Path:
+    """Write `data` as JSON to ``out/file_name`` (the file a kind `reads`), making the
+    folder `out`; `options` go to `json.dumps`.  Returns ``Path(out)``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / file_name).write_text(json.dumps(data, indent=1, **options))
+    return out
 
 
 def percent(value: float) -> str:

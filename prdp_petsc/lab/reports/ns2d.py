@@ -1,11 +1,8 @@
 """The report commands of the Navier–Stokes corrector scene (``demos/ns2d.py``).
 
-``prdp-petsc scene demos/ns2d.py adjoint ...`` (`adjoint_report`): what the physics
-gradient costs and changes on one training batch; ``... energy RUN_FOLDER ...``
-(`energy_report`): error, energy and correlation per step of a trained run's held-out
-rollout.  Each function takes the scene module (``load_scene("demos/ns2d.py")``) and
-uses its ``setup`` (data, solvers and corrector of a preset) and ``hybrid_loss``; the
-scene file declares the commands with ``COMMANDS = commands(<the scene module>)``.
+``prdp-petsc scene demos/ns2d.py adjoint ...`` (`adjoint_report`) and ``... energy
+RUN_FOLDER ...`` (`energy_report`).  The functions take the scene module and use its
+``setup`` and ``hybrid_loss``; the scene declares ``COMMANDS = commands(<its module>)``.
 """
 
 from __future__ import annotations

@@ -1,31 +1,13 @@
 """Results pages generated from saved run data: ``prdp-petsc pages``.
 
 Every measured number in the documentation and in the README's headline table is
-written by this module from a JSON file under ``docs/data/``, never typed, so a
-page cannot drift from the data it cites (``tests/lab/test_docs.py`` regenerates the
-pages and the README fragments and compares them with the committed ones).
-
-Two sub-commands:
-
-``prdp-petsc pages record NAME -- COMMAND ...``
-    Run ``prdp-petsc COMMAND ...`` (which must name its output folder with
-    ``--out DIR``), then copy the JSON files it wrote at the top of DIR into
-    ``docs/data/NAME/`` and its PNG files into ``docs/images/NAME/``, with
-    ``provenance.json``: the command line, start time, wall time, exit status, git
-    commit (and the files that differed from it), machine (platform, CPU, cores,
-    load average before and after) and the installed versions of the packages.
-``prdp-petsc pages --out docs/results [--data docs/data] [--readme README.md]``
-    Write one Markdown page per recorded data set and an index
-    (``docs/results/index.md``), which also lists, without numbers, the experiments
-    whose data is not recorded (``docs/data/earlier.json``: title, command, and the
-    commit of the README that last reported them).  Then replace every fragment of
-    the README between ``<!-- NAME:start -->`` and ``<!-- NAME:end -->`` for which
-    this module has a generator (`fragments`).
-
-A data set's kind is read from its files: each report module declares its kind, a
-`prdp_petsc.lab.reports.kinds.ReportKind` (what a page of that kind says, and its rows
-in the headline table), and `report_kinds` collects them.  Every page is rendered from
-one template, ``templates/page.md.j2``, the index from ``templates/index.md.j2``.
+written here from a JSON file under ``docs/data/`` that a command wrote (``prdp-petsc
+pages record NAME -- COMMAND ...``, `prdp_petsc.lab.reports.record`), never typed.
+``prdp-petsc pages --out docs/results`` writes one page per recorded data set
+(``templates/page.md.j2``, with what its `prdp_petsc.lab.reports.kinds.ReportKind`
+says), the index (``templates/index.md.j2``; it also lists the experiments of
+``docs/data/earlier.json``, whose data is not recorded) and the README's fragments
+between ``<!-- NAME:start -->`` and ``<!-- NAME:end -->`` (`fragments`).
 """
 
 from __future__ import annotations
@@ -47,19 +29,8 @@ from ..training.summary import format_table
 from .kinds import DataSet, ReportKind, markdown_table
 from .record import record
 
-__all__ = [
-    "README_HEADLINE",
-    "fragments",
-    "generate",
-    "kind_of",
-    "load_data",
-    "main",
-    "page",
-    "pages",
-    "record",
-    "replace_fragments",
-    "report_kinds",
-]
+__all__ = ["README_HEADLINE", "fragments", "generate", "kind_of", "load_data", "main", "page",
+           "pages", "record", "replace_fragments", "report_kinds"]  # fmt: skip
 
 logger = logging.getLogger(__name__)
 

@@ -1,26 +1,12 @@
 """Long rollouts side by side: trained correctors against each other and the solver alone.
 
-``prdp-petsc rollouts --run NAME=DIR[,DIR...] ... --out OUT`` reads the
-``results.json`` of finished runs (one folder per seed, the same seeds for every
-NAME, e.g. ``--run sol=results/long/s0,results/long/s1``) and writes
-``OUT/rollouts.json`` and ``OUT/rollouts.png``:
-
-``runs``
-    Per NAME: the per-step error of the held-out rollout per seed (``rollout``),
-    its geometric mean over the seeds per step, the wall time, the inner iterations
-    (forward + adjoint), on how many seeds the run's error stayed below the
-    uncorrected solver's at every step (``below_uncorrected_every_step``), and each
-    run's command line and commit (``made_by``).
-``uncorrected``
-    The rollout of the solver alone per seed (``uncorrected_rollout``; every run of
-    a seed recorded the same one: checked).
-``ratios``
-    For each pair (NAME, REFERENCE) of ``--ratio NAME/REFERENCE``: the error ratio
-    at ``--step`` (default the last) per seed, and its geometric mean with the 95 %
-    Student-t interval (`prdp_petsc.lab.training.seeds.ratio_statistics`), and likewise
-    the ratios of inner iterations and of wall time.
-
-The plot draws every NAME's geometric-mean curve and the uncorrected solver's.
+``prdp-petsc rollouts --run NAME=DIR[,DIR...] ... [--ratio NAME/REFERENCE] --out OUT``
+reads the ``results.json`` of finished runs (one folder per seed, the same seeds for
+every NAME) and writes ``OUT/rollouts.json`` (`rollout_report`: per NAME the per-step
+rollout error per seed and its geometric mean, wall time, inner iterations, on how many
+seeds it stayed below the uncorrected solver at every step, and what made each run; per
+``--ratio`` the ratios of error at ``--step``, iterations and wall time per seed with
+their geometric mean and 95 % interval) and ``OUT/rollouts.png`` (the mean curves).
 """
 
 from __future__ import annotations
@@ -34,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..training.seeds import ratio_statistics
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, write_result
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
@@ -199,9 +185,7 @@ def main(argv: list[str]) -> int:
             parser.error(f"--ratio expects NAME/REFERENCE, got {spec!r}")
         ratios.append((name, reference))
     report = rollout_report(runs, ratios, args.step)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "rollouts.json").write_text(json.dumps(report, indent=1, allow_nan=False))
+    out = write_result(args.out, "rollouts.json", report, allow_nan=False)
     rollouts_figure(report).savefig(out / "rollouts.png")
     print(format_rollout_report(report))
     return 0 if all(math.isfinite(e["geometric_mean"][-1]) for e in report["runs"].values()) else 1

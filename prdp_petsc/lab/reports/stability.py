@@ -28,7 +28,6 @@ Run ``prdp-petsc stability --out DIR`` (``--preset quick`` for small meshes); it
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .kinds import DataSet, ReportKind, markdown_table
+from .kinds import DataSet, ReportKind, markdown_table, write_result
 
 __all__ = ["CASES", "KIND", "TAYLOR_RIGHT", "evaluate", "main", "run_cases", "summary_counts",
            "summary_line", "taylor_rate", "to_markdown"]  # fmt: skip
@@ -451,10 +450,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     quick = args.preset == "quick"
     rows = run_cases(quick, args.cases)
-    args.out.mkdir(parents=True, exist_ok=True)
     public = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
     meta = {"quick": quick, "seconds": time.perf_counter() - t0}
-    (args.out / "stability.json").write_text(json.dumps({"meta": meta, "rows": public}, indent=1))
+    write_result(args.out, "stability.json", {"meta": meta, "rows": public})
     (args.out / "stability.md").write_text(to_markdown(rows))
     print(f"stability: {len(rows)} rows in {meta['seconds']:.0f} s -> {args.out}/stability.md")
     return 1 if any(r["nan_or_inf"] for r in rows) else 0

@@ -1,30 +1,25 @@
-"""The topology-optimisation comparison (``demos/topopt3d.py results``) and its table.
+"""The topology-optimisation comparison (``demos/topopt3d.py results``) and its page.
 
-``prdp-petsc scene demos/topopt3d.py results`` (`results`, `commands`) writes
-``topopt.json``: per load case, each route (converged solves, constant K, PRDP's
-default construction with its gradient check, the ``rtol`` schedule) with the
-compliance of its final design scored by a converged solve (`scored`), its inner
-iterations (forward + adjoint, checks included), wall time and the time at which its
-design first came within 1 % of the converged route's final compliance; and a picture
-of the designs (`plot_designs`).  This module also formats it for the command's
-output and the results page.  The functions that run the scene take the scene module
-(``load_scene("demos/topopt3d.py")``) and use its ``Cantilever``, ``simp``,
-``load_case`` and ``PRESETS``.
+``prdp-petsc scene demos/topopt3d.py results`` (`commands`, `results`) writes
+``topopt.json``: per load case and route (converged solves, constant K, PRDP's default
+construction, the ``rtol`` schedule) the compliance of the final design scored by a
+converged solve (`scored`), inner iterations (checks included), wall time and the time
+its design first came within 1 % of the converged route's; and a picture of the designs
+(`plot_designs`).  The functions take the scene module and use its ``Cantilever``,
+``simp``, ``load_case`` and ``PRESETS``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Callable
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import torch
 
 from ..cli import arguments
-from .kinds import DataSet, ReportKind, percent
+from .kinds import DataSet, ReportKind, percent, write_result
 from .trained import train_and_keep
 
 __all__ = [
@@ -249,9 +244,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
         def run_results(args: argparse.Namespace) -> int:
             data = results(scene, args.preset, args.seeds, args.k)
-            out = Path(args.out)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / "topopt.json").write_text(json.dumps(data, indent=1))
+            out = write_result(args.out, "topopt.json", data)
             plot_designs(scene, data, out / "designs.png")
             print(format_results(data))
             return 0

@@ -1,16 +1,11 @@
-"""PRDP's default construction against full fidelity on the problems it was never tuned on.
+"""PRDP's default construction against full fidelity on problems it was never tuned on.
 
-``prdp-petsc unseen`` trains each problem of `prdp_petsc.lab.reports.unseen_problems`, per
-seed, at constant K_full and with ``PRDP.for_problem(find_k_full(...))`` and its
-checks, in the problem's own loop, and writes ``unseen.json`` for the results page.
-Costs are the inner iterations (forward and adjoint) of every solve a run makes:
-training, validation and the controller's checks (a PRDP record also counts the checks'
-own, ``check_iterations``).
-
-``--baselines`` adds what the default is measured against: the constant caps
-K_full/8, K_full/4 and K_full/2 (the best one at equal accuracy is what stopping
-below K_full can save at most, without a schedule) and a schedule chosen by hand
-(`HAND`: the reference's plateau test from K_full/10 in steps of K_full/10).
+``prdp-petsc unseen`` trains each problem of `prdp_petsc.lab.reports.unseen_problems`,
+per seed, at constant K_full and with ``PRDP.for_problem(find_k_full(...))`` and its
+checks, and writes ``unseen.json``.  Costs are the inner iterations of every solve a run
+makes, the checks' included.  ``--baselines`` adds the constant caps K_full/8, /4, /2
+(the best one at equal accuracy is what stopping below K_full can save without a
+schedule) and a schedule chosen by hand (`HAND`).
 """
 
 from __future__ import annotations
@@ -20,7 +15,7 @@ import time
 
 from prdp_petsc import PRDP, find_k_full
 
-from .kinds import DataSet, ReportKind, markdown_table, percent
+from .kinds import DataSet, ReportKind, markdown_table, percent, write_result
 from .unseen_problems import HELD_OUT, PROBLEMS, RTOL_FULL, Problem, build
 
 __all__ = [
@@ -245,8 +240,6 @@ def main(argv=None) -> int:
     Writes ``DIR/unseen.json`` (every run's record) and prints the table; record it
     for the results pages with ``prdp-petsc pages record unseen -- unseen --out DIR``.
     """
-    import json
-
     import torch
 
     args = parse_arguments(argv)
@@ -254,8 +247,7 @@ def main(argv=None) -> int:
     result = compare(
         args.problems, args.seeds, quick=args.preset == "quick", baselines=args.baselines
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "unseen.json").write_text(json.dumps(result, indent=1))
+    write_result(args.out, "unseen.json", result)
     print(table(result))
     return 0
 
