@@ -30,27 +30,19 @@ class ReportKind:
     name : str
         The kind's name (``"bench-jax"``).
     reads : str
-        The JSON file a data set of this kind is made from (``"bench_jax.json"``), or
-        a pattern (``"work_precision_*.json"``); a recorded folder holds the file of
-        exactly one kind.
-    title : callable
-        ``title(ds) -> str``: the page's title, also its row on the index.
-    headline : callable
-        ``headline(ds) -> [(what, figure), ...]``: the data set's rows in the headline
-        table of the index; the README shows the first row of a few data sets.
+        The JSON file (or pattern, ``"work_precision_*.json"``) a data set of this kind is
+        made from; a recorded folder holds the file of exactly one kind.
+    title, headline : callable
+        ``title(ds)``: the page's title, also its row on the index; ``headline(ds)``:
+        ``[(what, figure), ...]``, its rows in the index's headline table (the README
+        shows the first row of a few data sets).
     intro : str or callable
-        The paragraphs before the output, or ``intro(ds) -> str`` where they depend
-        on the data.
+        The paragraphs before the output (or ``intro(ds)``).
     output : callable
-        ``output(ds) -> str``: the table the command printed, or a Markdown table.
-    printed : bool
-        True (default): `output` is printed text, shown in a ``text`` block; False:
-        it is Markdown.
-    snippet : bool
-        Mark the printed block as the snippet section ``output``, for pages that
-        include it (``--8<-- "results/heat2d.md:output"``).
+        ``output(ds)``: printed text, in a ``text`` block (`printed`; `snippet` marks it
+        as the section ``output`` that other pages include), or Markdown.
     after : callable
-        ``after(ds) -> [block, ...]``: paragraphs, tables and headings after the output.
+        ``after(ds)``: paragraphs, tables and headings after the output.
     images : str
         The heading above the data set's plots, if it has any ("" for none).
     """

@@ -78,21 +78,17 @@ def spread(data: dict) -> str | None:
     """A sentence on routes whose design beat the converged one by more than the target,
     read off the data (None where none did): SIMP is not convex, so a route's path
     decides which local optimum its design ends in."""
-    better = [
-        (case["seed"], label, r["ratio"])
-        for case in data["cases"]
-        for label, r in case["routes"].items()
-        if label != "converged" and "ratio" in r and r["ratio"] < 2 - TARGET_RATIO
-    ]
-    if not better:
-        return None
-    worst = max(
+    others = [
         (r["ratio"], case["seed"], label)
         for case in data["cases"]
         for label, r in case["routes"].items()
         if label != "converged" and "ratio" in r
-    )
-    listed = ", ".join(f"{label} on case {seed} ({ratio:.3f})" for seed, label, ratio in better)
+    ]
+    better = [(ratio, seed, label) for ratio, seed, label in others if ratio < 2 - TARGET_RATIO]
+    if not better:
+        return None
+    worst = max(others)
+    listed = ", ".join(f"{label} on case {seed} ({ratio:.3f})" for ratio, seed, label in better)
     return (
         f"Some routes ended *better* than the converged one by more than the target: "
         f"{listed}; the largest ratio is {worst[0]:.3f} ({worst[2]} on case {worst[1]}). "

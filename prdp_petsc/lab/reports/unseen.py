@@ -129,9 +129,11 @@ def _against(full: dict, run: dict) -> dict:
 def _summary(runs: list[dict]) -> dict:
     """Geometric-mean and worst error ratio and the savings of `runs` (dicts with
     ``error_ratio`` and ``saved``)."""
+    from scipy.stats import gmean
+
     ratios = [r["error_ratio"] for r in runs]
     return {
-        "geomean_ratio": math.exp(sum(math.log(r) for r in ratios) / len(ratios)),
+        "geomean_ratio": float(gmean(ratios)),
         "worst_ratio": max(ratios),
         "saved": [r["saved"] for r in runs],
     }
@@ -294,7 +296,7 @@ def _every_run(ds: DataSet) -> list[str]:
 def _headline(ds: DataSet) -> list[tuple[str, str]]:
     d = ds.main
     problems = d["problems"].values()
-    within = sum(p["geomean_ratio"] <= 1.05 and p["worst_ratio"] <= 1.10 for p in problems)
+    within = sum(map(_equal, problems))
     saving = sum(min(p["saved"]) >= 0.40 for p in problems)
     worst = max(p["geomean_ratio"] for p in problems)
     return [(
