@@ -98,6 +98,16 @@ class Problem:
         return gradient_check(self.validation_loss, self.trained(), self.solver)
 
 
+def _start(seed: int, offset: int, mesh: str, element: str = "ElementTriP1"):
+    """The generator of a problem's data (seed ``offset + seed``; torch's seed `seed`, for
+    its network), and a basis of the scikit-fem element class `element` on `mesh`."""
+    import skfem
+
+    rng = np.random.default_rng(offset + seed)
+    torch.manual_seed(seed)
+    return rng, skfem.Basis(load_mesh(mesh), getattr(skfem, element)())
+
+
 def _modes(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
     """`count` smooth random Fourier modes at `points` (d, N): shape (N, count)."""
     lo, hi = points.min(axis=1, keepdims=True), points.max(axis=1, keepdims=True)
@@ -176,20 +186,15 @@ class LogCoefficient(NetworkInverse):
     """−∇·(κ∇u) = 1, u = 0 on the boundary, κ = exp(Σ c_j φ_j) per element from smooth
     modes; an MLP maps noisy observations of u to c (one operator per sample).
 
-    A subclass declares its ``mesh``, scikit-fem ``element`` class name, number of
-    ``modes``, observation ``noise``, ``samples`` and ``epoch_counts`` (quick, full),
-    hidden ``width``, the CG ``pc`` and options ``prefix`` and its ``rng_offset``, and
-    builds its optimiser and schedule (`optimiser`).
+    A subclass declares its ``mesh`` and ``element`` and ``rng_offset`` (`_start`), number
+    of ``modes``, observation ``noise``, ``samples`` and ``epoch_counts`` (quick, full),
+    hidden ``width``, the CG ``pc`` and options ``prefix``, and builds its optimiser and
+    schedule (`optimiser`).
     """
 
     def __init__(self, seed: int, quick: bool = False):
-        import skfem
-
-        rng = np.random.default_rng(self.rng_offset + seed)
-        torch.manual_seed(seed)
-        n = self.samples[0] if quick else self.samples[1]
-        mesh = load_mesh(self.mesh)
-        basis = skfem.Basis(mesh, getattr(skfem, self.element)())
+        rng, basis = _start(seed, self.rng_offset, self.mesh, self.element)
+        mesh, n = basis.mesh, self.samples[0] if quick else self.samples[1]
         self.dir = Dirichlet(diffusion_operator(basis, "P0"), basis.get_dofs().all())
         self.phi = torch.from_numpy(_modes(mesh.p[:, mesh.t].mean(axis=1), self.modes, rng))
         coef = rng.normal(0.0, 0.5, size=(n, self.modes))
@@ -267,13 +272,11 @@ class AdvectionSource(NetworkInverse):
     name = "advection_source"
 
     def __init__(self, seed: int, quick: bool = False):
-        from skfem import Basis, BilinearForm, ElementTriP1
+        from skfem import BilinearForm
         from skfem.helpers import dot, grad
 
-        rng = np.random.default_rng(2000 + seed)
-        torch.manual_seed(seed)
-        mesh = load_mesh("annulus")
-        basis = Basis(mesh, ElementTriP1())
+        rng, basis = _start(seed, 2000, "annulus")
+        mesh = basis.mesh
 
         @BilinearForm
         def operator(u, v, w):
@@ -314,12 +317,8 @@ class PlateBackwardHeat(NetworkInverse):
     step_per_batch = True
 
     def __init__(self, seed: int, quick: bool = False):
-        from skfem import Basis, ElementTriP1
-
-        rng = np.random.default_rng(3000 + seed)
-        torch.manual_seed(seed)
-        mesh = load_mesh("plate_holes")
-        basis = Basis(mesh, ElementTriP1())
+        rng, basis = _start(seed, 3000, "plate_holes")
+        mesh = basis.mesh
         M = sp.csr_matrix(fem_mass(basis))
         K = diffusion_operator(basis, "P0").matrix(np.ones(mesh.t.shape[1]))
         A = (M + 2e-3 * K).tocsr()
@@ -399,12 +398,8 @@ class AnnulusInverse(FieldFit):
     name = "annulus_inverse"
 
     def __init__(self, seed: int, quick: bool = False):
-        from skfem import Basis, ElementTriP1
-
-        rng = np.random.default_rng(5000 + seed)
-        torch.manual_seed(seed)
-        mesh = load_mesh("annulus")
-        basis = Basis(mesh, ElementTriP1())
+        rng, basis = _start(seed, 5000, "annulus")
+        mesh = basis.mesh
         self.dir = Dirichlet(diffusion_operator(basis, "P1"), basis.get_dofs().all())
         truth = _modes(mesh.p, 5, rng) @ rng.normal(0.0, 0.4, 5)
         b = fem_rhs(basis)[self.dir.interior]
@@ -486,11 +481,7 @@ class PlateSource(FieldFit):
     name = "plate_source"
 
     def __init__(self, seed: int, quick: bool = False):
-        from skfem import Basis, ElementTriP1
-
-        rng = np.random.default_rng(8000 + seed)
-        torch.manual_seed(seed)
-        basis = Basis(load_mesh("plate_holes"), ElementTriP1())
+        rng, basis = _start(seed, 8000, "plate_holes")
         interior = basis.complement_dofs(basis.get_dofs())
         A = diffusion_operator(basis, "P1").matrix(np.ones(basis.N)).tocsr()
         M = fem_mass(basis).tocsr()
