@@ -16,7 +16,7 @@ from pathlib import Path
 
 from prdp_petsc import PRDP
 
-from .kinds import DataSet, ReportKind, write_result
+from .kinds import DataSet, ReportKind, interval, write_result
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
 
@@ -110,11 +110,9 @@ def format_defaults(result: dict, *, with_notes: bool = True) -> str:
         if s is None:
             lines.append(f"{name}: no seed finished")
             continue
-        ci = s["ratio"]["interval"]
-        interval = "" if not ci else f" (95 % interval {ci[0]:.3f}-{ci[1]:.3f})"
         saved = s["saved_at_equal_accuracy"]
         lines.append(
-            f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{interval}; "
+            f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{interval(s['ratio'])}; "
             f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
             + (f", {fewer(saved)} there" if saved is not None else "")
             + (f"; certified on {s['certified']}" if name == "default" else "")

@@ -110,8 +110,6 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    if min(args.m) < 1 or args.k < 1 or args.epochs < 1:
-        parser.error("--m, --k and --epochs must be >= 1")
     if args.worker:  # one row in this process: peak memory is per process
         row = horizon_row(
             args.scene, args.preset, args.m[0], checkpoint=not args.no_checkpoint, k=args.k,

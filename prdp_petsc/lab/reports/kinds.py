@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from fnmatch import fnmatch
 from pathlib import Path
 
-__all__ = ["DataSet", "ReportKind", "markdown_table", "percent", "write_result"]
+__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "write_result"]
 
 
 def _nothing(ds: DataSet) -> list[str]:
@@ -116,6 +116,13 @@ def write_result(out, file_name: str, data: dict, **options) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     (out / file_name).write_text(json.dumps(data, indent=1, **options))
     return out
+
+
+def interval(stats: dict, spec: str = ".3f") -> str:
+    """`` (95 % interval 1.62–2.71)`` of the ``interval`` of `stats`
+    (`prdp_petsc.lab.training.seeds.ratio_statistics`), "" where it has none."""
+    ci = stats.get("interval")
+    return f" (95 % interval {ci[0]:{spec}}–{ci[1]:{spec}})" if ci else ""
 
 
 def percent(value: float) -> str:

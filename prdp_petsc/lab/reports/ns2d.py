@@ -17,6 +17,7 @@ import torch
 
 import prdp_petsc as pp
 
+from ..cli.arguments import positive
 from ..training.scene import preset_config
 
 __all__ = [
@@ -195,7 +196,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
         parser.add_argument("--preset", default="quick", help="preset (default quick)")
         parser.add_argument(
             "--k",
-            type=int,
+            type=positive,
             nargs="+",
             default=[8, 64],
             metavar="K",
@@ -203,8 +204,6 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
         )
 
         def run(args: argparse.Namespace) -> int:
-            if min(args.k) < 1:
-                parser.error(f"--k: every K must be >= 1, got {args.k}")
             torch.set_num_threads(1)
             print(format_adjoint_report(adjoint_report(scene, args.preset, tuple(args.k))))
             return 0

@@ -197,11 +197,6 @@ def _machines(sets: list) -> str:
     )
 
 
-def _earlier(data: Path) -> dict | None:
-    path = data / "earlier.json"
-    return json.loads(path.read_text()) if path.is_file() else None
-
-
 def index(sets: list, earlier: dict | None) -> str:
     """The Results index page (``templates/index.md.j2``): the recorded data sets, then
     the unrecorded experiments."""
@@ -262,7 +257,8 @@ def pages(data: str | Path = "docs/data", images: str | Path = "docs/images") ->
     """File name -> content of every results page generated from `data`."""
     sets = load_data(data, images)
     out = {f"{ds.name}.md": page(ds) for ds in sets}
-    out["index.md"] = index(sets, _earlier(Path(data)))
+    earlier = Path(data) / "earlier.json"
+    out["index.md"] = index(sets, json.loads(earlier.read_text()) if earlier.is_file() else None)
     return out
 
 

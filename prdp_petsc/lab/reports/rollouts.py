@@ -18,9 +18,10 @@ import math
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import gmean
 
 from ..training.seeds import ratio_statistics
-from .kinds import DataSet, ReportKind, write_result
+from .kinds import DataSet, ReportKind, interval, write_result
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
@@ -35,7 +36,8 @@ def _load(folder: Path) -> dict:
 
 
 def _geomean(rows: list) -> list[float]:
-    return np.exp(np.log(np.asarray(rows, dtype=float)).mean(axis=0)).tolist()
+    """The geometric mean over the seeds (rows) at every step."""
+    return gmean(np.asarray(rows, dtype=float), axis=0).tolist()
 
 
 def rollout_report(runs: dict[str, list[Path]], ratios: list[tuple[str, str]], step=None):
@@ -117,13 +119,11 @@ def format_rollout_report(report: dict) -> str:
         tail = "" if below is None else f"   below uncorrected at every step: {below}/{seeds}"
         lines.append(f"  {name:<{width}} {values}{tail}")
     for pair, stats in report["ratios"].items():
-        lines.append(f"{pair} (per seed; geometric mean [95 % interval]):")
+        lines.append(f"{pair} (per seed; geometric mean):")
         for key, s in stats.items():
-            interval = s["interval"]
-            ci = "" if interval is None else f" [{interval[0]:.3f}, {interval[1]:.3f}]"
             label = f"error at step {at}" if key == "error" else key
             per = ", ".join(f"{v:.3f}" for v in s["per_seed"])
-            lines.append(f"  {label:<18} {per}  ->  {s['geometric_mean']:.3f}{ci}")
+            lines.append(f"  {label:<18} {per}  ->  {s['geometric_mean']:.3f}{interval(s)}")
     return "\n".join(lines)
 
 
@@ -207,12 +207,10 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
             )
     for pair, stats in d["ratios"].items():
         e = stats["error"]
-        interval = e["interval"]
-        ci = "" if interval is None else f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})"
         out.append(
             (
                 f"{ds.name}: error ratio {pair} at rollout step {d['step']}",
-                f"{e['geometric_mean']:.3f}{ci}, {e['n']} seeds",
+                f"{e['geometric_mean']:.3f}{interval(e, '.2f')}, {e['n']} seeds",
             )
         )
     return out

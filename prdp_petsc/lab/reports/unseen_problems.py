@@ -173,10 +173,6 @@ class NetworkInverse(Problem):
         return list(self.net.parameters())
 
 
-def _mse(pred, obs):
-    return torch.mean((pred - obs) ** 2) / torch.mean(obs**2)
-
-
 def _exact_solutions(A: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     lu = spla.splu(sp.csc_matrix(A))
     return np.stack([lu.solve(r) for r in rhs])
@@ -217,7 +213,7 @@ class LogCoefficient(NetworkInverse):
         raise NotImplementedError
 
     def loss_fn(self, pred, obs):
-        return _mse(pred, obs)
+        return torch.mean((pred - obs) ** 2) / torch.mean(obs**2)
 
     def physics(self, coef):
         theta = torch.exp(coef @ self.phi.T)
