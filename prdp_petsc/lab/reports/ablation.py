@@ -16,7 +16,7 @@ import argparse
 from pathlib import Path
 
 from ..cli.arguments import add_debug, positive, routes, seeds
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "ablation", "format_ablation", "main"]
 
@@ -115,6 +115,22 @@ def _mean_seconds(per_seed: list[dict], key: str) -> str:
 
 def format_ablation(report: dict) -> str:
     """Plain-text table: one row per configuration, then what each lever changed."""
+    header = ["config", "settings", "speedup", "≥ 2", "full s", "reduced s", "PRDP/full",
+              "its saved", "bound"]  # fmt: skip
+    rows = []
+    for name, config in report["configs"].items():
+        r = config["result"]
+        speed = r.get("speedup") or {}
+        ratio = r.get("prdp_ratio", {}).get("geometric_mean")
+        saved = (r.get("savings") or {}).get("iterations_saved", {}).get("mean")
+        bound = (speed.get("solver_bound") or {}).get("geometric_mean")
+        rows.append((name, report["levers"].get(name, "—"), _geo(speed),
+                     f"{speed.get('goal_met', 0)}/{speed.get('seeds', 0)}",
+                     _mean_seconds(r["per_seed"], "full_seconds"),
+                     _mean_seconds(r["per_seed"], "reduced_seconds"),
+                     "—" if ratio is None else f"{ratio:.3f}",
+                     "—" if saved is None else f"{100 * saved:.1f}%",
+                     "—" if bound is None else f"{bound:.2f}"))  # fmt: skip
     lines = [
         f"ablation of {report['scene']} --preset {report['preset']} over seeds "
         f"{', '.join(map(str, report['seeds']))}",
@@ -123,25 +139,8 @@ def format_ablation(report: dict) -> str:
         "times, mean over the seeds; its saved: PRDP's inner iterations saved against K_full "
         "(mean); bound: the fastest full run's wall time over its time outside the solver",
         "",
-        f"{'config':<10} {'settings':<28} {'speedup':>22} {'≥ 2':>6} {'full s':>7} "
-        f"{'reduced s':>9} {'PRDP/full':>9} {'its saved':>9} {'bound':>6}",
+        text_table(header, rows),
     ]
-    for name, config in report["configs"].items():
-        r = config["result"]
-        speed = r.get("speedup") or {}
-        settings = report["levers"].get(name, "—")
-        ratio = r.get("prdp_ratio", {}).get("geometric_mean")
-        saved = (r.get("savings") or {}).get("iterations_saved", {}).get("mean")
-        bound = (speed.get("solver_bound") or {}).get("geometric_mean")
-        lines.append(
-            f"{name:<10} {settings:<28} {_geo(speed):>22} "
-            f"{speed.get('goal_met', 0)}/{speed.get('seeds', 0):<4} "
-            f"{_mean_seconds(r['per_seed'], 'full_seconds'):>7} "
-            f"{_mean_seconds(r['per_seed'], 'reduced_seconds'):>9} "
-            f"{'—' if ratio is None else f'{ratio:.3f}':>9} "
-            f"{'—' if saved is None else f'{100 * saved:.1f}%':>9} "
-            f"{'—' if bound is None else f'{bound:.2f}':>6}"
-        )
     if report["effects"]:
         lines += ["", "each lever against the baseline, seed by seed (baseline time / lever time):"]
         for name, effect in report["effects"].items():

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from prdp_petsc import PRDP
 
-from .kinds import DataSet, ReportKind, interval, write_result
+from .kinds import DataSet, ReportKind, interval, text_table, write_result
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
 
@@ -89,22 +89,24 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
 def format_defaults(result: dict, *, with_notes: bool = True) -> str:
     """The table ``prdp-petsc defaults`` prints: one row per seed, the summary, and
     (`with_notes`) what the rows mean (`notes`)."""
-    lines = [
-        f"{result['scene']} --preset {result['preset']}: full fidelity, tuned PRDP "
-        "(the preset's settings) and the default construction (PRDP.for_problem)",
-        f"{'seed':>4}{'K_full':>8}{'full error':>12}"
-        + "".join(f"{n + ' ratio':>15}{n + ' saved':>14}{n + ' K':>10}" for n in SCHEDULES),
-    ]
+    header = ["seed", "K_full", "full error"]
+    header += [f"{name} {column}" for name in SCHEDULES for column in ("ratio", "saved", "K")]
+    rows = []
     for row in result["per_seed"]:
-        cells = f"{row['seed']:>4}{row['k_full']:>8}{row['full']['final_val_error']:>12.4e}"
+        cells = [row["seed"], row["k_full"], f"{row['full']['final_val_error']:.4e}"]
         for name in SCHEDULES:
             r = row[name]
             if "ratio" not in r:
-                cells += f"{'stopped':>15}{'':>14}{'':>10}"
+                cells += ["stopped", "", ""]
                 continue
             mark = "" if r["certified"] is None else (" c" if r["certified"] else " !")
-            cells += f"{r['ratio']:>15.3f}{100 * r['saved']:>13.1f}%{r['k_final']:>8}{mark:>2}"
-        lines.append(cells)
+            cells += [f"{r['ratio']:.3f}", f"{100 * r['saved']:.1f}%", f"{r['k_final']}{mark}"]
+        rows.append(cells)
+    lines = [
+        f"{result['scene']} --preset {result['preset']}: full fidelity, tuned PRDP "
+        "(the preset's settings) and the default construction (PRDP.for_problem)",
+        text_table(header, rows),
+    ]
     for name in SCHEDULES:
         s = result.get(name)
         if s is None:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, positive
-from .kinds import DataSet, ReportKind, write_result
+from .kinds import DataSet, ReportKind, text_table, write_result
 from .memory import peak_rss_mb, reset_peak
 
 __all__ = ["KIND", "format_horizon_report", "horizon_row", "main"]
@@ -71,20 +71,17 @@ def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: in
 
 def format_horizon_report(report: dict) -> str:
     """The report as the table the command prints."""
-    lines = [
-        f"{report['scene']} {report['preset']}, K = {report['k']}, one thread",
-        f"{'m':>3} {'ckpt':>5} {'windows':>7} {'s/epoch':>8} {'ms/step':>8} "
-        f"{'RSS start':>9} {'peak RSS':>9} {'growth':>7} {'saved MB':>9}",
-    ]
-    for r in report["rows"]:
-        growth = r["peak_rss_mb"] - r["rss_at_start_mb"]
-        lines.append(
-            f"{r['m']:>3} {'yes' if r['checkpoint'] else 'no':>5} {r['windows']:>7} "
-            f"{float(np.median(r['epoch_seconds'])):>8.2f} {1e3 * r['seconds_per_step']:>8.2f} "
-            f"{r['rss_at_start_mb']:>9.0f} {r['peak_rss_mb']:>9.0f} {growth:>7.0f} "
-            f"{r['saved_tensors_mb']:>9.2f}"
-        )
-    return "\n".join(lines)
+    header = ["m", "ckpt", "windows", "s/epoch", "ms/step", "RSS start", "peak RSS", "growth",
+              "saved MB"]  # fmt: skip
+    rows = [
+        (r["m"], "yes" if r["checkpoint"] else "no", r["windows"],
+         f"{float(np.median(r['epoch_seconds'])):.2f}", f"{1e3 * r['seconds_per_step']:.2f}",
+         f"{r['rss_at_start_mb']:.0f}", f"{r['peak_rss_mb']:.0f}",
+         f"{r['peak_rss_mb'] - r['rss_at_start_mb']:.0f}", f"{r['saved_tensors_mb']:.2f}")
+        for r in report["rows"]
+    ]  # fmt: skip
+    title = f"{report['scene']} {report['preset']}, K = {report['k']}, one thread"
+    return title + "\n" + text_table(header, rows)
 
 
 def _parser() -> argparse.ArgumentParser:

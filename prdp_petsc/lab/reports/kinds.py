@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from fnmatch import fnmatch
 from pathlib import Path
 
-__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "write_result"]
+__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "text_table",
+           "write_result"]  # fmt: skip
 
 
 def _nothing(ds: DataSet) -> list[str]:
@@ -107,6 +108,17 @@ class DataSet:
     def main(self) -> dict:
         """The JSON file the page is made from, parsed."""
         return self.files[self.main_file]
+
+
+def text_table(header: Sequence[str], rows: Iterable[Sequence]) -> str:
+    """A plain-text table (pandas `DataFrame.to_string`) of `rows`, sequences of cells
+    written as they are, under `header`: what a command prints."""
+    import pandas as pd
+
+    cells = [[str(cell) for cell in row] for row in rows]
+    if not cells:
+        return "  ".join(header)
+    return pd.DataFrame(cells, columns=list(header)).to_string(index=False)
 
 
 def write_result(out, file_name: str, data: dict, **options) -> Path:

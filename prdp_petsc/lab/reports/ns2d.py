@@ -19,6 +19,7 @@ import prdp_petsc as pp
 
 from ..cli.arguments import positive
 from ..training.scene import preset_config
+from .kinds import text_table
 
 __all__ = [
     "adjoint_report",
@@ -100,19 +101,16 @@ def adjoint_report(
 
 def format_adjoint_report(report: dict) -> str:
     """The `adjoint_report` as a table."""
-    head = (
-        f"{'case':<10} {'fwd its':>8} {'adj its':>8} {'fwd s':>7} {'adj s':>7} "
-        f"{'adj/fwd':>7} {'|g-g_conv|':>10} {'|g-g_det|':>9} {'cos':>6}"
-    )
-    lines = [f"preset {report['preset']}, batch {report['batch']}", head]
-    for name, r in report["cases"].items():
-        lines.append(
-            f"{name:<10} {r['fwd_iterations']:>8} {r['adj_iterations']:>8} "
-            f"{r['fwd_seconds']:>7.2f} {r['adj_seconds']:>7.2f} {r['adj_over_fwd_time']:>7.2f} "
-            f"{r['rel_to_converged']:>10.3e} {r['rel_to_detached']:>9.3e} "
-            f"{r['cosine_to_converged']:>6.3f}"
-        )
-    return "\n".join(lines)
+    header = ["case", "fwd its", "adj its", "fwd s", "adj s", "adj/fwd", "|g-g_conv|",
+              "|g-g_det|", "cos"]  # fmt: skip
+    rows = [
+        (name, r["fwd_iterations"], r["adj_iterations"], f"{r['fwd_seconds']:.2f}",
+         f"{r['adj_seconds']:.2f}", f"{r['adj_over_fwd_time']:.2f}",
+         f"{r['rel_to_converged']:.3e}", f"{r['rel_to_detached']:.3e}",
+         f"{r['cosine_to_converged']:.3f}")
+        for name, r in report["cases"].items()
+    ]  # fmt: skip
+    return f"preset {report['preset']}, batch {report['batch']}\n" + text_table(header, rows)
 
 
 def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> dict:
@@ -171,20 +169,16 @@ def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> d
 
 
 def format_energy_report(report: dict, marks=(1, 10, 20, 30, 40, 50)) -> str:
-    """`energy_report` at a few steps, as a table."""
+    """`energy_report` at a few steps, as a table (``(none)``: without the corrector)."""
     c, u = report["corrected"], report["uncorrected"]
-    lines = [
-        report["folder"],
-        f"{'step':>4} {'error':>7} {'(none)':>7} {'energy':>7} {'(none)':>7} "
-        f"{'corr':>7} {'(none)':>7}",
-    ]
-    for t in (m for m in marks if m <= len(c["error"])):
-        i = t - 1
-        lines.append(
-            f"{t:>4} {c['error'][i]:>7.3f} {u['error'][i]:>7.3f} {c['energy'][i]:>7.3f} "
-            f"{u['energy'][i]:>7.3f} {c['correlation'][i]:>7.3f} {u['correlation'][i]:>7.3f}"
-        )
-    return "\n".join(lines)
+    header = ["step", "error", "(none)", "energy", "(none)", "corr", "(none)"]
+    rows = [
+        (t, *(f"{curve[key][t - 1]:.3f}" for key in ("error", "energy", "correlation")
+              for curve in (c, u)))
+        for t in marks
+        if t <= len(c["error"])
+    ]  # fmt: skip
+    return report["folder"] + "\n" + text_table(header, rows)
 
 
 def commands(scene: ModuleType) -> dict[str, Callable]:

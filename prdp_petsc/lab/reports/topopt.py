@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..cli import arguments
-from .kinds import DataSet, ReportKind, percent, write_result
+from .kinds import DataSet, ReportKind, percent, text_table, write_result
 from .trained import train_and_keep
 
 __all__ = [
@@ -44,24 +44,21 @@ TARGET_SAVED = 0.5
 
 def format_results(data: dict) -> str:
     """One line per load case and route."""
-    lines = [
-        f"{'case':>4} {'z_c':>4} {'route':<12} {'C final':>10} {'C/C_conv':>8} {'inner its':>9} "
-        f"{'saved':>6} {'wall s':>7} {'t→1% s':>7} {'K final':>7}"
-    ]
+    header = ["case", "z_c", "route", "C final", "C/C_conv", "inner its", "saved", "wall s",
+              "t→1% s", "K final"]  # fmt: skip
+    rows = []
     for case in data["cases"]:
         for label, r in case["routes"].items():
-            head = f"{case['seed']:>4} {case['load_height']:>4} {label:<12}"
+            head = (case["seed"], case["load_height"], label)
             if "compliance" not in r:
-                lines.append(f"{head} stopped at epoch {r['stopped']['epoch']}: "
-                             f"{r['stopped']['reason']}")  # fmt: skip
+                stopped = f"stopped at epoch {r['stopped']['epoch']}: {r['stopped']['reason']}"
+                rows.append((*head, stopped, *[""] * 6))
                 continue
             t = "—" if r["time_to_1pct"] is None else f"{r['time_to_1pct']:.2f}"
-            k_final = "conv" if label == "converged" else str(r["ks"][-1])
-            lines.append(
-                f"{head} {r['compliance']:>10.5g} {r['ratio']:>8.4f} {r['iterations']:>9d} "
-                f"{100 * r['saved']:>5.1f}% {r['wall_time']:>7.2f} {t:>7} {k_final:>7}"
-            )
-    return "\n".join(lines)
+            rows.append((*head, f"{r['compliance']:.5g}", f"{r['ratio']:.4f}", r["iterations"],
+                         f"{100 * r['saved']:.1f}%", f"{r['wall_time']:.2f}", t,
+                         "conv" if label == "converged" else r["ks"][-1]))  # fmt: skip
+    return text_table(header, rows)
 
 
 def target_met(data: dict, route: str = "PRDP (auto)") -> list[bool]:
