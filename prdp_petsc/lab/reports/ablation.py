@@ -26,26 +26,11 @@ BASELINE = "baseline"
 def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **kwargs) -> dict:
     """`compare_seeds` of `preset` and of ``preset + " " + settings`` per lever.
 
-    Parameters
-    ----------
-    scene_file : str or Path
-    levers : dict
-        ``{name: "key=value key=value"}``: preset-string changes, one configuration each.
-    preset : str
-        The baseline preset string (``"large_k64"``, ``"paper routes=schur"``).
-    seeds : list of int
-    out : str or Path
-        Each configuration writes ``out/<name>/`` (``seeds.json``, ``seed_S/``), the
-        ablation ``out/ablation.json``.
-    **kwargs
-        Passed to every `compare_seeds` (``schedules``, ``routes``, ``twin``, ...).
-
-    Returns
-    -------
-    dict
-        ``scene``, ``preset``, ``seeds``, ``levers``, ``configs`` (``{name: {"preset":
-        ..., "result": compare_seeds result}}``, the baseline first) and ``effects``
-        (``{lever: {"reduced_vs_baseline": stats, "full_vs_baseline": stats}}``).
+    `levers` is ``{name: "key=value key=value"}``; each configuration writes
+    ``out/<name>/`` and the study ``out/ablation.json``; `kwargs` go to every
+    `compare_seeds` (``schedules``, ``routes``, ``twin``, ...).  Returns ``scene``,
+    ``preset``, ``seeds``, ``levers``, ``configs`` (``{name: {"preset": ..., "result":
+    ...}}``, the baseline first) and ``effects`` (`lever_effect` per lever).
     """
     from ..training.parallel import Parallel
     from ..training.records import write_json

@@ -35,20 +35,12 @@ def adjoint_report(
 ) -> dict:
     """What the physics gradient costs and changes, on one training batch of `preset`.
 
-    The corrector is first trained for `warmup` batches (K = 64, so that every layer
-    has a gradient: the untrained projection is zero).  Then, on the first of those
-    batches again, the 2-step loss is differentiated with the solver at each K of
-    `ks` (forward and adjoint K iterations), converged (forward and adjoint to rtol
-    1e-8, the adjoint relative to its own right-hand side), and converged but
-    detached (no physics gradient, what the reference effectively trains with).
-
-    Returns
-    -------
-    dict
-        Per case: forward and adjoint iterations and seconds, the adjoint/forward
-        time ratio, and the relative distance of the network gradient from the
-        converged one (``rel_to_converged``) and from the detached one
-        (``rel_to_detached``), and the cosine with the converged one.
+    The corrector is first trained for `warmup` batches at K = 64 (the untrained
+    projection is zero); then the 2-step loss of the first batch is differentiated with
+    the solver at each K of `ks`, converged (forward and adjoint to rtol 1e-8), and
+    converged but detached (no physics gradient).  Per case: iterations and seconds
+    forward and adjoint, and the network gradient's relative distance from the
+    converged and the detached one and its cosine with the converged one.
     """
     torch.manual_seed(seed)
     config = preset_config(scene, preset)  # "paper n=32": a preset, changed
@@ -116,13 +108,10 @@ def format_adjoint_report(report: dict) -> str:
 def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> dict:
     """Error, energy and correlation per step of a trained run's held-out rollout.
 
-    Loads the run in `folder` (`prdp_petsc.lab.training.harness.load_trained`), rebuilds
-    its validation flows and rolls them out with the full-fidelity solver, with and
-    without the corrector.  Per step t and flow: the normalised velocity error, the
-    energy ratio ‖(û, v̂)‖/‖(u, v)‖ against the reference, and the correlation
-    ⟨(û, v̂), (u, v)⟩/(‖(û, v̂)‖‖(u, v)‖), averaged over the flows.  The error
-    mixes amplitude (energy) and phase (correlation): a diffusive solver loses energy
-    but stays in phase; a corrector that restores energy can lose phase faster.
+    Rolls the validation flows of the run in `folder` out with the full-fidelity solver,
+    with and without its corrector; per step, averaged over the flows: the normalised
+    velocity error, the energy ratio ‖(û, v̂)‖/‖(u, v)‖ and the correlation
+    ⟨(û, v̂), (u, v)⟩/(‖(û, v̂)‖‖(u, v)‖) against the reference.
     """
     from ..training.building import release
     from ..training.checkpoint import load_trained

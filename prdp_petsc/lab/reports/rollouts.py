@@ -21,7 +21,7 @@ import numpy as np
 from scipy.stats import gmean
 
 from ..training.seeds import ratio_statistics
-from .kinds import DataSet, ReportKind, interval, write_result
+from .kinds import DataSet, ReportKind, interval, text_table, write_result
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
@@ -107,17 +107,17 @@ def format_rollout_report(report: dict) -> str:
     """The report as the tables the command prints."""
     at = report["step"]
     marks = sorted({1, 5, 10, 20, 30, 40, at} & set(range(1, report["steps"] + 1)))
-    lines = [f"rollout error (geometric mean over seeds) at step {marks}:"]
-    rows = dict(report["runs"])
+    runs = dict(report["runs"])
     if "uncorrected" in report:
-        rows = {"uncorrected": report["uncorrected"], **rows}
-    width = max(len(n) for n in rows)
-    for name, entry in rows.items():
-        values = " ".join(f"{entry['geometric_mean'][s - 1]:7.3f}" for s in marks)
-        below = entry.get("below_uncorrected_every_step")
-        seeds = len(entry["rollout"])
-        tail = "" if below is None else f"   below uncorrected at every step: {below}/{seeds}"
-        lines.append(f"  {name:<{width}} {values}{tail}")
+        runs = {"uncorrected": report["uncorrected"], **runs}
+    rows = [
+        (name, *(f"{entry['geometric_mean'][s - 1]:.3f}" for s in marks),
+         "—" if "below_uncorrected_every_step" not in entry
+         else f"{entry['below_uncorrected_every_step']}/{len(entry['rollout'])}")
+        for name, entry in runs.items()
+    ]  # fmt: skip
+    header = ["run", *(f"step {s}" for s in marks), "below uncorrected at every step"]
+    lines = ["rollout error (geometric mean over seeds):", text_table(header, rows)]
     for pair, stats in report["ratios"].items():
         lines.append(f"{pair} (per seed; geometric mean):")
         for key, s in stats.items():
