@@ -17,7 +17,6 @@ import torch
 
 import prdp_petsc as pp
 
-from ..cli.arguments import positive
 from ..training.scene import preset_config
 from .kinds import text_table
 
@@ -179,7 +178,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
         parser.add_argument("--preset", default="quick", help="preset (default quick)")
         parser.add_argument(
             "--k",
-            type=positive,
+            type=int,
             nargs="+",
             default=[8, 64],
             metavar="K",
@@ -187,6 +186,8 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
         )
 
         def run(args: argparse.Namespace) -> int:
+            if min(args.k) < 1:
+                parser.error(f"--k: every K must be >= 1, got {args.k}")
             torch.set_num_threads(1)
             print(format_adjoint_report(adjoint_report(scene, args.preset, tuple(args.k))))
             return 0
