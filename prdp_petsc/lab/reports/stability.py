@@ -112,33 +112,20 @@ def _lshape_poisson(quick: bool):
     return A, b, np.ones(mesh.t.shape[1])
 
 
-def evaluate(
-    case: str,
-    setting: str,
-    A,
-    theta,
-    b,
-    options: str,
-    *,
-    max_it: int = CONVERGED["max_it"],
-    rtol: float = CONVERGED["rtol"],
-    adjoint=None,
-    nullspace=None,
-    taylor: bool = True,
-    seed: int = 0,
-    note: str = "",
-) -> dict:
+def evaluate(case: str, setting: str, A, theta, b, options: str, *, nullspace=None,
+             taylor: bool = True, note: str = "", **settings) -> dict:  # fmt: skip
     """Solve, differentiate and Taylor-test one configuration; return a table row.
 
-    ``J(θ) = ⟨w, x(θ)⟩`` with w random of zero mean; the Taylor direction is
-    ``h = θ ⊙ r``, r uniform in [−1, 1].  Errors of the library (`SolverError`,
-    `ValueError`) become the row's outcome.
+    The solver is `KSPSolver` with `options` and `settings` (``max_it``, ``rtol``,
+    ``adjoint``; `CONVERGED` by default).  ``J(θ) = ⟨w, x(θ)⟩`` with w random of zero
+    mean; the Taylor direction is ``h = θ ⊙ r``, r uniform in [−1, 1].  Errors of the
+    library (`SolverError`, `ValueError`) become the row's outcome.
     """
     import torch
 
     from prdp_petsc import KSPSolver, SolverError, Structure, solve
 
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(0)
     n = A.shape[0]
     w = rng.standard_normal(n)
     w -= w.mean()  # J does not see the constant mode (see the module docstring)
@@ -149,10 +136,9 @@ def evaluate(
            "solver": f"{kv.get('-ksp_type', '?')}/{kv.get('-pc_type', '?')}", "n": int(n),
            "iterations": None, "adjoint_iterations": None, "reason": None, "residual": None,
            "taylor_rate": None, "nan_or_inf": False, "outcome": "ok", "note": note}  # fmt: skip
+    structure = Structure(nullspace=nullspace)
     # not_converged="ignore": each row records its own outcome
-    solver = KSPSolver(options, max_it=max_it, rtol=rtol, adjoint=adjoint,
-                       structure=Structure(nullspace=nullspace),
-                       not_converged="ignore")  # fmt: skip
+    solver = KSPSolver(options, **CONVERGED | settings, structure=structure, not_converged="ignore")
     b_t = torch.from_numpy(np.asarray(b, dtype=np.float64))
     w_t = torch.from_numpy(w)
     t0 = time.perf_counter()
