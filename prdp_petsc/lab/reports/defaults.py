@@ -18,7 +18,7 @@ from prdp_petsc import PRDP
 
 from .kinds import DataSet, ReportKind, interval, text_table, write_result
 
-__all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
+__all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
 
 logger = logging.getLogger(__name__)
 
@@ -107,22 +107,30 @@ def format_defaults(result: dict, *, with_notes: bool = True) -> str:
         "(the preset's settings) and the default construction (PRDP.for_problem)",
         text_table(header, rows),
     ]
-    for name in SCHEDULES:
-        s = result.get(name)
-        if s is None:
-            lines.append(f"{name}: no seed finished")
-            continue
-        saved = s["saved_at_equal_accuracy"]
-        lines.append(
-            f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{interval(s['ratio'])}; "
-            f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
-            + (f", {fewer(saved)} there" if saved is not None else "")
-            + (f"; certified on {s['certified']}" if name == "default" else "")
-        )
+    lines += [summary(result, name) for name in SCHEDULES]
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
     if with_notes:
         lines += notes(result)
     return "\n".join(lines)
+
+
+def summary(result: dict, name: str, *, detail: bool = True) -> str:
+    """What schedule `name` did over the seeds: its error ratio (with the interval where
+    `detail`) and the seeds at equal accuracy with what it saved there (and, where
+    `detail`, on how many the default construction certified its stop)."""
+    s = result.get(name)
+    if s is None:
+        return f"{name}: no seed finished"
+    ci = interval(s["ratio"]) if detail else ""
+    text = (
+        f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{ci}; "
+        f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
+    )
+    if s["saved_at_equal_accuracy"] is not None:
+        text += f", {fewer(s['saved_at_equal_accuracy'])} there"
+    if detail and name == "default":
+        text += f"; certified on {s['certified']}"
+    return text
 
 
 def fewer(saved: float) -> str:
@@ -187,19 +195,7 @@ def main(argv: list[str]) -> int:
 # -- the page of a recorded ``defaults`` ----------------------------------------------------------
 def _headline(ds: DataSet) -> list[tuple[str, str]]:
     d = ds.main
-    parts = []
-    for name in ("default", "tuned"):
-        s = d.get(name)
-        if s is None:
-            parts.append(f"{name}: no seed finished")
-            continue
-        saved = s["saved_at_equal_accuracy"]
-        parts.append(
-            f"{name} {s['ratio']['geometric_mean']:.3f} (equal accuracy on "
-            f"{s['equal_accuracy']} of {s['compared']}"
-            + (f", {fewer(saved)} there" if saved is not None else "")
-            + ")"
-        )
+    parts = [summary(d, name, detail=False) for name in ("default", "tuned")]
     what = (
         f"{d['scene']} --preset {d['preset']}, seeds {', '.join(map(str, d['seeds']))}: "
         "final error over full fidelity's, default construction (PRDP.for_problem) "
