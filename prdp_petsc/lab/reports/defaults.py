@@ -16,7 +16,8 @@ from pathlib import Path
 
 from prdp_petsc import PRDP
 
-from .kinds import DataSet, ReportKind, interval, text_table, write_result
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, interval, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
 

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, positive
-from .kinds import DataSet, ReportKind, text_table, write_result
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, text_table
 from .memory import peak_rss_mb, reset_peak
 
 __all__ = ["KIND", "format_horizon_report", "horizon_row", "main"]

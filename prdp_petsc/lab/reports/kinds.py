@@ -8,14 +8,11 @@ under ``docs/data/`` into `DataSet` objects and renders each page from
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from fnmatch import fnmatch
-from pathlib import Path
 
-__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "text_table",
-           "write_result"]  # fmt: skip
+__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "text_table"]
 
 
 def _nothing(ds: DataSet) -> list[str]:
@@ -119,15 +116,6 @@ def text_table(header: Sequence[str], rows: Iterable[Sequence]) -> str:
     if not cells:
         return "  ".join(header)
     return pd.DataFrame(cells, columns=list(header)).to_string(index=False)
-
-
-def write_result(out, file_name: str, data: dict, **options) -> Path:
-    """Write `data` as JSON to ``out/file_name`` (the file a kind `reads`), making the
-    folder `out`; `options` go to `json.dumps`.  Returns ``Path(out)``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / file_name).write_text(json.dumps(data, indent=1, **options))
-    return out
 
 
 def interval(stats: dict, spec: str = ".3f") -> str:

@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import gmean
 
+from ..provenance import write_result
 from ..training.seeds import ratio_statistics
-from .kinds import DataSet, ReportKind, interval, text_table, write_result
+from .kinds import DataSet, ReportKind, interval, text_table
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
@@ -185,7 +186,7 @@ def main(argv: list[str]) -> int:
             parser.error(f"--ratio expects NAME/REFERENCE, got {spec!r}")
         ratios.append((name, reference))
     report = rollout_report(runs, ratios, args.step)
-    out = write_result(args.out, "rollouts.json", report, allow_nan=False)
+    out = write_result(args.out, "rollouts.json", report).parent
     rollouts_figure(report).savefig(out / "rollouts.png")
     print(format_rollout_report(report))
     return 0 if all(math.isfinite(e["geometric_mean"][-1]) for e in report["runs"].values()) else 1

@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .kinds import DataSet, ReportKind, markdown_table, write_result
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, markdown_table
 
 __all__ = ["CASES", "KIND", "TAYLOR_RIGHT", "evaluate", "main", "run_cases", "summary_counts",
            "summary_line", "taylor_rate", "to_markdown"]  # fmt: skip

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 
 from ..cli import arguments
-from .kinds import DataSet, ReportKind, percent, text_table, write_result
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, percent, text_table
 from .trained import train_and_keep
 
 __all__ = [
@@ -237,7 +238,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
         def run_results(args: argparse.Namespace) -> int:
             data = results(scene, args.preset, args.seeds, args.k)
-            out = write_result(args.out, "topopt.json", data)
+            out = write_result(args.out, "topopt.json", data).parent
             plot_designs(scene, data, out / "designs.png")
             print(format_results(data))
             return 0

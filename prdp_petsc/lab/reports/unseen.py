@@ -15,7 +15,8 @@ import time
 
 from prdp_petsc import PRDP, find_k_full
 
-from .kinds import DataSet, ReportKind, markdown_table, percent, write_result
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, markdown_table, percent
 from .unseen_problems import HELD_OUT, PROBLEMS, RTOL_FULL, Problem, build
 
 __all__ = [
