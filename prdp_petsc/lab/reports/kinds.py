@@ -74,21 +74,10 @@ class ReportKind:
 
 @dataclass
 class DataSet:
-    """One recorded data set: its name, kind, provenance and parsed JSON files.
-
-    Attributes
-    ----------
-    name : str
-        Folder name under ``docs/data``; also the page's file name.
-    kind : ReportKind
-        What the data set is, from the file it holds (`ReportKind.reads`).
-    provenance : dict
-        ``provenance.json`` as `prdp_petsc.lab.reports.record` wrote it.
-    files : dict
-        File name -> parsed JSON of every other file of the folder.
-    images : list of str
-        PNG files of the data set under ``docs/images/<name>/``.
-    """
+    """One recorded data set: its folder ``name`` under ``docs/data`` (also its page's
+    name), its `kind`, ``provenance.json`` (`prdp_petsc.lab.reports.record`), every other
+    JSON file of the folder parsed (`files`, by name) and its PNG files under
+    ``docs/images/<name>/`` (`images`)."""
 
     name: str
     kind: ReportKind
