@@ -2,27 +2,12 @@
 
 ``prdp-petsc ablation SCENE_FILE --preset P --seeds 0-2 --lever NAME KEY=VALUE ...
 --out DIR`` runs `prdp_petsc.lab.training.seeds.compare_seeds` for the preset as given
-(``baseline``) and once more per ``--lever``, the preset with that lever's settings
-(``--lever warm warm_start_epochs=true``; several levers may be named, each runs on
-its own), into ``DIR/<name>/``.  Every run of a configuration uses the same seeds,
-schedules and routes.  ``DIR/ablation.json`` keeps each configuration's seeds result
-and, per lever, its effect against the baseline seed by seed:
-
-``reduced_vs_baseline``
-    The baseline's best reduced time to full-fidelity accuracy over the lever's
-    (`prdp_petsc.lab.training.summary.speedup_vs_best_full`'s ``reduced_seconds``):
-    above 1, the lever made the fastest reduced run reach the target sooner.
-``full_vs_baseline``
-    The same for the fastest full-fidelity run (a lever such as preconditioner
-    reuse helps full fidelity too).
-
-each as a geometric mean with its 95 % interval over the seeds where both reached
-the target (`prdp_petsc.lab.training.seeds.ratio_statistics`).  The target differs a
-little between configurations (each one's own full-fidelity run sets it), which
-the twin's spread in every seeds result puts in proportion.
-
-Timings: one torch thread per process; configurations run one after another in one
-process, so compare them on an otherwise idle machine (the record keeps the load).
+(``baseline``) and once per ``--lever`` (the preset with that lever's settings alone),
+into ``DIR/<name>/``, with the same seeds, schedules and routes.  ``DIR/ablation.json``
+keeps each configuration's result and, per lever, the baseline's time to full-fidelity
+accuracy over the lever's, for the fastest reduced and the fastest full-fidelity run
+(`lever_effect`; above 1 the lever got there sooner).  One torch thread per process,
+configurations one after another: compare them on an otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -31,7 +16,7 @@ import argparse
 from pathlib import Path
 
 from ..cli.arguments import add_debug, positive, routes, seeds
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "ablation", "format_ablation", "main"]
 
@@ -41,26 +26,11 @@ BASELINE = "baseline"
 def ablation(scene_file, levers: dict[str, str], *, preset: str, seeds, out, **kwargs) -> dict:
     """`compare_seeds` of `preset` and of ``preset + " " + settings`` per lever.
 
-    Parameters
-    ----------
-    scene_file : str or Path
-    levers : dict
-        ``{name: "key=value key=value"}``: preset-string changes, one configuration each.
-    preset : str
-        The baseline preset string (``"large_k64"``, ``"paper routes=schur"``).
-    seeds : list of int
-    out : str or Path
-        Each configuration writes ``out/<name>/`` (``seeds.json``, ``seed_S/``), the
-        ablation ``out/ablation.json``.
-    **kwargs
-        Passed to every `compare_seeds` (``schedules``, ``routes``, ``twin``, ...).
-
-    Returns
-    -------
-    dict
-        ``scene``, ``preset``, ``seeds``, ``levers``, ``configs`` (``{name: {"preset":
-        ..., "result": compare_seeds result}}``, the baseline first) and ``effects``
-        (``{lever: {"reduced_vs_baseline": stats, "full_vs_baseline": stats}}``).
+    `levers` is ``{name: "key=value key=value"}``; each configuration writes
+    ``out/<name>/`` and the study ``out/ablation.json``; `kwargs` go to every
+    `compare_seeds` (``schedules``, ``routes``, ``twin``, ...).  Returns ``scene``,
+    ``preset``, ``seeds``, ``levers``, ``configs`` (``{name: {"preset": ..., "result":
+    ...}}``, the baseline first) and ``effects`` (`lever_effect` per lever).
     """
     from ..training.parallel import Parallel
     from ..training.records import write_json
@@ -130,6 +100,22 @@ def _mean_seconds(per_seed: list[dict], key: str) -> str:
 
 def format_ablation(report: dict) -> str:
     """Plain-text table: one row per configuration, then what each lever changed."""
+    header = ["config", "settings", "speedup", "≥ 2", "full s", "reduced s", "PRDP/full",
+              "its saved", "bound"]  # fmt: skip
+    rows = []
+    for name, config in report["configs"].items():
+        r = config["result"]
+        speed = r.get("speedup") or {}
+        ratio = r.get("prdp_ratio", {}).get("geometric_mean")
+        saved = (r.get("savings") or {}).get("iterations_saved", {}).get("mean")
+        bound = (speed.get("solver_bound") or {}).get("geometric_mean")
+        rows.append((name, report["levers"].get(name, "—"), _geo(speed),
+                     f"{speed.get('goal_met', 0)}/{speed.get('seeds', 0)}",
+                     _mean_seconds(r["per_seed"], "full_seconds"),
+                     _mean_seconds(r["per_seed"], "reduced_seconds"),
+                     "—" if ratio is None else f"{ratio:.3f}",
+                     "—" if saved is None else f"{100 * saved:.1f}%",
+                     "—" if bound is None else f"{bound:.2f}"))  # fmt: skip
     lines = [
         f"ablation of {report['scene']} --preset {report['preset']} over seeds "
         f"{', '.join(map(str, report['seeds']))}",
@@ -138,25 +124,8 @@ def format_ablation(report: dict) -> str:
         "times, mean over the seeds; its saved: PRDP's inner iterations saved against K_full "
         "(mean); bound: the fastest full run's wall time over its time outside the solver",
         "",
-        f"{'config':<10} {'settings':<28} {'speedup':>22} {'≥ 2':>6} {'full s':>7} "
-        f"{'reduced s':>9} {'PRDP/full':>9} {'its saved':>9} {'bound':>6}",
+        text_table(header, rows),
     ]
-    for name, config in report["configs"].items():
-        r = config["result"]
-        speed = r.get("speedup") or {}
-        settings = report["levers"].get(name, "—")
-        ratio = r.get("prdp_ratio", {}).get("geometric_mean")
-        saved = (r.get("savings") or {}).get("iterations_saved", {}).get("mean")
-        bound = (speed.get("solver_bound") or {}).get("geometric_mean")
-        lines.append(
-            f"{name:<10} {settings:<28} {_geo(speed):>22} "
-            f"{speed.get('goal_met', 0)}/{speed.get('seeds', 0):<4} "
-            f"{_mean_seconds(r['per_seed'], 'full_seconds'):>7} "
-            f"{_mean_seconds(r['per_seed'], 'reduced_seconds'):>9} "
-            f"{'—' if ratio is None else f'{ratio:.3f}':>9} "
-            f"{'—' if saved is None else f'{100 * saved:.1f}%':>9} "
-            f"{'—' if bound is None else f'{bound:.2f}':>6}"
-        )
     if report["effects"]:
         lines += ["", "each lever against the baseline, seed by seed (baseline time / lever time):"]
         for name, effect in report["effects"].items():

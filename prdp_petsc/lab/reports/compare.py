@@ -1,15 +1,15 @@
 """The pages of ``prdp-petsc compare`` and ``compare --seeds``: their two report kinds.
 
-The training harness (`prdp_petsc.lab.training.compare`, `prdp_petsc.lab.training.seeds`)
-writes ``summary.json`` and ``seeds.json`` and prints their tables; this module says what
-a results page of each shows and which figures reach the headline table.
+`prdp_petsc.lab.training.compare` and `prdp_petsc.lab.training.seeds` write
+``summary.json`` and ``seeds.json`` and print their tables; this module says what a
+page of each shows and which figures reach the headline table.
 """
 
 from __future__ import annotations
 
 from ..training.seeds import equal_accuracy_savings, format_seeds
 from ..training.summary import ACCURACY_RATIO, format_table
-from .kinds import DataSet, ReportKind, percent
+from .kinds import DataSet, ReportKind, interval, percent
 
 __all__ = ["COMPARE", "SEEDS"]
 
@@ -72,8 +72,6 @@ def _seeds_headline(ds: DataSet) -> list[tuple[str, str]]:
         rows[0] = (what, rows[0][1] + f"; solver-only bound {bound:.2f}×")
     ratio = d.get("prdp_ratio") or {}
     if ratio.get("geometric_mean") is not None:
-        interval = ratio.get("interval")
-        ci = "" if not interval else f" (95 % interval {interval[0]:.3f}–{interval[1]:.3f})"
         equal = equal_accuracy_savings(d["per_seed"])
         n = sum("prdp_ratio" in r for r in d["per_seed"])
         saved = (
@@ -85,7 +83,7 @@ def _seeds_headline(ds: DataSet) -> list[tuple[str, str]]:
         rows.append(
             (
                 f"{seeds}: PRDP's final validation error over full fidelity's",
-                f"{ratio['geometric_mean']:.3f}{ci}{saved}",
+                f"{ratio['geometric_mean']:.3f}{interval(ratio)}{saved}",
             )
         )
     return rows

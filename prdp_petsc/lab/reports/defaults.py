@@ -1,27 +1,25 @@
 """A shipped scene with PRDP's default construction beside its tuned settings.
 
 ``prdp-petsc defaults SCENE_FILE --preset P --seeds 0-2 --out DIR`` trains, per seed,
-full fidelity (constant K_full), the scene's tuned PRDP (schedule ``prdp``, its
-preset's ``k_init``, ``k_step``, ``tau_step``, ...) and the default construction
-(schedule ``auto``: ``PRDP.for_problem(K_full)`` with a gradient check, the scene's
-settings unused), and writes ``DIR/defaults.json``: every run's final validation
-error, inner iterations (forward and adjoint, the checks included), final K and
-certificate, and per schedule the geometric mean of the error ratios over full
-fidelity with the savings over the seeds at equal accuracy.
+full fidelity (constant K_full), the scene's tuned PRDP (schedule ``prdp``) and the
+default construction (schedule ``auto``: ``PRDP.for_problem(K_full)`` with a gradient
+check) and writes ``DIR/defaults.json``: every run's final validation error, inner
+iterations (checks included), final K and certificate, and per schedule the error ratios
+over full fidelity with the savings at equal accuracy.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
 from prdp_petsc import PRDP
 
-from .kinds import DataSet, ReportKind
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, interval, text_table
 
-__all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes"]
+__all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
 
 logger = logging.getLogger(__name__)
 
@@ -92,40 +90,48 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
 def format_defaults(result: dict, *, with_notes: bool = True) -> str:
     """The table ``prdp-petsc defaults`` prints: one row per seed, the summary, and
     (`with_notes`) what the rows mean (`notes`)."""
-    lines = [
-        f"{result['scene']} --preset {result['preset']}: full fidelity, tuned PRDP "
-        "(the preset's settings) and the default construction (PRDP.for_problem)",
-        f"{'seed':>4}{'K_full':>8}{'full error':>12}"
-        + "".join(f"{n + ' ratio':>15}{n + ' saved':>14}{n + ' K':>10}" for n in SCHEDULES),
-    ]
+    header = ["seed", "K_full", "full error"]
+    header += [f"{name} {column}" for name in SCHEDULES for column in ("ratio", "saved", "K")]
+    rows = []
     for row in result["per_seed"]:
-        cells = f"{row['seed']:>4}{row['k_full']:>8}{row['full']['final_val_error']:>12.4e}"
+        cells = [row["seed"], row["k_full"], f"{row['full']['final_val_error']:.4e}"]
         for name in SCHEDULES:
             r = row[name]
             if "ratio" not in r:
-                cells += f"{'stopped':>15}{'':>14}{'':>10}"
+                cells += ["stopped", "", ""]
                 continue
             mark = "" if r["certified"] is None else (" c" if r["certified"] else " !")
-            cells += f"{r['ratio']:>15.3f}{100 * r['saved']:>13.1f}%{r['k_final']:>8}{mark:>2}"
-        lines.append(cells)
-    for name in SCHEDULES:
-        s = result.get(name)
-        if s is None:
-            lines.append(f"{name}: no seed finished")
-            continue
-        ci = s["ratio"]["interval"]
-        interval = "" if not ci else f" (95 % interval {ci[0]:.3f}-{ci[1]:.3f})"
-        saved = s["saved_at_equal_accuracy"]
-        lines.append(
-            f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{interval}; "
-            f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
-            + (f", {fewer(saved)} there" if saved is not None else "")
-            + (f"; certified on {s['certified']}" if name == "default" else "")
-        )
+            cells += [f"{r['ratio']:.3f}", f"{100 * r['saved']:.1f}%", f"{r['k_final']}{mark}"]
+        rows.append(cells)
+    lines = [
+        f"{result['scene']} --preset {result['preset']}: full fidelity, tuned PRDP "
+        "(the preset's settings) and the default construction (PRDP.for_problem)",
+        text_table(header, rows),
+    ]
+    lines += [summary(result, name) for name in SCHEDULES]
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
     if with_notes:
         lines += notes(result)
     return "\n".join(lines)
+
+
+def summary(result: dict, name: str, *, detail: bool = True) -> str:
+    """What schedule `name` did over the seeds: its error ratio (with the interval where
+    `detail`) and the seeds at equal accuracy with what it saved there (and, where
+    `detail`, on how many the default construction certified its stop)."""
+    s = result.get(name)
+    if s is None:
+        return f"{name}: no seed finished"
+    ci = interval(s["ratio"]) if detail else ""
+    text = (
+        f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{ci}; "
+        f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
+    )
+    if s["saved_at_equal_accuracy"] is not None:
+        text += f", {fewer(s['saved_at_equal_accuracy'])} there"
+    if detail and name == "default":
+        text += f"; certified on {s['certified']}"
+    return text
 
 
 def fewer(saved: float) -> str:
@@ -182,8 +188,7 @@ def main(argv: list[str]) -> int:
     with torch_threads(args.threads):
         result = defaults(args.scene_file, args.preset, args.seeds, threads=args.threads,
                           out=args.out)  # fmt: skip
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "defaults.json").write_text(json.dumps(result, indent=1))
+    write_result(args.out, "defaults.json", result)
     print(format_defaults(result))
     return 0
 
@@ -191,19 +196,7 @@ def main(argv: list[str]) -> int:
 # -- the page of a recorded ``defaults`` ----------------------------------------------------------
 def _headline(ds: DataSet) -> list[tuple[str, str]]:
     d = ds.main
-    parts = []
-    for name in ("default", "tuned"):
-        s = d.get(name)
-        if s is None:
-            parts.append(f"{name}: no seed finished")
-            continue
-        saved = s["saved_at_equal_accuracy"]
-        parts.append(
-            f"{name} {s['ratio']['geometric_mean']:.3f} (equal accuracy on "
-            f"{s['equal_accuracy']} of {s['compared']}"
-            + (f", {fewer(saved)} there" if saved is not None else "")
-            + ")"
-        )
+    parts = [summary(d, name, detail=False) for name in ("default", "tuned")]
     what = (
         f"{d['scene']} --preset {d['preset']}, seeds {', '.join(map(str, d['seeds']))}: "
         "final error over full fidelity's, default construction (PRDP.for_problem) "

@@ -1,24 +1,12 @@
 """Memory and time of m-step training against m (`prdp_petsc.lab.training.unroll`).
 
 ``prdp-petsc horizon SCENE_FILE --preset P --m 2 4 8 16 --k K --out DIR`` trains the
-scene with ``unroll = m`` (the scene's preset key) for ``--epochs`` epochs at a fixed
-``max_it = K`` for every m, with and without activation checkpointing (the preset key
-``checkpoint``), each in a fresh process, and writes ``DIR/horizon.json``:
-per (m, checkpoint) the wall time of each epoch, the time per unrolled step
-(epoch time over windows × m), and three memory figures:
-
-``rss_at_start_mb``
-    The resident size when training starts (data, operators, network: the same
-    for every m).
-``peak_rss_mb``
-    The peak resident size while training (Linux ``VmHWM``, reset when training
-    starts, so that building the data does not count).
-``saved_tensors_mb``
-    The largest number of bytes autograd kept for one batch's backward pass
-    (`prdp_petsc.lab.training.unroll.SavedTensorMeter`).
-
-One torch thread per process.  Timings compare rows of one report on an otherwise
-idle machine (the record keeps the load average).
+scene with ``unroll = m`` for ``--epochs`` epochs at a fixed ``max_it = K``, with and
+without activation checkpointing (preset key ``checkpoint``), each row in a fresh process
+with one torch thread, and writes ``DIR/horizon.json``: per row the epoch times, the time
+per unrolled step, the resident size when training starts, its peak while training
+(``VmHWM``, reset at the start) and the most bytes autograd kept for one batch's backward
+pass (`prdp_petsc.lab.training.unroll.SavedTensorMeter`).
 """
 
 from __future__ import annotations
@@ -33,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.arguments import add_debug, positive
-from .kinds import DataSet, ReportKind
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, text_table
 from .memory import peak_rss_mb, reset_peak
 
 __all__ = ["KIND", "format_horizon_report", "horizon_row", "main"]
@@ -83,20 +72,17 @@ def horizon_row(scene_file: str, preset: str, m: int, *, checkpoint: bool, k: in
 
 def format_horizon_report(report: dict) -> str:
     """The report as the table the command prints."""
-    lines = [
-        f"{report['scene']} {report['preset']}, K = {report['k']}, one thread",
-        f"{'m':>3} {'ckpt':>5} {'windows':>7} {'s/epoch':>8} {'ms/step':>8} "
-        f"{'RSS start':>9} {'peak RSS':>9} {'growth':>7} {'saved MB':>9}",
-    ]
-    for r in report["rows"]:
-        growth = r["peak_rss_mb"] - r["rss_at_start_mb"]
-        lines.append(
-            f"{r['m']:>3} {'yes' if r['checkpoint'] else 'no':>5} {r['windows']:>7} "
-            f"{float(np.median(r['epoch_seconds'])):>8.2f} {1e3 * r['seconds_per_step']:>8.2f} "
-            f"{r['rss_at_start_mb']:>9.0f} {r['peak_rss_mb']:>9.0f} {growth:>7.0f} "
-            f"{r['saved_tensors_mb']:>9.2f}"
-        )
-    return "\n".join(lines)
+    header = ["m", "ckpt", "windows", "s/epoch", "ms/step", "RSS start", "peak RSS", "growth",
+              "saved MB"]  # fmt: skip
+    rows = [
+        (r["m"], "yes" if r["checkpoint"] else "no", r["windows"],
+         f"{float(np.median(r['epoch_seconds'])):.2f}", f"{1e3 * r['seconds_per_step']:.2f}",
+         f"{r['rss_at_start_mb']:.0f}", f"{r['peak_rss_mb']:.0f}",
+         f"{r['peak_rss_mb'] - r['rss_at_start_mb']:.0f}", f"{r['saved_tensors_mb']:.2f}")
+        for r in report["rows"]
+    ]  # fmt: skip
+    title = f"{report['scene']} {report['preset']}, K = {report['k']}, one thread"
+    return title + "\n" + text_table(header, rows)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -122,8 +108,6 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    if min(args.m) < 1 or args.k < 1 or args.epochs < 1:
-        parser.error("--m, --k and --epochs must be >= 1")
     if args.worker:  # one row in this process: peak memory is per process
         row = horizon_row(
             args.scene, args.preset, args.m[0], checkpoint=not args.no_checkpoint, k=args.k,
@@ -146,9 +130,7 @@ def main(argv: list[str]) -> int:
     report = {"scene": Path(args.scene).name, "preset": args.preset, "k": args.k, "rows": rows}
     print(format_horizon_report(report))
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "horizon.json").write_text(json.dumps(report, indent=1))
+        write_result(args.out, "horizon.json", report)
     return 0
 
 

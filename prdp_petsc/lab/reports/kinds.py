@@ -1,12 +1,9 @@
 """A kind of recorded data set, and what its page says: one `ReportKind` per kind.
 
-Each report module declares the kind of data set its command records beside the code
-that prints it (``KIND = ReportKind(...)`` in `prdp_petsc.lab.reports.bench_jax`, next
-to its ``format_report``).  `prdp_petsc.lab.reports.pages` collects every `ReportKind`
-of this package, reads the data sets under ``docs/data/`` into `DataSet` objects and
-renders each page from the template ``templates/page.md.j2``: the title, the
-provenance table, then the kind's intro, its output, what comes after and the plots.
-Adding a kind is one module.
+Each report module declares its kind beside the code that prints it (``KIND =
+ReportKind(...)``); `prdp_petsc.lab.reports.pages` collects them, reads the data sets
+under ``docs/data/`` into `DataSet` objects and renders each page from
+``templates/page.md.j2``.  Adding a kind is one module.
 """
 
 from __future__ import annotations
@@ -15,7 +12,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from fnmatch import fnmatch
 
-__all__ = ["DataSet", "ReportKind", "markdown_table", "percent"]
+__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "text_table"]
 
 
 def _nothing(ds: DataSet) -> list[str]:
@@ -31,27 +28,19 @@ class ReportKind:
     name : str
         The kind's name (``"bench-jax"``).
     reads : str
-        The JSON file a data set of this kind is made from (``"bench_jax.json"``), or
-        a pattern (``"work_precision_*.json"``); a recorded folder holds the file of
-        exactly one kind.
-    title : callable
-        ``title(ds) -> str``: the page's title, also its row on the index.
-    headline : callable
-        ``headline(ds) -> [(what, figure), ...]``: the data set's rows in the headline
-        table of the index; the README shows the first row of a few data sets.
+        The JSON file (or pattern, ``"work_precision_*.json"``) a data set of this kind is
+        made from; a recorded folder holds the file of exactly one kind.
+    title, headline : callable
+        ``title(ds)``: the page's title, also its row on the index; ``headline(ds)``:
+        ``[(what, figure), ...]``, its rows in the index's headline table (the README
+        shows the first row of a few data sets).
     intro : str or callable
-        The paragraphs before the output, or ``intro(ds) -> str`` where they depend
-        on the data.
+        The paragraphs before the output (or ``intro(ds)``).
     output : callable
-        ``output(ds) -> str``: the table the command printed, or a Markdown table.
-    printed : bool
-        True (default): `output` is printed text, shown in a ``text`` block; False:
-        it is Markdown.
-    snippet : bool
-        Mark the printed block as the snippet section ``output``, for pages that
-        include it (``--8<-- "results/heat2d.md:output"``).
+        ``output(ds)``: printed text, in a ``text`` block (`printed`; `snippet` marks it
+        as the section ``output`` that other pages include), or Markdown.
     after : callable
-        ``after(ds) -> [block, ...]``: paragraphs, tables and headings after the output.
+        ``after(ds)``: paragraphs, tables and headings after the output.
     images : str
         The heading above the data set's plots, if it has any ("" for none).
     """
@@ -85,21 +74,10 @@ class ReportKind:
 
 @dataclass
 class DataSet:
-    """One recorded data set: its name, kind, provenance and parsed JSON files.
-
-    Attributes
-    ----------
-    name : str
-        Folder name under ``docs/data``; also the page's file name.
-    kind : ReportKind
-        What the data set is, from the file it holds (`ReportKind.reads`).
-    provenance : dict
-        ``provenance.json`` as `prdp_petsc.lab.reports.record` wrote it.
-    files : dict
-        File name -> parsed JSON of every other file of the folder.
-    images : list of str
-        PNG files of the data set under ``docs/images/<name>/``.
-    """
+    """One recorded data set: its folder ``name`` under ``docs/data`` (also its page's
+    name), its `kind`, ``provenance.json`` (`prdp_petsc.lab.reports.record`), every other
+    JSON file of the folder parsed (`files`, by name) and its PNG files under
+    ``docs/images/<name>/`` (`images`)."""
 
     name: str
     kind: ReportKind
@@ -118,17 +96,36 @@ class DataSet:
         return self.files[self.main_file]
 
 
+def text_table(header: Sequence[str], rows: Iterable[Sequence]) -> str:
+    """A plain-text table (pandas `DataFrame.to_string`) of `rows`, sequences of cells
+    written as they are, under `header`: what a command prints."""
+    import pandas as pd
+
+    cells = [[str(cell) for cell in row] for row in rows]
+    if not cells:
+        return "  ".join(header)
+    return pd.DataFrame(cells, columns=list(header)).to_string(index=False)
+
+
+def interval(stats: dict, spec: str = ".3f") -> str:
+    """`` (95 % interval 1.62–2.71)`` of the ``interval`` of `stats`
+    (`prdp_petsc.lab.training.seeds.ratio_statistics`), "" where it has none."""
+    ci = stats.get("interval")
+    return f" (95 % interval {ci[0]:{spec}}–{ci[1]:{spec}})" if ci else ""
+
+
 def percent(value: float) -> str:
     """``0.4567`` -> ``45.7 %``."""
     return f"{100 * value:.1f} %"
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence], align: str = "") -> str:
-    """A Markdown table: `header`, then one line per row of `rows` (sequences of
-    cells); `align` has one letter per column, ``l`` (the default) or ``r``."""
-    rule = "|" + "|".join("---:" if a == "r" else "---" for a in align.ljust(len(header), "l"))
-    return "\n".join([_cells(header), rule + "|", *map(_cells, rows)])
+    """A Markdown table (pandas `DataFrame.to_markdown`): `header`, then one line per row
+    of `rows` (sequences of cells, written as they are); `align` has one letter per
+    column, ``l`` (the default) or ``r``."""
+    import pandas as pd
 
-
-def _cells(cells: Sequence) -> str:
-    return "| " + " | ".join(map(str, cells)) + " |"
+    cells = [[str(cell) for cell in row] for row in rows]
+    sides = ["right" if a == "r" else "left" for a in align.ljust(len(header), "l")]
+    frame = pd.DataFrame(cells, columns=list(header))
+    return frame.to_markdown(index=False, disable_numparse=True, colalign=sides)

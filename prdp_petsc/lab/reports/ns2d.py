@@ -1,11 +1,8 @@
 """The report commands of the Navier–Stokes corrector scene (``demos/ns2d.py``).
 
-``prdp-petsc scene demos/ns2d.py adjoint ...`` (`adjoint_report`): what the physics
-gradient costs and changes on one training batch; ``... energy RUN_FOLDER ...``
-(`energy_report`): error, energy and correlation per step of a trained run's held-out
-rollout.  Each function takes the scene module (``load_scene("demos/ns2d.py")``) and
-uses its ``setup`` (data, solvers and corrector of a preset) and ``hybrid_loss``; the
-scene file declares the commands with ``COMMANDS = commands(<the scene module>)``.
+``prdp-petsc scene demos/ns2d.py adjoint ...`` (`adjoint_report`) and ``... energy
+RUN_FOLDER ...`` (`energy_report`).  The functions take the scene module and use its
+``setup`` and ``hybrid_loss``; the scene declares ``COMMANDS = commands(<its module>)``.
 """
 
 from __future__ import annotations
@@ -21,6 +18,7 @@ import torch
 import prdp_petsc as pp
 
 from ..training.scene import preset_config
+from .kinds import text_table
 
 __all__ = [
     "adjoint_report",
@@ -36,20 +34,12 @@ def adjoint_report(
 ) -> dict:
     """What the physics gradient costs and changes, on one training batch of `preset`.
 
-    The corrector is first trained for `warmup` batches (K = 64, so that every layer
-    has a gradient: the untrained projection is zero).  Then, on the first of those
-    batches again, the 2-step loss is differentiated with the solver at each K of
-    `ks` (forward and adjoint K iterations), converged (forward and adjoint to rtol
-    1e-8, the adjoint relative to its own right-hand side), and converged but
-    detached (no physics gradient, what the reference effectively trains with).
-
-    Returns
-    -------
-    dict
-        Per case: forward and adjoint iterations and seconds, the adjoint/forward
-        time ratio, and the relative distance of the network gradient from the
-        converged one (``rel_to_converged``) and from the detached one
-        (``rel_to_detached``), and the cosine with the converged one.
+    The corrector is first trained for `warmup` batches at K = 64 (the untrained
+    projection is zero); then the 2-step loss of the first batch is differentiated with
+    the solver at each K of `ks`, converged (forward and adjoint to rtol 1e-8), and
+    converged but detached (no physics gradient).  Per case: iterations and seconds
+    forward and adjoint, and the network gradient's relative distance from the
+    converged and the detached one and its cosine with the converged one.
     """
     torch.manual_seed(seed)
     config = preset_config(scene, preset)  # "paper n=32": a preset, changed
@@ -102,31 +92,25 @@ def adjoint_report(
 
 def format_adjoint_report(report: dict) -> str:
     """The `adjoint_report` as a table."""
-    head = (
-        f"{'case':<10} {'fwd its':>8} {'adj its':>8} {'fwd s':>7} {'adj s':>7} "
-        f"{'adj/fwd':>7} {'|g-g_conv|':>10} {'|g-g_det|':>9} {'cos':>6}"
-    )
-    lines = [f"preset {report['preset']}, batch {report['batch']}", head]
-    for name, r in report["cases"].items():
-        lines.append(
-            f"{name:<10} {r['fwd_iterations']:>8} {r['adj_iterations']:>8} "
-            f"{r['fwd_seconds']:>7.2f} {r['adj_seconds']:>7.2f} {r['adj_over_fwd_time']:>7.2f} "
-            f"{r['rel_to_converged']:>10.3e} {r['rel_to_detached']:>9.3e} "
-            f"{r['cosine_to_converged']:>6.3f}"
-        )
-    return "\n".join(lines)
+    header = ["case", "fwd its", "adj its", "fwd s", "adj s", "adj/fwd", "|g-g_conv|",
+              "|g-g_det|", "cos"]  # fmt: skip
+    rows = [
+        (name, r["fwd_iterations"], r["adj_iterations"], f"{r['fwd_seconds']:.2f}",
+         f"{r['adj_seconds']:.2f}", f"{r['adj_over_fwd_time']:.2f}",
+         f"{r['rel_to_converged']:.3e}", f"{r['rel_to_detached']:.3e}",
+         f"{r['cosine_to_converged']:.3f}")
+        for name, r in report["cases"].items()
+    ]  # fmt: skip
+    return f"preset {report['preset']}, batch {report['batch']}\n" + text_table(header, rows)
 
 
 def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> dict:
     """Error, energy and correlation per step of a trained run's held-out rollout.
 
-    Loads the run in `folder` (`prdp_petsc.lab.training.harness.load_trained`), rebuilds
-    its validation flows and rolls them out with the full-fidelity solver, with and
-    without the corrector.  Per step t and flow: the normalised velocity error, the
-    energy ratio ‖(û, v̂)‖/‖(u, v)‖ against the reference, and the correlation
-    ⟨(û, v̂), (u, v)⟩/(‖(û, v̂)‖‖(u, v)‖), averaged over the flows.  The error
-    mixes amplitude (energy) and phase (correlation): a diffusive solver loses energy
-    but stays in phase; a corrector that restores energy can lose phase faster.
+    Rolls the validation flows of the run in `folder` out with the full-fidelity solver,
+    with and without its corrector; per step, averaged over the flows: the normalised
+    velocity error, the energy ratio ‖(û, v̂)‖/‖(u, v)‖ and the correlation
+    ⟨(û, v̂), (u, v)⟩/(‖(û, v̂)‖‖(u, v)‖) against the reference.
     """
     from ..training.building import release
     from ..training.checkpoint import load_trained
@@ -173,20 +157,16 @@ def energy_report(scene: ModuleType, folder: str, steps: int | None = None) -> d
 
 
 def format_energy_report(report: dict, marks=(1, 10, 20, 30, 40, 50)) -> str:
-    """`energy_report` at a few steps, as a table."""
+    """`energy_report` at a few steps, as a table (``(none)``: without the corrector)."""
     c, u = report["corrected"], report["uncorrected"]
-    lines = [
-        report["folder"],
-        f"{'step':>4} {'error':>7} {'(none)':>7} {'energy':>7} {'(none)':>7} "
-        f"{'corr':>7} {'(none)':>7}",
-    ]
-    for t in (m for m in marks if m <= len(c["error"])):
-        i = t - 1
-        lines.append(
-            f"{t:>4} {c['error'][i]:>7.3f} {u['error'][i]:>7.3f} {c['energy'][i]:>7.3f} "
-            f"{u['energy'][i]:>7.3f} {c['correlation'][i]:>7.3f} {u['correlation'][i]:>7.3f}"
-        )
-    return "\n".join(lines)
+    header = ["step", "error", "(none)", "energy", "(none)", "corr", "(none)"]
+    rows = [
+        (t, *(f"{curve[key][t - 1]:.3f}" for key in ("error", "energy", "correlation")
+              for curve in (c, u)))
+        for t in marks
+        if t <= len(c["error"])
+    ]  # fmt: skip
+    return report["folder"] + "\n" + text_table(header, rows)
 
 
 def commands(scene: ModuleType) -> dict[str, Callable]:

@@ -1,10 +1,8 @@
 """The plot command of the coefficient-recovery scene (``demos/poisson_field.py``).
 
 ``prdp-petsc scene demos/poisson_field.py plot --preset paper --out fields.png``
-recovers κ with PRDP (`recover`) and draws it against the true κ (`plot_fields`).
-The functions take the scene module (``load_scene("demos/poisson_field.py")``) and use
-its ``true_kappa``; the scene file declares the command with
-``COMMANDS = commands(<the scene module>)``.
+recovers κ with PRDP (`recover`) and draws it against the scene's ``true_kappa``
+(`plot_fields`); the scene declares ``COMMANDS = commands(<its module>)``.
 """
 
 from __future__ import annotations

@@ -1,13 +1,4 @@
-"""Recording a run's data for the results pages: ``prdp-petsc pages record``.
-
-``prdp-petsc pages record NAME -- COMMAND ...`` runs ``prdp-petsc COMMAND ...``
-(which names its output folder with ``--out DIR``), then copies the JSON files it
-wrote at the top of DIR into ``docs/data/NAME/`` and its PNG files into
-``docs/images/NAME/``, with ``provenance.json``: the command line, start time, wall
-time, exit status, git commit (and the files that differed from it), machine
-(platform, CPU, cores, load average before and after) and the installed versions of
-the packages.  `prdp_petsc.lab.reports.pages` makes the pages from what is recorded.
-"""
+"""Recording a run's data for the results pages: ``prdp-petsc pages record``."""
 
 from __future__ import annotations
 
@@ -56,27 +47,13 @@ def record(
 ) -> int:
     """Run ``prdp-petsc COMMAND``; keep its JSON and plots under `data` and `images`.
 
-    Parameters
-    ----------
-    name : str
-        Name of the data set: folder ``data/name`` (lower case, digits, ``_``, ``-``).
-    command : list of str
-        Arguments of ``prdp-petsc``, e.g. ``["bench", "bridge", "--out", "DIR"]``;
-        must contain ``--out DIR``.
-    data, images : str or Path
-        Where the JSON files (with ``provenance.json``) and the PNG files go.  The
-        data set's old files there are removed first.
-
-    Returns
-    -------
-    int
-        The command's exit status; nothing is copied unless it is 0.
-
-    Notes
-    -----
-    Only files that the command wrote (new, or changed while it ran) at the top of
-    its ``--out`` folder are copied: a run's own sub-folders (``compare``'s one
-    ``results.json`` per schedule) and files left by earlier runs are not.
+    `command` (the arguments of ``prdp-petsc``) must name its output folder with
+    ``--out DIR``.  Only the files it wrote (new, or changed while it ran) at the top of
+    DIR are copied: JSON files into ``data/name/`` with ``provenance.json`` (command
+    line, start and wall time, exit status, git commit and changed files, machine with
+    load average before and after, package versions), PNG files into ``images/name/``;
+    the data set's old files there are removed first.  Returns the command's exit
+    status; nothing is copied unless it is 0.
     """
     if not _NAME.match(name):
         raise ValueError(f"data set name {name!r}: use lower case letters, digits, _ and -")

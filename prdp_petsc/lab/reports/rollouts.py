@@ -1,26 +1,12 @@
 """Long rollouts side by side: trained correctors against each other and the solver alone.
 
-``prdp-petsc rollouts --run NAME=DIR[,DIR...] ... --out OUT`` reads the
-``results.json`` of finished runs (one folder per seed, the same seeds for every
-NAME, e.g. ``--run sol=results/long/s0,results/long/s1``) and writes
-``OUT/rollouts.json`` and ``OUT/rollouts.png``:
-
-``runs``
-    Per NAME: the per-step error of the held-out rollout per seed (``rollout``),
-    its geometric mean over the seeds per step, the wall time, the inner iterations
-    (forward + adjoint), on how many seeds the run's error stayed below the
-    uncorrected solver's at every step (``below_uncorrected_every_step``), and each
-    run's command line and commit (``made_by``).
-``uncorrected``
-    The rollout of the solver alone per seed (``uncorrected_rollout``; every run of
-    a seed recorded the same one: checked).
-``ratios``
-    For each pair (NAME, REFERENCE) of ``--ratio NAME/REFERENCE``: the error ratio
-    at ``--step`` (default the last) per seed, and its geometric mean with the 95 %
-    Student-t interval (`prdp_petsc.lab.training.seeds.ratio_statistics`), and likewise
-    the ratios of inner iterations and of wall time.
-
-The plot draws every NAME's geometric-mean curve and the uncorrected solver's.
+``prdp-petsc rollouts --run NAME=DIR[,DIR...] ... [--ratio NAME/REFERENCE] --out OUT``
+reads the ``results.json`` of finished runs (one folder per seed, the same seeds for
+every NAME) and writes ``OUT/rollouts.json`` (`rollout_report`: per NAME the per-step
+rollout error per seed and its geometric mean, wall time, inner iterations, on how many
+seeds it stayed below the uncorrected solver at every step, and what made each run; per
+``--ratio`` the ratios of error at ``--step``, iterations and wall time per seed with
+their geometric mean and 95 % interval) and ``OUT/rollouts.png`` (the mean curves).
 """
 
 from __future__ import annotations
@@ -32,9 +18,11 @@ import math
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import gmean
 
+from ..provenance import write_result
 from ..training.seeds import ratio_statistics
-from .kinds import DataSet, ReportKind
+from .kinds import DataSet, ReportKind, interval, text_table
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
@@ -49,7 +37,8 @@ def _load(folder: Path) -> dict:
 
 
 def _geomean(rows: list) -> list[float]:
-    return np.exp(np.log(np.asarray(rows, dtype=float)).mean(axis=0)).tolist()
+    """The geometric mean over the seeds (rows) at every step."""
+    return gmean(np.asarray(rows, dtype=float), axis=0).tolist()
 
 
 def rollout_report(runs: dict[str, list[Path]], ratios: list[tuple[str, str]], step=None):
@@ -119,25 +108,23 @@ def format_rollout_report(report: dict) -> str:
     """The report as the tables the command prints."""
     at = report["step"]
     marks = sorted({1, 5, 10, 20, 30, 40, at} & set(range(1, report["steps"] + 1)))
-    lines = [f"rollout error (geometric mean over seeds) at step {marks}:"]
-    rows = dict(report["runs"])
+    runs = dict(report["runs"])
     if "uncorrected" in report:
-        rows = {"uncorrected": report["uncorrected"], **rows}
-    width = max(len(n) for n in rows)
-    for name, entry in rows.items():
-        values = " ".join(f"{entry['geometric_mean'][s - 1]:7.3f}" for s in marks)
-        below = entry.get("below_uncorrected_every_step")
-        seeds = len(entry["rollout"])
-        tail = "" if below is None else f"   below uncorrected at every step: {below}/{seeds}"
-        lines.append(f"  {name:<{width}} {values}{tail}")
+        runs = {"uncorrected": report["uncorrected"], **runs}
+    rows = [
+        (name, *(f"{entry['geometric_mean'][s - 1]:.3f}" for s in marks),
+         "—" if "below_uncorrected_every_step" not in entry
+         else f"{entry['below_uncorrected_every_step']}/{len(entry['rollout'])}")
+        for name, entry in runs.items()
+    ]  # fmt: skip
+    header = ["run", *(f"step {s}" for s in marks), "below uncorrected at every step"]
+    lines = ["rollout error (geometric mean over seeds):", text_table(header, rows)]
     for pair, stats in report["ratios"].items():
-        lines.append(f"{pair} (per seed; geometric mean [95 % interval]):")
+        lines.append(f"{pair} (per seed; geometric mean):")
         for key, s in stats.items():
-            interval = s["interval"]
-            ci = "" if interval is None else f" [{interval[0]:.3f}, {interval[1]:.3f}]"
             label = f"error at step {at}" if key == "error" else key
             per = ", ".join(f"{v:.3f}" for v in s["per_seed"])
-            lines.append(f"  {label:<18} {per}  ->  {s['geometric_mean']:.3f}{ci}")
+            lines.append(f"  {label:<18} {per}  ->  {s['geometric_mean']:.3f}{interval(s)}")
     return "\n".join(lines)
 
 
@@ -199,9 +186,7 @@ def main(argv: list[str]) -> int:
             parser.error(f"--ratio expects NAME/REFERENCE, got {spec!r}")
         ratios.append((name, reference))
     report = rollout_report(runs, ratios, args.step)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "rollouts.json").write_text(json.dumps(report, indent=1, allow_nan=False))
+    out = write_result(args.out, "rollouts.json", report).parent
     rollouts_figure(report).savefig(out / "rollouts.png")
     print(format_rollout_report(report))
     return 0 if all(math.isfinite(e["geometric_mean"][-1]) for e in report["runs"].values()) else 1
@@ -223,12 +208,10 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
             )
     for pair, stats in d["ratios"].items():
         e = stats["error"]
-        interval = e["interval"]
-        ci = "" if interval is None else f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})"
         out.append(
             (
                 f"{ds.name}: error ratio {pair} at rollout step {d['step']}",
-                f"{e['geometric_mean']:.3f}{ci}, {e['n']} seeds",
+                f"{e['geometric_mean']:.3f}{interval(e, '.2f')}, {e['n']} seeds",
             )
         )
     return out

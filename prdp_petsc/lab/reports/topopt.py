@@ -1,30 +1,26 @@
-"""The topology-optimisation comparison (``demos/topopt3d.py results``) and its table.
+"""The topology-optimisation comparison (``demos/topopt3d.py results``) and its page.
 
-``prdp-petsc scene demos/topopt3d.py results`` (`results`, `commands`) writes
-``topopt.json``: per load case, each route (converged solves, constant K, PRDP's
-default construction with its gradient check, the ``rtol`` schedule) with the
-compliance of its final design scored by a converged solve (`scored`), its inner
-iterations (forward + adjoint, checks included), wall time and the time at which its
-design first came within 1 % of the converged route's final compliance; and a picture
-of the designs (`plot_designs`).  This module also formats it for the command's
-output and the results page.  The functions that run the scene take the scene module
-(``load_scene("demos/topopt3d.py")``) and use its ``Cantilever``, ``simp``,
-``load_case`` and ``PRESETS``.
+``prdp-petsc scene demos/topopt3d.py results`` (`commands`, `results`) writes
+``topopt.json``: per load case and route (converged solves, constant K, PRDP's default
+construction, the ``rtol`` schedule) the compliance of the final design scored by a
+converged solve (`scored`), inner iterations (checks included), wall time and the time
+its design first came within 1 % of the converged route's; and a picture of the designs
+(`plot_designs`).  The functions take the scene module and use its ``Cantilever``,
+``simp``, ``load_case`` and ``PRESETS``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Callable
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import torch
 
 from ..cli import arguments
-from .kinds import DataSet, ReportKind, percent
+from ..provenance import write_result
+from .kinds import DataSet, ReportKind, percent, text_table
 from .trained import train_and_keep
 
 __all__ = [
@@ -49,24 +45,21 @@ TARGET_SAVED = 0.5
 
 def format_results(data: dict) -> str:
     """One line per load case and route."""
-    lines = [
-        f"{'case':>4} {'z_c':>4} {'route':<12} {'C final':>10} {'C/C_conv':>8} {'inner its':>9} "
-        f"{'saved':>6} {'wall s':>7} {'t→1% s':>7} {'K final':>7}"
-    ]
+    header = ["case", "z_c", "route", "C final", "C/C_conv", "inner its", "saved", "wall s",
+              "t→1% s", "K final"]  # fmt: skip
+    rows = []
     for case in data["cases"]:
         for label, r in case["routes"].items():
-            head = f"{case['seed']:>4} {case['load_height']:>4} {label:<12}"
+            head = (case["seed"], case["load_height"], label)
             if "compliance" not in r:
-                lines.append(f"{head} stopped at epoch {r['stopped']['epoch']}: "
-                             f"{r['stopped']['reason']}")  # fmt: skip
+                stopped = f"stopped at epoch {r['stopped']['epoch']}: {r['stopped']['reason']}"
+                rows.append((*head, stopped, *[""] * 6))
                 continue
             t = "—" if r["time_to_1pct"] is None else f"{r['time_to_1pct']:.2f}"
-            k_final = "conv" if label == "converged" else str(r["ks"][-1])
-            lines.append(
-                f"{head} {r['compliance']:>10.5g} {r['ratio']:>8.4f} {r['iterations']:>9d} "
-                f"{100 * r['saved']:>5.1f}% {r['wall_time']:>7.2f} {t:>7} {k_final:>7}"
-            )
-    return "\n".join(lines)
+            rows.append((*head, f"{r['compliance']:.5g}", f"{r['ratio']:.4f}", r["iterations"],
+                         f"{100 * r['saved']:.1f}%", f"{r['wall_time']:.2f}", t,
+                         "conv" if label == "converged" else r["ks"][-1]))  # fmt: skip
+    return text_table(header, rows)
 
 
 def target_met(data: dict, route: str = "PRDP (auto)") -> list[bool]:
@@ -83,21 +76,17 @@ def spread(data: dict) -> str | None:
     """A sentence on routes whose design beat the converged one by more than the target,
     read off the data (None where none did): SIMP is not convex, so a route's path
     decides which local optimum its design ends in."""
-    better = [
-        (case["seed"], label, r["ratio"])
-        for case in data["cases"]
-        for label, r in case["routes"].items()
-        if label != "converged" and "ratio" in r and r["ratio"] < 2 - TARGET_RATIO
-    ]
-    if not better:
-        return None
-    worst = max(
+    others = [
         (r["ratio"], case["seed"], label)
         for case in data["cases"]
         for label, r in case["routes"].items()
         if label != "converged" and "ratio" in r
-    )
-    listed = ", ".join(f"{label} on case {seed} ({ratio:.3f})" for seed, label, ratio in better)
+    ]
+    better = [(ratio, seed, label) for ratio, seed, label in others if ratio < 2 - TARGET_RATIO]
+    if not better:
+        return None
+    worst = max(others)
+    listed = ", ".join(f"{label} on case {seed} ({ratio:.3f})" for ratio, seed, label in better)
     return (
         f"Some routes ended *better* than the converged one by more than the target: "
         f"{listed}; the largest ratio is {worst[0]:.3f} ({worst[2]} on case {worst[1]}). "
@@ -249,9 +238,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
         def run_results(args: argparse.Namespace) -> int:
             data = results(scene, args.preset, args.seeds, args.k)
-            out = Path(args.out)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / "topopt.json").write_text(json.dumps(data, indent=1))
+            out = write_result(args.out, "topopt.json", data).parent
             plot_designs(scene, data, out / "designs.png")
             print(format_results(data))
             return 0

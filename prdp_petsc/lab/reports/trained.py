@@ -14,18 +14,8 @@ __all__ = ["train_and_keep"]
 def train_and_keep(
     scene: ModuleType, schedule: str, *, preset: str = "quick", seed: int = 0
 ) -> tuple[dict, Scene]:
-    """One `prdp_petsc.lab.training.harness.run` of the scene module `scene` (a loaded
-    scene file, `prdp_petsc.lab.training.scene.load_scene`), without progress bars or
-    output folder.
-
-    Returns
-    -------
-    record : dict
-        What ``run`` returns (the ``results.json`` record).
-    trained : Scene
-        The scene the run built and trained, with its trained parameters and whatever
-        the scene's ``build`` attached to it.
-    """
+    """One `prdp_petsc.lab.training.harness.run` of the loaded scene module `scene`, without
+    progress bars or output folder: its record, and the scene it built and trained."""
     scenes = []
 
     def build_and_keep(config, seed):
