@@ -1,4 +1,4 @@
-"""prdp_petsc on one GPU against jax, lineax and a hand-written torch CG, fwd + bwd.
+"""prdp_petsc on one GPU (or the CPU) against jax, lineax and a torch CG, fwd + bwd.
 
 ``prdp-petsc bench gpu --out DIR`` (or ``python -m prdp_petsc.lab.reports.bench_gpu``,
 PETSc options then through ``PETSC_OPTIONS``) writes ``DIR/bench_gpu.json``: every
@@ -12,9 +12,11 @@ note): ``prdp_petsc``, ``pp.solve`` with ``vec_type cuda, mat_type aijcusparse``
 (the adjoint by ``KSPSolve``, or ``KSPSolveTranspose``); each ``_sr`` with
 ``ksp_cg_single_reduction``; ``jax_cg`` and ``lineax_cg``, ``jax.jit(jax.grad)`` of
 their CG; ``torch_pcg``, `pcg` twice.  PETSc options reach each one's KSP by its prefix
-(``-prdp_petsc_ksp_view``).
+(``-prdp_petsc_ksp_view``).  On the CPU with ``--threads 1``, XLA runs on one thread too.
+``prdp-petsc bench jax`` (`prdp_petsc.lab.reports.bench_jax`) is this on the CPU at the
+sizes of the JAX comparison.
 
-Per (problem, K): medians over ``--rounds`` paired rounds in rotating order, ratios
+Per (problem, K): medians over ``--rounds`` paired rounds (`interleaved`), ratios
 within each round (median, IQR/median as ``noise``), x and the gradient against
 prdp_petsc's; prdp_petsc's GPU path against its CPU path at K = 10; on
 ``--tol-problems`` the smallest K whose gradient is within ``--tol`` of the reference
@@ -48,7 +50,9 @@ import prdp_petsc as pp
 
 from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import cpu, machine, provenance, versions, write_result
+from .benchmarking import interleaved, summary
 from .kinds import DataSet, ReportKind, markdown_table
+from .problems import five_point
 
 __all__ = ["CONTENDERS", "KIND", "format_report", "main", "problem", "verdicts"]
 
@@ -93,17 +97,27 @@ def _interior(basis, dt: float | None = None) -> sp.csr_matrix:
     return A
 
 
+def square(side: int) -> sp.csr_matrix:
+    """The five-point ``−Δ`` on a side × side grid (`five_point`; ``bench jax``'s problem)."""
+    return five_point(side)[0]
+
+
 #: a ``--problems`` name's stem -> (its label in the tables, its matrix of a size)
-PROBLEMS = {"lshape": ("L-shape P1", lshape), "heat3d": ("3D heat step P1", heat_step)}
+PROBLEMS = {
+    "lshape": ("L-shape P1", lshape),
+    "heat3d": ("3D heat step P1", heat_step),
+    "five_point": ("5-point -Δ", square),
+}
 
 
 def problem(name: str) -> tuple[str, Callable[[], sp.csr_matrix]]:
     """The label and the matrix builder a ``--problems`` name stands for."""
-    m = re.fullmatch(r"(lshape|heat3d)(\d+)", name)
+    m = re.fullmatch(r"(lshape|heat3d|five_point)(\d+)", name)
     if m is None or (m[1] == "heat3d" and int(m[2]) < 3):
         raise argparse.ArgumentTypeError(
-            f"unknown problem {name!r}: lshape<refinements> (lshape6: 12 033 unknowns) or "
-            "heat3d<points per axis> (heat3d41: 59 319)"
+            f"unknown problem {name!r}: lshape<refinements> (lshape6: 12 033 unknowns), "
+            "heat3d<points per axis> (heat3d41: 59 319) or five_point<side> (five_point110: "
+            "12 100)"
         )
     label, matrix = PROBLEMS[m[1]]
     return label, partial(matrix, int(m[2]))
@@ -414,11 +428,6 @@ def _rel(a: np.ndarray, ref: np.ndarray) -> float:
     return float(np.abs(a - ref).max() / scale) if scale > 0 else float(np.abs(a).max())
 
 
-def _summary(ratios: np.ndarray) -> dict:
-    q1, q2, q3 = np.percentile(ratios, [25, 50, 75])
-    return {"median": float(q2), "q1": float(q1), "q3": float(q3), "noise": float((q3 - q1) / q2)}
-
-
 def _start(contender: Contender, case: Case, k: int, notes: dict, **kwargs) -> Run | None:
     """`Contender.start`, or None with a note in `notes` if that fails."""
     try:
@@ -439,12 +448,8 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
             _time_calls(run, warmup)
             runs[c.name] = run
     names = list(runs)
-    timings = {name: [] for name in names}
-    for r in range(rounds):
-        shift = r % max(len(names), 1)
-        order = names[shift:] + names[:shift]
-        for name in reversed(order) if r % 2 else order:
-            timings[name].append(_time_calls(runs[name], calls))
+    steps = {name: partial(_time_calls, run, calls) for name, run in runs.items()}
+    timings = interleaved(steps, rounds, 0)
     med = {name: np.median(timings[name], axis=1) for name in names}
     pairs = [pair for pair in PAIRS if set(pair) <= set(names)]
     if "jax_cg" in names:
@@ -459,7 +464,7 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
         "n": case.n,
         "k": k,
         "median_s": {name: float(np.median(m)) for name, m in med.items()},
-        "ratios": {f"{a}/{b}": _summary(med[a] / med[b]) for a, b in pairs},
+        "ratios": {f"{a}/{b}": summary(med[a] / med[b]) for a, b in pairs},
         "reference": reference,
         "agreement": agreement,
         "setup_s": setup,
@@ -818,6 +823,9 @@ def verdicts(d: dict) -> list[tuple[str, str, bool | None]]:
 
 
 # -- the command ---------------------------------------------------------------------------
+_XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
 def _names(text: str) -> tuple[str, ...]:
     return tuple(name for name in text.split(",") if name)
 
@@ -876,14 +884,31 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str]) -> int:
-    """Run ``bench gpu``; write ``<out>/bench_gpu.json``; return an exit code."""
-    args = _parser().parse_args(argv)
+#: the settings of ``--preset quick`` (a smoke test)
+QUICK = {
+    "problems": ("lshape3", "heat3d5"),
+    "k": (2, 5),
+    "tol_problems": ("lshape3",),
+    "rounds": 2,
+    "calls": 2,
+    "warmup": 1,
+    "tol_calls": 2,
+}
+
+
+def main(argv: list[str], defaults: dict | None = None, quick: dict = QUICK) -> int:
+    """Run ``bench gpu``; write ``<out>/bench_gpu.json``; return an exit code.
+    `defaults` replaces the parser's defaults, `quick` the settings of ``--preset quick``
+    (``bench jax``'s sizes)."""
+    parser = _parser()
+    parser.set_defaults(**(defaults or {}))
+    args = parser.parse_args(argv)
     if args.preset == "quick":
-        args.problems, args.k, args.tol_problems = ("lshape3", "heat3d5"), (2, 5), ("lshape3",)
-        args.rounds, args.calls, args.warmup, args.tol_calls = 2, 2, 1, 2
+        vars(args).update(quick)
     # jax takes 75 % of the GPU's memory at its first array unless told not to
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    if args.device == "cpu" and args.threads == 1:  # before jax starts its CPU client
+        os.environ.setdefault("XLA_FLAGS", _XLA_ONE_THREAD)
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     result = {
