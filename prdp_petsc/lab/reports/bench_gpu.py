@@ -851,39 +851,22 @@ def _ks(text: str) -> tuple[int, ...]:
 # fmt: off
 OPTIONS = {
     "--problems": (_problems, ("lshape6", "heat3d41", "lshape8", "lshape9"),
-                   "lshape<r>,heat3d<m>,... (default lshape6,heat3d41,lshape8,lshape9)"),
-    "--k": (_ks, (10, 100, 300), "CG iterations K (10,100,300)"),
-    "--rounds": (positive, 5, "paired rounds per cell (5)"),
-    "--calls": (positive, 5, "timed calls per round (5)"),
-    "--warmup": (int, 2, "untimed calls after set-up (2)"),
-    "--tol": (float, 1e-6, "gradient tolerance (1e-6)"),
-    "--tol-problems": (_names, ("lshape8", "lshape9"),
-                       "problems timed to --tol (default lshape8,lshape9; '' for none)"),
-    "--tol-calls": (positive, 2, "timed calls at that K (2)"),
-    "--direct-max-n": (positive, 60_000,
-                       "largest n whose reference is spsolve, else a tight CG (60000)"),
-    "--k-max": (positive, 20_000, "largest K searched (20000)"),
+                   "lshape<r>,heat3d<m>,five_point<side>,..."),
+    "--k": (_ks, (10, 100, 300), "CG iterations K"),
+    "--rounds": (positive, 5, "paired rounds per cell"),
+    "--calls": (positive, 5, "timed calls per round"),
+    "--warmup": (int, 2, "untimed calls after set-up"),
+    "--tol": (float, 1e-6, "gradient tolerance"),
+    "--tol-problems": (_names, ("lshape8", "lshape9"), "problems timed to --tol ('' for none)"),
+    "--tol-calls": (positive, 2, "timed calls at that K"),
+    "--direct-max-n": (positive, 60_000, "largest n whose reference is spsolve, else a tight CG"),
+    "--k-max": (positive, 20_000, "largest K searched"),
     "--skip": (_contenders, (), "contenders to leave out"),
-    "--seed": (int, 0, "seed of b and x_ref (0)"),
-    "--threads": (positive, 1, "torch CPU threads (1)"),
-    "--budget-s": (float, 420.0, "start no step after this many seconds (420; 0: no limit)"),
+    "--seed": (int, 0, "seed of b and x_ref"),
+    "--threads": (positive, 1, "torch CPU threads"),
+    "--budget-s": (float, 420.0, "start no step after this many seconds (0: no limit)"),
 }
 # fmt: on
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="prdp-petsc bench gpu", description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, required=True, help="folder for bench_gpu.json")
-    p.add_argument("--device", choices=("auto", "cuda", "cpu"), default="auto")
-    p.add_argument("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo",
-                   help="jax's sparse format of A (bcoo)")  # fmt: skip
-    for option, (kind, default, text) in OPTIONS.items():
-        p.add_argument(option, type=kind, default=default, help=text)
-    add_size_preset(p, "lshape3 and heat3d5, K = 2, 5, 2 rounds of 2 calls (a smoke test)")
-    add_debug(p)
-    return p
-
-
 #: the settings of ``--preset quick`` (a smoke test)
 QUICK = {
     "problems": ("lshape3", "heat3d5"),
@@ -896,13 +879,40 @@ QUICK = {
 }
 
 
-def main(argv: list[str], defaults: dict | None = None, quick: dict = QUICK) -> int:
+def _shown(value) -> str:
+    """An option's value as it is typed: ``lshape3,heat3d5``, ``1e-06``, ``5``."""
+    if isinstance(value, tuple):
+        return ",".join(map(str, value)) or "none"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _parser(prog: str, defaults: dict, quick: dict) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, required=True, help="folder for bench_gpu.json")
+    device = defaults.get("device", "auto")
+    p.add_argument("--device", choices=("auto", "cuda", "cpu"), default=device)
+    p.add_argument("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo",
+                   help="jax's sparse format of A (bcoo)")  # fmt: skip
+    for option, (kind, default, text) in OPTIONS.items():
+        default = defaults.get(option[2:].replace("-", "_"), default)
+        text = f"{text} (default {_shown(default)})"
+        p.add_argument(option, type=kind, default=default, help=text)
+    sizes = ", ".join(f"--{name.replace('_', '-')} {_shown(v)}" for name, v in quick.items())
+    add_size_preset(p, f"{sizes} (a smoke test)")
+    add_debug(p)
+    return p
+
+
+def main(
+    argv: list[str],
+    prog: str = "prdp-petsc bench gpu",
+    defaults: dict | None = None,
+    quick: dict = QUICK,
+) -> int:
     """Run ``bench gpu``; write ``<out>/bench_gpu.json``; return an exit code.
-    `defaults` replaces the parser's defaults, `quick` the settings of ``--preset quick``
-    (``bench jax``'s sizes)."""
-    parser = _parser()
-    parser.set_defaults(**(defaults or {}))
-    args = parser.parse_args(argv)
+    `defaults` replaces defaults of the options, `quick` the settings of ``--preset quick``
+    (``bench jax`` gives its own, under its `prog` name)."""
+    args = _parser(prog, defaults or {}, quick).parse_args(argv)
     if args.preset == "quick":
         vars(args).update(quick)
     # jax takes 75 % of the GPU's memory at its first array unless told not to

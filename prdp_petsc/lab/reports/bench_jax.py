@@ -58,7 +58,7 @@ def main(argv: list[str]) -> int:
     if hint := jax_missing():
         print(hint, file=sys.stderr)
         return 2
-    return bench_gpu.main(argv, defaults=DEFAULTS, quick=QUICK)
+    return bench_gpu.main(argv, "prdp-petsc bench jax", DEFAULTS, QUICK)
 
 
 # -- the page of the former ``bench jax``'s record ------------------------------------------
