@@ -50,7 +50,7 @@ import prdp_petsc as pp
 
 from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import cpu, machine, provenance, versions, write_result
-from .benchmarking import interleaved, summary
+from .benchmarking import interleaved, stopwatch, summary
 from .kinds import DataSet, ReportKind, markdown_table
 from .problems import five_point
 
@@ -97,16 +97,11 @@ def _interior(basis, dt: float | None = None) -> sp.csr_matrix:
     return A
 
 
-def square(side: int) -> sp.csr_matrix:
-    """The five-point ``−Δ`` on a side × side grid (`five_point`; ``bench jax``'s problem)."""
-    return five_point(side)[0]
-
-
 #: a ``--problems`` name's stem -> (its label in the tables, its matrix of a size)
 PROBLEMS = {
     "lshape": ("L-shape P1", lshape),
     "heat3d": ("3D heat step P1", heat_step),
-    "five_point": ("5-point -Δ", square),
+    "five_point": ("5-point -Δ", lambda side: five_point(side)[0]),  # bench jax's
 }
 
 
@@ -414,12 +409,7 @@ class Budget:
 
 
 def _time_calls(run: Run, calls: int) -> list[float]:
-    times = []
-    for _ in range(calls):
-        t = time.perf_counter()
-        run.call()
-        times.append(time.perf_counter() - t)
-    return times
+    return [stopwatch(run.call)[1] for _ in range(calls)]
 
 
 def _rel(a: np.ndarray, ref: np.ndarray) -> float:
@@ -442,9 +432,9 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
     """Time every contender at K on `case` (paired rounds); agreement with prdp_petsc."""
     notes, runs, setup = {}, {}, {}
     for c in contenders:
-        t = time.perf_counter()
-        if (run := _start(c, case, k, notes)) is not None:
-            setup[c.name] = time.perf_counter() - t
+        run, seconds = stopwatch(_start, c, case, k, notes)
+        if run is not None:
+            setup[c.name] = seconds
             _time_calls(run, warmup)
             runs[c.name] = run
     names = list(runs)
@@ -589,10 +579,9 @@ def _at_k(c: Contender, case: Case, k: int, error, args, notes: dict) -> dict | 
 
 def _gamg(case: Case, error, args, notes: dict) -> dict | None:
     """prdp_petsc with CG + GAMG: the PC set up once, K moved on the same solver."""
-    t = time.perf_counter()
-    if (run := _start(GAMG, case, 1, notes)) is None:  # the first call sets the PC up
+    run, first = stopwatch(_start, GAMG, case, 1, notes)  # the first call sets the PC up
+    if run is None:
         return None
-    first = time.perf_counter() - t
     again = _time_calls(run, 1)[0]  # the same call with the PC kept
 
     def error_at(k):
