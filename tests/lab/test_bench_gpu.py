@@ -13,6 +13,12 @@ from prdp_petsc.lab.reports.bench import main
 PEERS = ("jax_cg", "lineax_cg")
 
 
+def _has_row(markdown: str, *cells: str) -> bool:
+    """Whether a row of a Markdown table in `markdown` starts with `cells` (padding aside)."""
+    rows = (line.strip("|").split("|") for line in markdown.splitlines() if line.startswith("|"))
+    return any([c.strip() for c in row[: len(cells)]] == list(cells) for row in rows)
+
+
 def _run(tmp_path, *args):
     assert main(["gpu", "--out", str(tmp_path), "--device", "cpu", *args]) == 0
     return json.loads((tmp_path / "bench_gpu.json").read_text())
@@ -75,7 +81,7 @@ def test_time_to_tolerance(quick):
 
 def test_report_prints_the_table(quick):
     text = bench_gpu.format_report(quick)
-    assert "| L-shape P1 (161) | 2 / 5 |" in text
+    assert _has_row(text, "L-shape P1 (161)", "2 / 5")
     assert "prdp_petsc + GAMG" in text and "targets:" in text
 
 
@@ -233,8 +239,9 @@ def test_a_recorded_run_becomes_a_results_page(quick):
          + quick["device"]["name"])
     ]  # fmt: skip
     parts = kind.parts(ds)
-    assert "| L-shape P1 (161) | 2 / 5 |" in parts["output"]
-    assert "| the GPU targets | not judged: measured on" in "\n".join(parts["after"])
+    assert _has_row(parts["output"], "L-shape P1 (161)", "2 / 5")
+    measured = "not judged: measured on " + quick["device"]["name"]
+    assert _has_row("\n".join(parts["after"]), "the GPU targets", measured)
     gpu = DataSet("bench_gpu", kind, {}, {"bench_gpu.json": _gpu_result()}, [])
     assert kind.headline(gpu) == [
         ("GPU, fwd + bwd of capped Jacobi CG: bridge over raw petsc4py <= 1.15",
@@ -242,6 +249,5 @@ def test_a_recorded_run_becomes_a_results_page(quick):
         ("GPU, fwd + bwd of capped Jacobi CG: prdp_petsc / jax_cg <= 2.0 at >= 59 k",
          "worst 1.40 (lshape9, K = 300)"),
     ]  # fmt: skip
-    assert "| bridge over raw petsc4py <= 1.15 | worst 1.20 (lshape9, K = 300) | **not met** |" in (
-        "\n".join(kind.after(gpu))
-    )
+    assert _has_row("\n".join(kind.after(gpu)), "bridge over raw petsc4py <= 1.15",
+                    "worst 1.20 (lshape9, K = 300)", "**not met**")  # fmt: skip

@@ -1,7 +1,8 @@
 """Benchmark of the torch bridge: overhead over raw PETSc, throughput, unrolled CG.
 
 ``prdp-petsc bench bridge --out DIR`` writes ``DIR/bench_bridge.json`` (``bench mpi``,
-``elasticity``, ``jax`` and ``gpu`` run their own modules), all from one run:
+``elasticity`` and ``gpu`` run their own modules, ``jax`` is ``gpu`` on the CPU at
+other sizes), all from one run:
 
 ``overhead`` (the headline)
     Bridge forward + backward (``solve(A, b, solver, theta=θ)``, then ``x.backward(g)``,
@@ -436,8 +437,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "which",
         choices=["bridge", "mpi", "elasticity", "jax", "gpu"],
-        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity, jax: bench_jax, "
-        "gpu: bench_gpu)",
+        help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity, gpu: bench_gpu, "
+        "jax: bench gpu on the CPU at the JAX comparison's sizes)",
     )
     p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
     add_size_preset(p, "tiny sizes (a smoke test)")

@@ -1,4 +1,4 @@
-"""prdp_petsc on one GPU against jax, lineax and a hand-written torch CG, fwd + bwd.
+"""prdp_petsc on one GPU (or the CPU) against jax, lineax and a torch CG, fwd + bwd.
 
 ``prdp-petsc bench gpu --out DIR`` (or ``python -m prdp_petsc.lab.reports.bench_gpu``,
 PETSc options then through ``PETSC_OPTIONS``) writes ``DIR/bench_gpu.json``: every
@@ -12,9 +12,11 @@ note): ``prdp_petsc``, ``pp.solve`` with ``vec_type cuda, mat_type aijcusparse``
 (the adjoint by ``KSPSolve``, or ``KSPSolveTranspose``); each ``_sr`` with
 ``ksp_cg_single_reduction``; ``jax_cg`` and ``lineax_cg``, ``jax.jit(jax.grad)`` of
 their CG; ``torch_pcg``, `pcg` twice.  PETSc options reach each one's KSP by its prefix
-(``-prdp_petsc_ksp_view``).
+(``-prdp_petsc_ksp_view``).  On the CPU with ``--threads 1``, XLA runs on one thread too.
+``prdp-petsc bench jax`` (`prdp_petsc.lab.reports.bench_jax`) is this on the CPU at the
+sizes of the JAX comparison.
 
-Per (problem, K): medians over ``--rounds`` paired rounds in rotating order, ratios
+Per (problem, K): medians over ``--rounds`` paired rounds (`interleaved`), ratios
 within each round (median, IQR/median as ``noise``), x and the gradient against
 prdp_petsc's; prdp_petsc's GPU path against its CPU path at K = 10; on
 ``--tol-problems`` the smallest K whose gradient is within ``--tol`` of the reference
@@ -48,7 +50,9 @@ import prdp_petsc as pp
 
 from ..cli.arguments import add_debug, add_size_preset, positive
 from ..provenance import cpu, machine, provenance, versions, write_result
+from .benchmarking import interleaved, stopwatch, summary
 from .kinds import DataSet, ReportKind, markdown_table
+from .problems import five_point
 
 __all__ = ["CONTENDERS", "KIND", "format_report", "main", "problem", "verdicts"]
 
@@ -94,16 +98,21 @@ def _interior(basis, dt: float | None = None) -> sp.csr_matrix:
 
 
 #: a ``--problems`` name's stem -> (its label in the tables, its matrix of a size)
-PROBLEMS = {"lshape": ("L-shape P1", lshape), "heat3d": ("3D heat step P1", heat_step)}
+PROBLEMS = {
+    "lshape": ("L-shape P1", lshape),
+    "heat3d": ("3D heat step P1", heat_step),
+    "five_point": ("5-point -Δ", lambda side: five_point(side)[0]),  # bench jax's
+}
 
 
 def problem(name: str) -> tuple[str, Callable[[], sp.csr_matrix]]:
     """The label and the matrix builder a ``--problems`` name stands for."""
-    m = re.fullmatch(r"(lshape|heat3d)(\d+)", name)
+    m = re.fullmatch(r"(lshape|heat3d|five_point)(\d+)", name)
     if m is None or (m[1] == "heat3d" and int(m[2]) < 3):
         raise argparse.ArgumentTypeError(
-            f"unknown problem {name!r}: lshape<refinements> (lshape6: 12 033 unknowns) or "
-            "heat3d<points per axis> (heat3d41: 59 319)"
+            f"unknown problem {name!r}: lshape<refinements> (lshape6: 12 033 unknowns), "
+            "heat3d<points per axis> (heat3d41: 59 319) or five_point<side> (five_point110: "
+            "12 100)"
         )
     label, matrix = PROBLEMS[m[1]]
     return label, partial(matrix, int(m[2]))
@@ -400,23 +409,13 @@ class Budget:
 
 
 def _time_calls(run: Run, calls: int) -> list[float]:
-    times = []
-    for _ in range(calls):
-        t = time.perf_counter()
-        run.call()
-        times.append(time.perf_counter() - t)
-    return times
+    return [stopwatch(run.call)[1] for _ in range(calls)]
 
 
 def _rel(a: np.ndarray, ref: np.ndarray) -> float:
     """max |a − ref| / max |ref|."""
     scale = float(np.abs(ref).max())
     return float(np.abs(a - ref).max() / scale) if scale > 0 else float(np.abs(a).max())
-
-
-def _summary(ratios: np.ndarray) -> dict:
-    q1, q2, q3 = np.percentile(ratios, [25, 50, 75])
-    return {"median": float(q2), "q1": float(q1), "q3": float(q3), "noise": float((q3 - q1) / q2)}
 
 
 def _start(contender: Contender, case: Case, k: int, notes: dict, **kwargs) -> Run | None:
@@ -433,18 +432,14 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
     """Time every contender at K on `case` (paired rounds); agreement with prdp_petsc."""
     notes, runs, setup = {}, {}, {}
     for c in contenders:
-        t = time.perf_counter()
-        if (run := _start(c, case, k, notes)) is not None:
-            setup[c.name] = time.perf_counter() - t
+        run, seconds = stopwatch(_start, c, case, k, notes)
+        if run is not None:
+            setup[c.name] = seconds
             _time_calls(run, warmup)
             runs[c.name] = run
     names = list(runs)
-    timings = {name: [] for name in names}
-    for r in range(rounds):
-        shift = r % max(len(names), 1)
-        order = names[shift:] + names[:shift]
-        for name in reversed(order) if r % 2 else order:
-            timings[name].append(_time_calls(runs[name], calls))
+    steps = {name: partial(_time_calls, run, calls) for name, run in runs.items()}
+    timings = interleaved(steps, rounds, 0)
     med = {name: np.median(timings[name], axis=1) for name in names}
     pairs = [pair for pair in PAIRS if set(pair) <= set(names)]
     if "jax_cg" in names:
@@ -459,7 +454,7 @@ def bench_cell(case: Case, k: int, contenders, rounds: int, calls: int, warmup: 
         "n": case.n,
         "k": k,
         "median_s": {name: float(np.median(m)) for name, m in med.items()},
-        "ratios": {f"{a}/{b}": _summary(med[a] / med[b]) for a, b in pairs},
+        "ratios": {f"{a}/{b}": summary(med[a] / med[b]) for a, b in pairs},
         "reference": reference,
         "agreement": agreement,
         "setup_s": setup,
@@ -584,10 +579,9 @@ def _at_k(c: Contender, case: Case, k: int, error, args, notes: dict) -> dict | 
 
 def _gamg(case: Case, error, args, notes: dict) -> dict | None:
     """prdp_petsc with CG + GAMG: the PC set up once, K moved on the same solver."""
-    t = time.perf_counter()
-    if (run := _start(GAMG, case, 1, notes)) is None:  # the first call sets the PC up
+    run, first = stopwatch(_start, GAMG, case, 1, notes)  # the first call sets the PC up
+    if run is None:
         return None
-    first = time.perf_counter() - t
     again = _time_calls(run, 1)[0]  # the same call with the PC kept
 
     def error_at(k):
@@ -818,6 +812,9 @@ def verdicts(d: dict) -> list[tuple[str, str, bool | None]]:
 
 
 # -- the command ---------------------------------------------------------------------------
+_XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
 def _names(text: str) -> tuple[str, ...]:
     return tuple(name for name in text.split(",") if name)
 
@@ -843,47 +840,74 @@ def _ks(text: str) -> tuple[int, ...]:
 # fmt: off
 OPTIONS = {
     "--problems": (_problems, ("lshape6", "heat3d41", "lshape8", "lshape9"),
-                   "lshape<r>,heat3d<m>,... (default lshape6,heat3d41,lshape8,lshape9)"),
-    "--k": (_ks, (10, 100, 300), "CG iterations K (10,100,300)"),
-    "--rounds": (positive, 5, "paired rounds per cell (5)"),
-    "--calls": (positive, 5, "timed calls per round (5)"),
-    "--warmup": (int, 2, "untimed calls after set-up (2)"),
-    "--tol": (float, 1e-6, "gradient tolerance (1e-6)"),
-    "--tol-problems": (_names, ("lshape8", "lshape9"),
-                       "problems timed to --tol (default lshape8,lshape9; '' for none)"),
-    "--tol-calls": (positive, 2, "timed calls at that K (2)"),
-    "--direct-max-n": (positive, 60_000,
-                       "largest n whose reference is spsolve, else a tight CG (60000)"),
-    "--k-max": (positive, 20_000, "largest K searched (20000)"),
+                   "lshape<r>,heat3d<m>,five_point<side>,..."),
+    "--k": (_ks, (10, 100, 300), "CG iterations K"),
+    "--rounds": (positive, 5, "paired rounds per cell"),
+    "--calls": (positive, 5, "timed calls per round"),
+    "--warmup": (int, 2, "untimed calls after set-up"),
+    "--tol": (float, 1e-6, "gradient tolerance"),
+    "--tol-problems": (_names, ("lshape8", "lshape9"), "problems timed to --tol ('' for none)"),
+    "--tol-calls": (positive, 2, "timed calls at that K"),
+    "--direct-max-n": (positive, 60_000, "largest n whose reference is spsolve, else a tight CG"),
+    "--k-max": (positive, 20_000, "largest K searched"),
     "--skip": (_contenders, (), "contenders to leave out"),
-    "--seed": (int, 0, "seed of b and x_ref (0)"),
-    "--threads": (positive, 1, "torch CPU threads (1)"),
-    "--budget-s": (float, 420.0, "start no step after this many seconds (420; 0: no limit)"),
+    "--seed": (int, 0, "seed of b and x_ref"),
+    "--threads": (positive, 1, "torch CPU threads"),
+    "--budget-s": (float, 420.0, "start no step after this many seconds (0: no limit)"),
 }
 # fmt: on
+#: the settings of ``--preset quick`` (a smoke test)
+QUICK = {
+    "problems": ("lshape3", "heat3d5"),
+    "k": (2, 5),
+    "tol_problems": ("lshape3",),
+    "rounds": 2,
+    "calls": 2,
+    "warmup": 1,
+    "tol_calls": 2,
+}
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="prdp-petsc bench gpu", description=__doc__.split("\n")[0])
+def _shown(value) -> str:
+    """An option's value as it is typed: ``lshape3,heat3d5``, ``1e-06``, ``5``."""
+    if isinstance(value, tuple):
+        return ",".join(map(str, value)) or "none"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _parser(prog: str, defaults: dict, quick: dict) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for bench_gpu.json")
-    p.add_argument("--device", choices=("auto", "cuda", "cpu"), default="auto")
+    device = defaults.get("device", "auto")
+    p.add_argument("--device", choices=("auto", "cuda", "cpu"), default=device)
     p.add_argument("--jax-matrix", choices=("bcoo", "bcsr"), default="bcoo",
                    help="jax's sparse format of A (bcoo)")  # fmt: skip
     for option, (kind, default, text) in OPTIONS.items():
+        default = defaults.get(option[2:].replace("-", "_"), default)
+        text = f"{text} (default {_shown(default)})"
         p.add_argument(option, type=kind, default=default, help=text)
-    add_size_preset(p, "lshape3 and heat3d5, K = 2, 5, 2 rounds of 2 calls (a smoke test)")
+    sizes = ", ".join(f"--{name.replace('_', '-')} {_shown(v)}" for name, v in quick.items())
+    add_size_preset(p, f"{sizes} (a smoke test)")
     add_debug(p)
     return p
 
 
-def main(argv: list[str]) -> int:
-    """Run ``bench gpu``; write ``<out>/bench_gpu.json``; return an exit code."""
-    args = _parser().parse_args(argv)
+def main(
+    argv: list[str],
+    prog: str = "prdp-petsc bench gpu",
+    defaults: dict | None = None,
+    quick: dict = QUICK,
+) -> int:
+    """Run ``bench gpu``; write ``<out>/bench_gpu.json``; return an exit code.
+    `defaults` replaces defaults of the options, `quick` the settings of ``--preset quick``
+    (``bench jax`` gives its own, under its `prog` name)."""
+    args = _parser(prog, defaults or {}, quick).parse_args(argv)
     if args.preset == "quick":
-        args.problems, args.k, args.tol_problems = ("lshape3", "heat3d5"), (2, 5), ("lshape3",)
-        args.rounds, args.calls, args.warmup, args.tol_calls = 2, 2, 1, 2
+        vars(args).update(quick)
     # jax takes 75 % of the GPU's memory at its first array unless told not to
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    if args.device == "cpu" and args.threads == 1:  # before jax starts its CPU client
+        os.environ.setdefault("XLA_FLAGS", _XLA_ONE_THREAD)
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     result = {
