@@ -60,7 +60,7 @@ __all__ = sorted([*_EXPORTS, "__version__"])
 # import the lab, so these raise, naming where they are now
 _MOVED = {
     "Scene": "prdp_petsc.lab.Scene",
-    "NonlinearHeat": "prdp_petsc.lab.NonlinearHeat",
+    "NonlinearHeat": "demos/heat_nonlinear.py (the physics of that scene)",
     "equal_accuracy_k": "prdp_petsc.lab.training.accuracy.equal_accuracy_k",
 }
 

@@ -135,6 +135,11 @@ def test_the_library_works_without_the_lab_packages():
 def test_names_that_moved_to_the_lab_say_where():
     import pytest
 
-    for name, where in (("Scene", "prdp_petsc.lab.Scene"), ("equal_accuracy_k", "accuracy")):
+    moved = (
+        ("Scene", "prdp_petsc.lab.Scene"),
+        ("equal_accuracy_k", "accuracy"),
+        ("NonlinearHeat", "demos/heat_nonlinear.py"),
+    )
+    for name, where in moved:
         with pytest.raises(AttributeError, match=f"moved to the lab: .*{where}"):
             getattr(prdp_petsc, name)

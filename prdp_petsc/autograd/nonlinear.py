@@ -43,8 +43,8 @@ _METHODS = ("newton", "picard")
 class NonlinearProblem:
     """A residual ``R(u; p)`` with its Jacobian, built from plain numpy callables.
 
-    Any object with these attributes works as well (e.g.
-    `prdp_petsc.lab.components.nonlinear_heat.NonlinearHeat`).
+    Any object with these attributes works as well (e.g. ``NonlinearHeat`` in
+    demos/heat_nonlinear.py).
 
     Parameters
     ----------

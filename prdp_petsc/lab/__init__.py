@@ -9,10 +9,7 @@ holds what only the shipped scenes use.  It uses only the library's public names
 from importlib import import_module
 
 # public name -> module that defines it (imported on first use, as in prdp_petsc)
-_EXPORTS = {
-    "Scene": ".training.scene",
-    "NonlinearHeat": ".components.nonlinear_heat",
-}
+_EXPORTS = {"Scene": ".training.scene"}
 
 __all__ = sorted(_EXPORTS)
 

@@ -23,7 +23,6 @@ import skfem
 import torch
 
 import prdp_petsc as pp
-from prdp_petsc import lab
 from prdp_petsc.fem.fd import laplacian
 from prdp_petsc.lab.components import mac
 from prdp_petsc.lab.reports import topopt as topopt_reports
@@ -201,7 +200,7 @@ def check_heat_nonlinear(t):
     config, module = t.config, t.module
     mesh = pp.load_mesh(config["mesh"], refine=config["refine"])
     basis = skfem.Basis(mesh, skfem.ElementTriP1())
-    heat = lab.NonlinearHeat(basis, config["dt"], dirichlet=basis.get_dofs())
+    heat = module.NonlinearHeat(basis, config["dt"])
     inner = np.ix_(heat.interior, heat.interior)
     M, K = heat.M[inner].tocsr(), laplace.assemble(basis)[inner].tocsr()
     u0 = module.initial_conditions(heat, 2, np.random.default_rng(t.seed))

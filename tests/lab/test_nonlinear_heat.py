@@ -1,10 +1,12 @@
 """Differentiable Newton and Picard solves (prdp_petsc.autograd.nonlinear) and the
-nonlinear heat step they are built for (prdp_petsc.lab.components.nonlinear_heat).
+nonlinear heat step they are built for (`NonlinearHeat` in demos/heat_nonlinear.py).
 
 The gradient checks of docs/maths.md §6 on a nonlinear residual: gradcheck and a
 Taylor rate >= 1.9 with converged inner and outer solves, the converged solution
 against scipy's fsolve, Newton against Picard, and the failures that must raise.
 """
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,10 +15,15 @@ import scipy.sparse as sp
 import skfem
 import torch
 from _core import observed_rate, randn, taylor_rate, unit_square
+from skfem import BilinearForm, LinearForm
+from skfem.helpers import dot, grad
 
 import prdp_petsc as pp
 from prdp_petsc.autograd.nonlinear import NonlinearProblem, newton_solve
-from prdp_petsc.lab.components.nonlinear_heat import NonlinearHeat
+from prdp_petsc.lab.training.scene import load_scene
+
+SCENE = Path(__file__).resolve().parents[2] / "demos" / "heat_nonlinear.py"
+NonlinearHeat = load_scene(SCENE).NonlinearHeat
 
 GMRES = {"ksp_type": "gmres", "pc_type": "jacobi"}
 TIGHT = {"rtol": 1e-13, "atol": 1e-14}  # outer loop to rounding level
@@ -29,7 +36,7 @@ def converged(options=GMRES, **kwargs):
 def heat_inputs(refine=2, dt=0.05, seed=0):
     """A heat step with Dirichlet data and a source: (problem, u0, (u_prev, f, g, α))."""
     basis = unit_square(refine)
-    heat = NonlinearHeat(basis, dt, dirichlet=basis.get_dofs())
+    heat = NonlinearHeat(basis, dt)
     rng = np.random.default_rng(seed)
     x, y = basis.doflocs
     u_prev = torch.from_numpy(2 * np.sin(np.pi * x) * np.sin(np.pi * y) + 0.1 * x)
@@ -226,10 +233,36 @@ def test_bad_settings_are_refused(kwargs, match):
         newton_solve(heat, u0, *params, solver=converged(), **kwargs)
 
 
-def test_nonlinear_heat_refuses_a_bad_time_step():
+def test_nonlinear_heat_refuses_a_bad_time_step_and_a_basis_not_p1():
     basis = skfem.Basis(skfem.MeshTri(), skfem.ElementTriP1())
     with pytest.raises(ValueError, match="dt"):
         NonlinearHeat(basis, dt=0.0)
+    with pytest.raises(ValueError, match="P1"):
+        NonlinearHeat(skfem.Basis(skfem.MeshTri(), skfem.ElementTriP2()), dt=0.1)
+
+
+# The forms of the step as scikit-fem writes them, with the iterate as the field w.u and
+# the basis' own quadrature (exact for these P1 forms): the reference of the demo's
+# element-by-element assembly.
+@LinearForm
+def flux_form(v, w):
+    return (1.0 + w.alpha * w.u**2) * dot(grad(w.u), grad(v))
+
+
+@LinearForm
+def d_alpha_form(v, w):
+    return w.u**2 * dot(grad(w.u), grad(v))
+
+
+@BilinearForm
+def picard_form(u, v, w):
+    return u * v + w.dt * (1.0 + w.alpha * w.u**2) * dot(grad(u), grad(v))
+
+
+@BilinearForm
+def jacobian_form(u, v, w):
+    kappa, d_kappa = 1.0 + w.alpha * w.u**2, 2.0 * w.alpha * w.u
+    return u * v + w.dt * (kappa * dot(grad(u), grad(v)) + d_kappa * u * dot(grad(w.u), grad(v)))
 
 
 @pytest.mark.parametrize(
@@ -242,19 +275,25 @@ def test_nonlinear_heat_refuses_a_bad_time_step():
     ids=["triangles", "tetrahedra", "lines"],
 )
 def test_p1_assembly_matches_the_scikit_fem_forms(element, mesh):
-    """The element-by-element P1 path gives the forms' residual, operators and vjp."""
-    basis = skfem.Basis(mesh, element)
-    fast = NonlinearHeat(basis, 0.05, dirichlet=basis.get_dofs())
-    forms = NonlinearHeat(basis, 0.05, dirichlet=basis.get_dofs())
-    forms._p1 = None  # the scikit-fem forms, assembled with the basis' quadrature
-    assert fast._p1 is not None
+    """The residual, both operators and the g and α products of the element assembly."""
+    basis, dt = skfem.Basis(mesh, element), 0.05
+    heat = NonlinearHeat(basis, dt)
+    I, B = heat.interior, heat.boundary
     rng = np.random.default_rng(3)
-    u_i, lam = rng.standard_normal(fast.n), rng.standard_normal(fast.n)
-    p = (rng.standard_normal(basis.N), rng.random(basis.N), rng.random(len(fast.boundary)), 1.7)
-    np.testing.assert_allclose(fast.residual(u_i, *p), forms.residual(u_i, *p), atol=1e-12)
-    for name in ("jacobian", "picard"):
-        a, b = getattr(fast, name)(u_i, *p), getattr(forms, name)(u_i, *p)
-        assert a.shape == b.shape == (fast.n, fast.n)
-        assert abs(a - b).max() < 1e-12 * abs(b).max()
-    for a, b in zip(fast.vjp(u_i, lam, *p), forms.vjp(u_i, lam, *p)):
-        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
+    u_i, lam = rng.standard_normal(heat.n), rng.standard_normal(heat.n)
+    u_prev, f, g = rng.standard_normal(basis.N), rng.random(basis.N), rng.random(len(B))
+    p = (u_prev, f, g, 1.7)
+    u = heat.expand(u_i, g)
+    w = {"u": basis.interpolate(u), "alpha": 1.7, "dt": dt}
+    residual = heat.M[I] @ (u - u_prev - dt * f) + dt * flux_form.assemble(basis, **w)[I]
+    np.testing.assert_allclose(heat.residual(u_i, *p), residual, atol=1e-12)
+    J = jacobian_form.assemble(basis, **w).tocsr()
+    P = picard_form.assemble(basis, **w).tocsr()
+    for mine, full in ((heat.jacobian(u_i, *p), J), (heat.picard(u_i, *p), P)):
+        reference = full[I][:, I]
+        assert mine.shape == reference.shape == (heat.n, heat.n)
+        assert abs(mine - reference).max() < 1e-12 * abs(reference).max()
+    _, _, d_g, d_alpha = heat.vjp(u_i, lam, *p, needs=(False, False, True, True))
+    np.testing.assert_allclose(d_g, J[I][:, B].T @ lam, rtol=1e-11, atol=1e-12)
+    reference = dt * (d_alpha_form.assemble(basis, **w)[I] @ lam)
+    np.testing.assert_allclose(d_alpha, reference, rtol=1e-11, atol=1e-12)
