@@ -1,6 +1,7 @@
 """Standard problems and the work–precision sweep at small sizes."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -50,7 +51,7 @@ def test_work_precision_main(tmp_path):
     data = json.loads((tmp_path / "work_precision_poisson.json").read_text())
     assert (tmp_path / "work_precision_poisson.png").stat().st_size > 10_000
     table = (tmp_path / "work_precision_poisson.md").read_text()
-    assert "| cg/gamg |" in table and "gradient error ≤ 1e-02" in table
+    assert "| cg/gamg |" in re.sub(r" +", " ", table) and "gradient error ≤ 1e-02" in table
 
     def points(pair):
         return [r for r in data["rows"] if r["pair"] == pair]
