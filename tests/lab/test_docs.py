@@ -4,6 +4,7 @@ the recorded data (so no page can drift from its data), and the API reference co
 the whole public API.  The site itself is built by `make docs` (`mkdocs --strict`)."""
 
 import json
+import math
 import re
 import runpy
 import tomllib
@@ -285,3 +286,31 @@ def test_prdp_loop_example_certifies_its_stop():
     assert prdp.k_init == -(-ns["k_full"] // 8) and prdp.k_max == ns["k_full"]
     assert ns["certificate"].certified and savings["certified"] is True
     assert prdp.k < ns["k_full"] and savings["total"] > 0.4
+
+
+def test_the_unseen_page_and_headline_recompute_from_the_per_seed_records():
+    """The unseen page's first table and the README's row, recomputed by hand from the
+    per-seed records of docs/data/unseen: each seed's error ratio is PRDP's final error
+    over full fidelity's, their geometric mean and worst seed per problem; iterations
+    saved 1 − PRDP's over full fidelity's (checks included); certified, the runs whose
+    last check is.  Equal accuracy: geometric mean ≤ 1.05, no seed above 1.10."""
+    data = json.loads((DOCS / "data" / "unseen" / "unseen.json").read_text())
+    page = (DOCS / "results" / "unseen.md").read_text().splitlines()
+    means, accurate, saving = [], 0, 0
+    for name, problem in data["problems"].items():
+        runs = problem["runs"]
+        ratios = [r["prdp"]["final_error"] / r["full"]["final_error"] for r in runs]
+        saved = [1 - r["prdp"]["iterations"] / r["full"]["iterations"] for r in runs]
+        certified = sum(r["prdp"]["checks"][-1]["certified"] for r in runs)
+        mean = math.exp(sum(map(math.log, ratios)) / len(ratios))
+        means.append(mean)
+        accurate += mean <= 1.05 and max(ratios) <= 1.10
+        saving += min(saved) >= 0.40
+        figures = [f"{mean:.3f}", f"{max(ratios):.3f}", f"{certified}/{len(runs)}",
+                   ", ".join(f"{100 * s:.0f} %" for s in saved)]  # fmt: skip
+        rows = [line for line in page if line.startswith(f"| `{name}`")]
+        assert any(all(f in row for f in figures) for row in rows), (name, figures)
+    (row,) = [line for line in README.read_text().splitlines() if "results/unseen.md" in line]
+    count = len(data["problems"])
+    assert f"{accurate} of {count}" in row and f"{max(means):.3f}" in row
+    assert f"every seed on {saving}" in row
