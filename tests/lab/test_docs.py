@@ -266,6 +266,30 @@ def test_a_seeds_data_set_headlines_its_error_ratio_and_savings():
     assert f"{100 * saved:.1f} % fewer inner iterations" in figure
 
 
+def test_every_seeds_headline_recomputes_from_its_per_seed_records():
+    """Each `compare --seeds` headline by hand from seeds.json's per-seed errors: each
+    seed's ratio is PRDP's validation error over full fidelity's; the headline gives
+    their geometric mean and 95 % t-interval on the logs, and the inner iterations
+    saved averaged over the seeds at equal accuracy (ratio ≤ the recorded accuracy)."""
+    from scipy import stats
+
+    sets = [d for d in pages.load_data(DOCS / "data", DOCS / "images") if d.kind.name == "seeds"]
+    assert len(sets) >= 5
+    for ds in sets:
+        runs = ds.main["per_seed"]
+        ratios = np.array([r["prdp_val_error"] / r["full_val_error"] for r in runs])
+        logs = np.log(ratios)
+        half = stats.t.ppf(0.975, len(logs) - 1) * np.std(logs, ddof=1) / np.sqrt(len(logs))
+        mean = logs.mean()
+        equal = [r for r, ratio in zip(runs, ratios) if ratio <= ds.main["accuracy"]]
+        figures = [f"{math.exp(m):.3f}" for m in (mean, mean - half, mean + half)]
+        if equal:
+            saved = np.mean([r["iterations_saved"] for r in equal])
+            figures += [f"{100 * saved:.1f} %", f"{len(equal)} of {len(runs)}"]
+        (figure,) = [f for w, f in ds.kind.headline(ds) if "error over full" in w]
+        assert all(f in figure for f in figures), (ds.name, figures, figure)
+
+
 def test_the_elasticity_page_supports_the_guide():
     """The guide says GAMG with the rigid-body modes stays flat on 3D elasticity: the
     recorded run goes from 8³ to 32³ cells, its counts are within 1.5× with the modes,
