@@ -4,6 +4,7 @@ the recorded data (so no page can drift from its data), and the API reference co
 the whole public API.  The site itself is built by `make docs` (`mkdocs --strict`)."""
 
 import json
+import math
 import re
 import runpy
 import tomllib
@@ -265,6 +266,30 @@ def test_a_seeds_data_set_headlines_its_error_ratio_and_savings():
     assert f"{100 * saved:.1f} % fewer inner iterations" in figure
 
 
+def test_every_seeds_headline_recomputes_from_its_per_seed_records():
+    """Each `compare --seeds` headline by hand from seeds.json's per-seed errors: each
+    seed's ratio is PRDP's validation error over full fidelity's; the headline gives
+    their geometric mean and 95 % t-interval on the logs, and the inner iterations
+    saved averaged over the seeds at equal accuracy (ratio ≤ the recorded accuracy)."""
+    from scipy import stats
+
+    sets = [d for d in pages.load_data(DOCS / "data", DOCS / "images") if d.kind.name == "seeds"]
+    assert len(sets) >= 5
+    for ds in sets:
+        runs = ds.main["per_seed"]
+        ratios = np.array([r["prdp_val_error"] / r["full_val_error"] for r in runs])
+        logs = np.log(ratios)
+        half = stats.t.ppf(0.975, len(logs) - 1) * np.std(logs, ddof=1) / np.sqrt(len(logs))
+        mean = logs.mean()
+        equal = [r for r, ratio in zip(runs, ratios) if ratio <= ds.main["accuracy"]]
+        figures = [f"{math.exp(m):.3f}" for m in (mean, mean - half, mean + half)]
+        if equal:
+            saved = np.mean([r["iterations_saved"] for r in equal])
+            figures += [f"{100 * saved:.1f} %", f"{len(equal)} of {len(runs)}"]
+        (figure,) = [f for w, f in ds.kind.headline(ds) if "error over full" in w]
+        assert all(f in figure for f in figures), (ds.name, figures, figure)
+
+
 def test_the_elasticity_page_supports_the_guide():
     """The guide says GAMG with the rigid-body modes stays flat on 3D elasticity: the
     recorded run goes from 8³ to 32³ cells, its counts are within 1.5× with the modes,
@@ -285,3 +310,31 @@ def test_prdp_loop_example_certifies_its_stop():
     assert prdp.k_init == -(-ns["k_full"] // 8) and prdp.k_max == ns["k_full"]
     assert ns["certificate"].certified and savings["certified"] is True
     assert prdp.k < ns["k_full"] and savings["total"] > 0.4
+
+
+def test_the_unseen_page_and_headline_recompute_from_the_per_seed_records():
+    """The unseen page's first table and the README's row, recomputed by hand from the
+    per-seed records of docs/data/unseen: each seed's error ratio is PRDP's final error
+    over full fidelity's, their geometric mean and worst seed per problem; iterations
+    saved 1 − PRDP's over full fidelity's (checks included); certified, the runs whose
+    last check is.  Equal accuracy: geometric mean ≤ 1.05, no seed above 1.10."""
+    data = json.loads((DOCS / "data" / "unseen" / "unseen.json").read_text())
+    page = (DOCS / "results" / "unseen.md").read_text().splitlines()
+    means, accurate, saving = [], 0, 0
+    for name, problem in data["problems"].items():
+        runs = problem["runs"]
+        ratios = [r["prdp"]["final_error"] / r["full"]["final_error"] for r in runs]
+        saved = [1 - r["prdp"]["iterations"] / r["full"]["iterations"] for r in runs]
+        certified = sum(r["prdp"]["checks"][-1]["certified"] for r in runs)
+        mean = math.exp(sum(map(math.log, ratios)) / len(ratios))
+        means.append(mean)
+        accurate += mean <= 1.05 and max(ratios) <= 1.10
+        saving += min(saved) >= 0.40
+        figures = [f"{mean:.3f}", f"{max(ratios):.3f}", f"{certified}/{len(runs)}",
+                   ", ".join(f"{100 * s:.0f} %" for s in saved)]  # fmt: skip
+        rows = [line for line in page if line.startswith(f"| `{name}`")]
+        assert any(all(f in row for f in figures) for row in rows), (name, figures)
+    (row,) = [line for line in README.read_text().splitlines() if "results/unseen.md" in line]
+    count = len(data["problems"])
+    assert f"{accurate} of {count}" in row and f"{max(means):.3f}" in row
+    assert f"every seed on {saving}" in row
