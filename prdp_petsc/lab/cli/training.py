@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .arguments import add_debug, positive, routes, seeds
+from .arguments import add_debug, add_out, add_preset, add_seeds, add_threads, positive, routes
 from .petsc import init_petsc, split_petsc_options
 
 __all__ = ["COMMANDS", "execute", "make_parser", "parse"]
@@ -48,22 +48,16 @@ def _schedules(text: str) -> tuple[str, ...]:
 
 
 #: The options of ``run`` and ``compare``: (the commands that take it, flags, add_argument's
-#: keyword arguments), in the order ``--help`` lists them
+#: keyword arguments), in the order ``--help`` lists them after the shared ones (`arguments`)
 OPTIONS = [
-    ("run compare", ["--preset"], dict(help="preset name (quick | paper; default quick)")),
     ("run compare", ["--set"], dict(
         action="append", default=[], type=_setting, metavar="KEY=VALUE",
         help="change one of the preset's settings (repeatable), e.g. --set modes=32")),
     ("run compare", ["--epochs"], dict(type=positive, help="override the preset's epochs")),
-    ("run compare", ["--threads"], dict(
-        type=positive, default=1,
-        help="torch threads (default 1: honest wall times on a shared machine)")),
     ("run compare", ["--parallel"], dict(
         choices=("domain", "batch"),
         help="under mpiexec: distribute every solve (domain) or split every mini-batch "
         "across the ranks (batch)")),
-    ("run", ["--out"], dict(help="output folder (default with --resume: that folder)")),
-    ("compare", ["--out"], dict(required=True, help="output folder")),
     ("run compare", ["--checkpoint-every"], dict(
         type=positive, default=1, metavar="N",
         help="save checkpoint.pt every N epochs and at the end (default 1)")),
@@ -112,11 +106,16 @@ def make_parser(
         seed = p.add_mutually_exclusive_group()
         seed.add_argument("--seed", type=int, help="random seed (default 0)")
         if name == "compare":
-            seed.add_argument(
-                "--seeds", type=seeds,
-                help="compare on each of these seeds (0-3 or 0,2,5), each with a second "
-                "full-fidelity run from other initial weights, and summarise over the seeds",
+            add_seeds(
+                seed, None, "compare on each of these seeds, each with a second full-fidelity "
+                "run from other initial weights, and summarise over the seeds",
             )  # fmt: skip
+        add_preset(p, None, "preset name (quick | paper; default quick)")
+        if name == "run":
+            add_out(p, "output folder (default with --resume: that folder)", required=False)
+        else:
+            add_out(p)
+        add_threads(p)
         for commands, flags, options in OPTIONS:
             if name in commands.split():
                 p.add_argument(*flags, **options)

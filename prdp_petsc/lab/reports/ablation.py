@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli.arguments import add_debug, positive, routes, seeds
+from ..cli.arguments import add_debug, add_out, add_preset, add_seeds, positive, routes
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "ablation", "format_ablation", "main"]
@@ -144,8 +144,8 @@ def _parser() -> argparse.ArgumentParser:
         "writes DIR/ablation.json and prints the table.",
     )
     parser.add_argument("scene", help="scene file (demos/ns2d.py)")
-    parser.add_argument("--preset", default="quick", help="baseline preset string")
-    parser.add_argument("--seeds", type=seeds, default=[0, 1, 2], help="seeds, e.g. 0-2 or 0,3,5")
+    add_preset(parser, help="the baseline's preset (default quick)")
+    add_seeds(parser)
     parser.add_argument(
         "--lever",
         nargs="+",
@@ -158,7 +158,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--routes", type=routes, default=None, help="routes (default: the scene's)")
     parser.add_argument("--epochs", type=positive, default=None, help="epochs (default: preset's)")
     parser.add_argument("--no-twin", action="store_true", help="skip the twin runs")
-    parser.add_argument("--out", required=True, help="output folder")
+    add_out(parser)
     add_debug(parser)
     return parser
 
@@ -182,7 +182,7 @@ def main(argv: list[str]) -> int:
     except ValueError as err:
         parser.error(str(err))
     print(format_ablation(report), end="")
-    print(f"wrote {Path(args.out) / 'ablation.json'}")
+    print(f"wrote {args.out / 'ablation.json'}")
     return 0
 
 

@@ -17,6 +17,7 @@ import torch
 
 import prdp_petsc as pp
 
+from ..cli.arguments import add_preset
 from ..training.scene import preset_config
 from .kinds import text_table
 
@@ -175,7 +176,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
     def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
         """Print the adjoint figures of one training batch (`adjoint_report`), on one thread."""
-        parser.add_argument("--preset", default="quick", help="preset (default quick)")
+        add_preset(parser)
         parser.add_argument(
             "--k",
             type=int,
