@@ -187,8 +187,8 @@ def test_scene_main_dispatches_ns2d_adjoint(capsys):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--k", "0"], "adjoint: error: --k: every K must be >= 1, got [0]"),
-        (["--k", "x"], "adjoint: error: argument --k: invalid int value: 'x'"),
+        (["--k", "0"], "adjoint: error: argument --k: expected an integer >= 1, got '0'"),
+        (["--k", "8", "x"], "adjoint: error: argument --k: expected an integer >= 1, got 'x'"),
         (["--preset", "nope"], "adjoint: error: --preset: preset must be one of ["),
         (["--preset", "quick n=1.5"], "adjoint: error: --preset: setting n: expected an integer"),
         (["quick", "8"], "adjoint: error: unrecognized arguments: quick 8"),  # the old form

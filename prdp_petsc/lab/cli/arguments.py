@@ -15,6 +15,7 @@ from ..parsing import parse_seeds, positive_int
 
 __all__ = [
     "add_debug",
+    "add_ks",
     "add_out",
     "add_preset",
     "add_seeds",
@@ -63,6 +64,14 @@ def add_out(parser, help: str = "output folder", required: bool = True) -> None:
 def add_preset(parser, default: str | None = "quick", help: str | None = None) -> None:
     """``--preset NAME``: one of the scene's presets (default `default`)."""
     parser.add_argument("--preset", default=default, help=help or f"preset (default {default})")
+
+
+def add_ks(parser, default: list[int], help: str) -> None:
+    """``--k K [K ...]``: the fixed Ks to run, each an integer >= 1."""
+    parser.add_argument(
+        "--k", type=positive, nargs="+", default=default, metavar="K",
+        help=f"{help} (default {' '.join(map(str, default))})",
+    )  # fmt: skip
 
 
 def add_size_preset(parser, quick: str = "small sizes") -> None:
