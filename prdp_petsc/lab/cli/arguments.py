@@ -15,14 +15,18 @@ from ..parsing import parse_seeds, positive_int
 
 __all__ = [
     "add_debug",
+    "add_epochs",
     "add_ks",
     "add_out",
     "add_preset",
+    "add_routes",
+    "add_schedules",
     "add_seeds",
     "add_size_preset",
     "add_threads",
     "positive",
     "routes",
+    "schedules",
     "seeds",
 ]
 
@@ -51,6 +55,15 @@ def routes(text: str) -> tuple[str, ...]:
     return tuple(r.strip() for r in text.split(",") if r.strip())
 
 
+def schedules(text: str) -> tuple[str, ...]:
+    """``--schedules``: the comma-separated names, each once (`compare` checks them:
+    importing it here would start PETSc before `init_petsc`)."""
+    names = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected e.g. prdp,rtol, got {text!r}")
+    return names
+
+
 def add_debug(parser) -> None:
     """``--debug``: show the traceback of an error (otherwise one line, exit status 1)."""
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
@@ -71,6 +84,32 @@ def add_ks(parser, default: list[int], help: str) -> None:
     parser.add_argument(
         "--k", type=positive, nargs="+", default=default, metavar="K",
         help=f"{help} (default {' '.join(map(str, default))})",
+    )  # fmt: skip
+
+
+def add_epochs(parser, default: int | None = None, help: str = "epochs") -> None:
+    """``--epochs N``: how many epochs to train (None: the preset's)."""
+    what = "the preset's" if default is None else default
+    help = f"{help} (default: {what})"
+    parser.add_argument("--epochs", type=positive, default=default, help=help)
+
+
+def add_routes(parser) -> None:
+    """``--routes``: the solvers a comparison runs PRDP and full fidelity with."""
+    parser.add_argument(
+        "--routes", type=routes,
+        help="other solvers to run PRDP and full fidelity with: ksp/pc[:option=value,...] "
+        "(cg/icc,cg/gamg) or the scene's ROUTES names (default: its preset's; '' none; "
+        "auto: a short pilot at full fidelity picks one)",
+    )  # fmt: skip
+
+
+def add_schedules(parser, default: str = "prdp") -> None:
+    """``--schedules``: the reduced-fidelity schedules a comparison runs on every route."""
+    parser.add_argument(
+        "--schedules", type=schedules, default=default,
+        help="reduced-fidelity schedules to run on every route, comma-separated: prdp (PRDP "
+        f"on the iteration cap K), auto or rtol (PRDP on PETSc's rtol) (default {default})",
     )  # fmt: skip
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .arguments import add_debug, add_out, add_preset, add_seeds, add_threads, positive, routes
+from . import arguments
 from .petsc import init_petsc, split_petsc_options
 
 __all__ = ["COMMANDS", "execute", "make_parser", "parse"]
@@ -26,7 +26,7 @@ def _k_max(text: str) -> str | int | None:
     if text in ("full", "none"):
         return None if text == "none" else text
     try:
-        return positive(text)
+        return arguments.positive(text)
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"full, none or an integer >= 1, got {text!r}") from None
 
@@ -38,28 +38,18 @@ def _setting(text: str) -> str:
     return text
 
 
-def _schedules(text: str) -> tuple[str, ...]:
-    """The names of ``--schedules`` (`compare` checks them: importing it here would
-    start PETSc before `init_petsc`)."""
-    schedules = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
-    if not schedules:
-        raise argparse.ArgumentTypeError(f"expected e.g. prdp,rtol, got {text!r}")
-    return schedules
-
-
 #: The options of ``run`` and ``compare``: (the commands that take it, flags, add_argument's
 #: keyword arguments), in the order ``--help`` lists them after the shared ones (`arguments`)
 OPTIONS = [
     ("run compare", ["--set"], dict(
         action="append", default=[], type=_setting, metavar="KEY=VALUE",
         help="change one of the preset's settings (repeatable), e.g. --set modes=32")),
-    ("run compare", ["--epochs"], dict(type=positive, help="override the preset's epochs")),
     ("run compare", ["--parallel"], dict(
         choices=("domain", "batch"),
         help="under mpiexec: distribute every solve (domain) or split every mini-batch "
         "across the ranks (batch)")),
     ("run compare", ["--checkpoint-every"], dict(
-        type=positive, default=1, metavar="N",
+        type=arguments.positive, default=1, metavar="N",
         help="save checkpoint.pt every N epochs and at the end (default 1)")),
     ("run compare", ["--no-progress"], dict(action="store_true", help="hide the progress bar")),
     ("run", ["--resume"], dict(
@@ -75,15 +65,6 @@ OPTIONS = [
         action="store_true",
         help="continue the comparison in --out: finished runs are read, interrupted ones "
         "resume from their checkpoint")),
-    ("compare", ["--routes"], dict(
-        type=routes,
-        help="other solvers to run PRDP and full fidelity with: ksp/pc[:option=value,...] "
-        "(cg/icc,cg/gamg) or the scene's ROUTES names (default: its preset's; '' none; "
-        "auto: a short pilot at full fidelity picks one)")),
-    ("compare", ["--schedules"], dict(
-        type=_schedules, default=("prdp",),
-        help="reduced-fidelity schedules to run on every route, comma-separated: prdp "
-        "(PRDP on the iteration cap K; the default) and rtol (PRDP on PETSc's rtol)")),
 ]  # fmt: skip
 
 
@@ -106,20 +87,24 @@ def make_parser(
         seed = p.add_mutually_exclusive_group()
         seed.add_argument("--seed", type=int, help="random seed (default 0)")
         if name == "compare":
-            add_seeds(
+            arguments.add_seeds(
                 seed, None, "compare on each of these seeds, each with a second full-fidelity "
                 "run from other initial weights, and summarise over the seeds",
             )  # fmt: skip
-        add_preset(p, None, "preset name (quick | paper; default quick)")
+        arguments.add_preset(p, None, "preset name (quick | paper; default quick)")
         if name == "run":
-            add_out(p, "output folder (default with --resume: that folder)", required=False)
+            arguments.add_out(p, "output folder (default with --resume: that folder)", False)
         else:
-            add_out(p)
-        add_threads(p)
+            arguments.add_out(p)
+        arguments.add_epochs(p)
+        arguments.add_threads(p)
+        if name == "compare":
+            arguments.add_routes(p)
+            arguments.add_schedules(p)
         for commands, flags, options in OPTIONS:
             if name in commands.split():
                 p.add_argument(*flags, **options)
-        add_debug(p)
+        arguments.add_debug(p)
     return parser
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import add_debug, add_out, add_preset, positive
+from ..cli.arguments import add_debug, add_epochs, add_out, add_preset, positive
 from ..provenance import write_result
 from .kinds import DataSet, ReportKind, text_table
 from .memory import peak_rss_mb, reset_peak
@@ -97,7 +97,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--k", type=positive, default=20, help="fixed K of every solve (default 20)"
     )
-    parser.add_argument("--epochs", type=positive, default=2, help="epochs per row (default 2)")
+    add_epochs(parser, 2, "epochs per row")
     add_out(parser, "folder for horizon.json", required=False)
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--no-checkpoint", action="store_true", help=argparse.SUPPRESS)
