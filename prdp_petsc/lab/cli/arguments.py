@@ -16,7 +16,7 @@ from ..parsing import parse_seeds, positive_int
 __all__ = [
     "add_debug",
     "add_epochs",
-    "add_ks",
+    "add_k",
     "add_out",
     "add_preset",
     "add_routes",
@@ -79,11 +79,15 @@ def add_preset(parser, default: str | None = "quick", help: str | None = None) -
     parser.add_argument("--preset", default=default, help=help or f"preset (default {default})")
 
 
-def add_ks(parser, default: list[int], help: str) -> None:
-    """``--k K [K ...]``: the fixed Ks to run, each an integer >= 1."""
+def add_k(parser, default: int | list[int] | None, help: str) -> None:
+    """``--k K``, the fixed K of every solve, an integer >= 1; a list `default` takes
+    several, ``--k K [K ...]`` (None: the command's own default, which `help` says)."""
+    several = isinstance(default, list)
+    if default is not None:
+        help += f" (default {' '.join(map(str, default)) if several else default})"
     parser.add_argument(
-        "--k", type=positive, nargs="+", default=default, metavar="K",
-        help=f"{help} (default {' '.join(map(str, default))})",
+        "--k", type=positive, nargs="+" if several else None, default=default, metavar="K",
+        help=help,
     )  # fmt: skip
 
 

@@ -51,7 +51,15 @@ import warnings
 
 import numpy as np
 
-from ..cli.arguments import add_debug, add_out, add_size_preset, add_threads, positive, routes
+from ..cli.arguments import (
+    add_debug,
+    add_k,
+    add_out,
+    add_size_preset,
+    add_threads,
+    positive,
+    routes,
+)
 from ..provenance import load_average, machine_info, write_result
 from . import bench_elasticity, bench_gpu, bench_jax, bench_mpi
 from . import benchmarking as bm
@@ -443,7 +451,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--n", type=positive, help="overhead problem size, rounded to a plate_holes refinement"
     )
-    p.add_argument("--k", type=positive, help="K of the overhead problem (default 100)")
+    add_k(p, None, "K of the overhead problem (default 100)")
     p.add_argument("--unrolled-n", type=positive, help="unrolled comparison: about n unknowns")
     p.add_argument("--unrolled-k", type=positive, help="K of the unrolled comparison (300)")
     p.add_argument("--repeats", type=positive, help="timed repeats after warm-up (21)")

@@ -27,7 +27,7 @@ import sys
 
 import numpy as np
 
-from ..cli.arguments import add_debug, add_out, add_size_preset, positive
+from ..cli.arguments import add_debug, add_k, add_out, add_size_preset
 from ..provenance import load_average, machine_info, write_result
 from .benchmarking import stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
@@ -139,7 +139,7 @@ def _parser() -> argparse.ArgumentParser:
     add_out(p, "folder for bench_elasticity.json")
     p.add_argument("--sizes", default="8,16,32", help="cells per axis, comma-separated (8,16,32)")
     p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (1e-8)")
-    p.add_argument("--k", type=positive, default=10, help="K of the capped solve (10)")
+    add_k(p, 10, "K of the capped solve")
     add_size_preset(p, "tiny sizes (2,4): a smoke test")
     add_debug(p)
     return p

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import add_debug, add_out, add_preset, positive
+from ..cli.arguments import add_debug, add_k, add_out, add_preset, positive
 from ..provenance import machine_info, write_result
 from ..subprocesses import child_env
 from .benchmarking import interleaved, stopwatch
@@ -78,7 +78,7 @@ def _parser() -> argparse.ArgumentParser:
         "--layout", choices=["replicated", "owned"], default="replicated",
         help="data layout of the solve benchmark (replicated)",
     )  # fmt: skip
-    p.add_argument("--k", type=positive, default=200, help="K of the capped 3D solve (200)")
+    add_k(p, 200, "K of the capped 3D solve")
     p.add_argument("--repeats", type=positive, default=5, help="timed solves after one warm-up (5)")
     p.add_argument(
         "scene", nargs="?", default="demos/heat.py",

@@ -17,7 +17,7 @@ import torch
 
 import prdp_petsc as pp
 
-from ..cli.arguments import add_ks, add_preset
+from ..cli.arguments import add_k, add_preset
 from ..training.scene import preset_config
 from .kinds import text_table
 
@@ -177,7 +177,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
     def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
         """Print the adjoint figures of one training batch (`adjoint_report`), on one thread."""
         add_preset(parser)
-        add_ks(parser, [8, 64], "the capped Ks (GMRES iterations) to differentiate with")
+        add_k(parser, [8, 64], "the capped Ks (GMRES iterations) to differentiate with")
 
         def run(args: argparse.Namespace) -> int:
             torch.set_num_threads(1)

@@ -224,7 +224,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
         """Converged solves, constant K, PRDP (auto) and rtol on three load cases."""
         arguments.add_preset(parser)
         arguments.add_seeds(parser, help="load cases")
-        arguments.add_ks(parser, [2, 4, 8], "constant Ks")
+        arguments.add_k(parser, [2, 4, 8], "constant Ks")
         arguments.add_out(parser, "folder for topopt.json and the picture")
 
         def run_results(args: argparse.Namespace) -> int:
