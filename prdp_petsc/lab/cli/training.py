@@ -38,36 +38,6 @@ def _setting(text: str) -> str:
     return text
 
 
-#: The options of ``run`` and ``compare``: (the commands that take it, flags, add_argument's
-#: keyword arguments), in the order ``--help`` lists them after the shared ones (`arguments`)
-OPTIONS = [
-    ("run compare", ["--set"], dict(
-        action="append", default=[], type=_setting, metavar="KEY=VALUE",
-        help="change one of the preset's settings (repeatable), e.g. --set modes=32")),
-    ("run compare", ["--parallel"], dict(
-        choices=("domain", "batch"),
-        help="under mpiexec: distribute every solve (domain) or split every mini-batch "
-        "across the ranks (batch)")),
-    ("run compare", ["--checkpoint-every"], dict(
-        type=arguments.positive, default=1, metavar="N",
-        help="save checkpoint.pt every N epochs and at the end (default 1)")),
-    ("run compare", ["--no-progress"], dict(action="store_true", help="hide the progress bar")),
-    ("run", ["--resume"], dict(
-        metavar="DIR",
-        help="continue the run in DIR from its checkpoint.pt, with its recorded scene, "
-        "preset, seeds and schedule, to --epochs (default: the recorded)")),
-    ("run", ["--schedule"], dict(help="prdp | auto | fixed:K | rtol (default prdp)")),
-    ("run", ["--k-max"], dict(
-        type=_k_max, default="full",
-        help="PRDP's cap on K: full (the default: the scene's own k_max, else K_full of "
-        "its probe), none, or a number >= the scene's k_init")),
-    ("compare", ["--resume"], dict(
-        action="store_true",
-        help="continue the comparison in --out: finished runs are read, interrupted ones "
-        "resume from their checkpoint")),
-]  # fmt: skip
-
-
 def make_parser(
     prog: str | None = None, scene_arg: bool = True, description: str | None = None
 ) -> argparse.ArgumentParser:
@@ -86,25 +56,50 @@ def make_parser(
             )  # fmt: skip
         seed = p.add_mutually_exclusive_group()
         seed.add_argument("--seed", type=int, help="random seed (default 0)")
-        if name == "compare":
+        arguments.add_preset(p, None, "preset name (quick | paper; default quick)")
+        p.add_argument(
+            "--set", action="append", default=[], type=_setting, metavar="KEY=VALUE",
+            help="change one of the preset's settings (repeatable), e.g. --set modes=32",
+        )  # fmt: skip
+        arguments.add_epochs(p)
+        arguments.add_threads(p)
+        p.add_argument(
+            "--parallel", choices=("domain", "batch"),
+            help="under mpiexec: distribute every solve (domain) or split every mini-batch "
+            "across the ranks (batch)",
+        )  # fmt: skip
+        p.add_argument(
+            "--checkpoint-every", type=arguments.positive, default=1, metavar="N",
+            help="save checkpoint.pt every N epochs and at the end (default 1)",
+        )  # fmt: skip
+        p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+        arguments.add_debug(p)
+        if name == "run":
+            arguments.add_out(p, "output folder (default with --resume: that folder)", False)
+            p.add_argument(
+                "--resume", metavar="DIR",
+                help="continue the run in DIR from its checkpoint.pt, with its recorded scene, "
+                "preset, seeds and schedule, to --epochs (default: the recorded)",
+            )  # fmt: skip
+            p.add_argument("--schedule", help="prdp | auto | fixed:K | rtol (default prdp)")
+            p.add_argument(
+                "--k-max", type=_k_max, default="full",
+                help="PRDP's cap on K: full (the default: the scene's own k_max, else K_full "
+                "of its probe), none, or a number >= the scene's k_init",
+            )  # fmt: skip
+        else:
             arguments.add_seeds(
                 seed, None, "compare on each of these seeds, each with a second full-fidelity "
                 "run from other initial weights, and summarise over the seeds",
             )  # fmt: skip
-        arguments.add_preset(p, None, "preset name (quick | paper; default quick)")
-        if name == "run":
-            arguments.add_out(p, "output folder (default with --resume: that folder)", False)
-        else:
             arguments.add_out(p)
-        arguments.add_epochs(p)
-        arguments.add_threads(p)
-        if name == "compare":
+            p.add_argument(
+                "--resume", action="store_true",
+                help="continue the comparison in --out: finished runs are read, interrupted "
+                "ones resume from their checkpoint",
+            )  # fmt: skip
             arguments.add_routes(p)
             arguments.add_schedules(p)
-        for commands, flags, options in OPTIONS:
-            if name in commands.split():
-                p.add_argument(*flags, **options)
-        arguments.add_debug(p)
     return parser
 
 
