@@ -187,8 +187,8 @@ def test_scene_main_dispatches_ns2d_adjoint(capsys):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--k", "0"], "adjoint: error: --k: every K must be >= 1, got [0]"),
-        (["--k", "x"], "adjoint: error: argument --k: invalid int value: 'x'"),
+        (["--k", "0"], "adjoint: error: argument --k: expected an integer >= 1, got '0'"),
+        (["--k", "8", "x"], "adjoint: error: argument --k: expected an integer >= 1, got 'x'"),
         (["--preset", "nope"], "adjoint: error: --preset: preset must be one of ["),
         (["--preset", "quick n=1.5"], "adjoint: error: --preset: setting n: expected an integer"),
         (["quick", "8"], "adjoint: error: unrecognized arguments: quick 8"),  # the old form
@@ -277,70 +277,57 @@ def test_without_the_lab_extra_the_command_says_how_to_install_it(monkeypatch, c
     assert "needs tqdm" in err and "pip install 'prdp-petsc[lab]'" in err
 
 
-# One spelling per concept (prdp_petsc.lab.cli.arguments); the old ones work for one
-# release more and say so on stderr.
+# One spelling per concept (prdp_petsc.lab.cli.arguments): the report tools declare their
+# shared options through the same helpers, so they parse them alike.
 
 
-def deprecation(old, new):
-    return f"prdp-petsc: {old} is deprecated and goes in the next release; use {new}\n"
+def report_parser(tool):
+    import importlib
+
+    return importlib.import_module(f"prdp_petsc.lab.reports.{tool}")._parser()
 
 
 @pytest.mark.parametrize(
-    "tool, old, new, same",
+    "tool, argv",
     [
-        ("bench", ["bridge", "--out", "o", "--quick"], "--preset quick",
-         ["bridge", "--out", "o", "--preset", "quick"]),
-        ("bench", ["bridge", "--out", "o", "--ksp-type", "gmres"], "--routes KSP/PC", None),
-        ("bench_elasticity", ["--out", "o", "--quick"], "--preset quick",
-         ["--out", "o", "--preset", "quick"]),
-        ("bench_mpi", ["--out", "o", "--quick"], "--preset quick",
-         ["--out", "o", "--preset", "quick"]),
-        ("bench_mpi", ["--out", "o", "--scene", "demos/heat.py"], "the positional SCENE_FILE",
-         ["demos/heat.py", "--out", "o"]),
-        ("unseen", ["--out", "o", "--quick"], "--preset quick",
-         ["--out", "o", "--preset", "quick"]),
-        ("unseen", ["--out", "o", "--seeds", "0", "2", "3"], "--seeds 0,2,3",
-         ["--out", "o", "--seeds", "0,2-3"]),
+        ("ablation", ["demos/heat.py", "--seeds", "0,2-3", "--preset", "paper"]),
+        ("unseen", ["--seeds", "0,2-3", "--preset", "quick"]),
+        ("bench", ["bridge", "--preset", "quick"]),
+        ("bench_elasticity", ["--preset", "quick"]),
+        ("bench_mpi", ["demos/heat.py", "--preset", "quick"]),
+        ("horizon", ["demos/ns2d.py", "--preset", "long"]),
+        ("rollouts", ["--run", "a=r0"]),
     ],
 )  # fmt: skip
-def test_an_old_spelling_still_parses_and_says_it_is_deprecated(capsys, tool, old, new, same):
-    import importlib
-
-    module = importlib.import_module(f"prdp_petsc.lab.reports.{tool}")
-    parse = getattr(module, "parse_arguments", None) or module._parser().parse_args
-    args = vars(parse(old))
-    err = capsys.readouterr().err
-    assert err.startswith("prdp-petsc: ") and err.endswith(f"; use {new}\n"), err
-    if same is not None:
-        expected = vars(parse(same))
-        assert capsys.readouterr().err == ""  # the one spelling says nothing
-        args.pop("scene_option", None), expected.pop("scene_option", None)
-        assert args == expected
+def test_the_report_tools_read_shared_options_alike(tool, argv):
+    args = report_parser(tool).parse_args([*argv, "--out", "o", "--debug"])
+    assert args.out == Path("o") and args.debug is True
+    if "--seeds" in argv:
+        assert args.seeds == [0, 2, 3]
+    if "--preset" in argv:
+        assert args.preset == argv[argv.index("--preset") + 1]
 
 
-def test_bench_reads_one_route_and_the_old_ksp_pc_types_over_it(capsys):
-    from prdp_petsc.lab.reports.bench import _parser
+@pytest.mark.parametrize(
+    "tool, argv",
+    [
+        ("bench", ["bridge", "--out", "o", "--quick"]),
+        ("bench", ["bridge", "--out", "o", "--ksp-type", "gmres"]),
+        ("bench_mpi", ["--out", "o", "--scene", "demos/heat.py"]),
+        ("unseen", ["--out", "o", "--seeds", "0", "1"]),
+    ],
+)  # fmt: skip
+def test_a_second_spelling_is_a_usage_error(capsys, tool, argv):
+    assert exit_status(report_parser(tool).parse_args, argv) == 2
+    assert "error: " in capsys.readouterr().err
 
-    args = _parser().parse_args(["bridge", "--out", "o", "--routes", "gmres/ilu"])
-    assert args.routes == ("gmres", "ilu") and args.ksp_type is None is args.pc_type
-    args = _parser().parse_args(["bridge", "--out", "o", "--ksp-type", "gmres", "--pc-type", "ilu"])
-    assert (args.ksp_type, args.pc_type) == ("gmres", "ilu")
-    assert capsys.readouterr().err == deprecation("--ksp-type", "--routes KSP/PC") + deprecation(
-        "--pc-type", "--routes KSP/PC"
-    )
-    assert (
-        exit_status(_parser().parse_args, ["bridge", "--out", "o", "--routes", "cg/icc,cg/sor"])
-        == 2
-    )
+
+def test_bench_reads_one_route(capsys):
+    parse = report_parser("bench").parse_args
+    assert parse(["bridge", "--out", "o", "--routes", "gmres/ilu"]).routes == ("gmres", "ilu")
+    assert parse(["bridge", "--out", "o"]).routes == ("cg", "jacobi")
+    assert exit_status(parse, ["bridge", "--out", "o", "--routes", "cg/icc,cg/sor"]) == 2
     assert "expected one KSP/PC pair" in capsys.readouterr().err
-
-
-def test_the_old_quick_flag_still_runs_a_tool(tmp_path, capsys):
-    from prdp_petsc.lab import cli
-
-    assert cli.main(["stability", "--out", str(tmp_path), "--quick", "--cases", "magnitude"]) == 0
-    assert deprecation("--quick", "--preset quick") in capsys.readouterr().err
-    assert json.loads((tmp_path / "stability.json").read_text())["meta"]["quick"] is True
 
 
 def test_usage_lists_every_command_and_refuses_an_unknown_one(capsys):
@@ -356,14 +343,14 @@ def test_usage_lists_every_command_and_refuses_an_unknown_one(capsys):
     )
 
 
-def test_topopt_results_reads_k_and_the_old_ks(capsys):
+def test_topopt_results_reads_ks_and_load_cases():
     import argparse
 
     from prdp_petsc.lab.reports.topopt import commands
 
     parser = argparse.ArgumentParser()
     commands(None)["results"](parser)
-    old = parser.parse_args(["--ks", "2,4", "--seeds", "0-1", "--out", "o"])
-    assert capsys.readouterr().err == deprecation("--ks", "--k K [K ...]")
-    new = parser.parse_args(["--k", "2", "4", "--seeds", "0,1", "--out", "o"])
-    assert vars(old) == vars(new) and new.k == [2, 4] and new.seeds == [0, 1]
+    args = parser.parse_args(["--k", "2", "4", "--seeds", "0-1", "--out", "o"])
+    assert (args.k, args.seeds, args.out, args.preset) == ([2, 4], [0, 1], Path("o"), "quick")
+    assert parser.parse_args(["--out", "o"]).seeds == [0, 1, 2]
+    assert exit_status(parser.parse_args, ["--ks", "2,4", "--out", "o"]) == 2

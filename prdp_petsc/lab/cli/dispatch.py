@@ -63,7 +63,7 @@ def guarded(command, debug: bool, out: str | None = None, args=None) -> int:
 def debug_flag(argv: list[str]) -> bool:
     """Whether `argv` asks for tracebacks (``--debug``), before its own parser reads it."""
     debug = argparse.ArgumentParser(add_help=False)
-    debug.add_argument("--debug", action="store_true")
+    add_debug(debug)
     return debug.parse_known_args(argv)[0].debug
 
 

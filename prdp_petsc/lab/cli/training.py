@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .arguments import add_debug, positive, routes, seeds
+from . import arguments
 from .petsc import init_petsc, split_petsc_options
 
 __all__ = ["COMMANDS", "execute", "make_parser", "parse"]
@@ -26,7 +26,7 @@ def _k_max(text: str) -> str | int | None:
     if text in ("full", "none"):
         return None if text == "none" else text
     try:
-        return positive(text)
+        return arguments.positive(text)
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"full, none or an integer >= 1, got {text!r}") from None
 
@@ -36,61 +36,6 @@ def _setting(text: str) -> str:
     if not (eq and key.isidentifier() and value) or any(c.isspace() for c in text):
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE without spaces, got {text!r}")
     return text
-
-
-def _schedules(text: str) -> tuple[str, ...]:
-    """The names of ``--schedules`` (`compare` checks them: importing it here would
-    start PETSc before `init_petsc`)."""
-    schedules = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
-    if not schedules:
-        raise argparse.ArgumentTypeError(f"expected e.g. prdp,rtol, got {text!r}")
-    return schedules
-
-
-#: The options of ``run`` and ``compare``: (the commands that take it, flags, add_argument's
-#: keyword arguments), in the order ``--help`` lists them
-OPTIONS = [
-    ("run compare", ["--preset"], dict(help="preset name (quick | paper; default quick)")),
-    ("run compare", ["--set"], dict(
-        action="append", default=[], type=_setting, metavar="KEY=VALUE",
-        help="change one of the preset's settings (repeatable), e.g. --set modes=32")),
-    ("run compare", ["--epochs"], dict(type=positive, help="override the preset's epochs")),
-    ("run compare", ["--threads"], dict(
-        type=positive, default=1,
-        help="torch threads (default 1: honest wall times on a shared machine)")),
-    ("run compare", ["--parallel"], dict(
-        choices=("domain", "batch"),
-        help="under mpiexec: distribute every solve (domain) or split every mini-batch "
-        "across the ranks (batch)")),
-    ("run", ["--out"], dict(help="output folder (default with --resume: that folder)")),
-    ("compare", ["--out"], dict(required=True, help="output folder")),
-    ("run compare", ["--checkpoint-every"], dict(
-        type=positive, default=1, metavar="N",
-        help="save checkpoint.pt every N epochs and at the end (default 1)")),
-    ("run compare", ["--no-progress"], dict(action="store_true", help="hide the progress bar")),
-    ("run", ["--resume"], dict(
-        metavar="DIR",
-        help="continue the run in DIR from its checkpoint.pt, with its recorded scene, "
-        "preset, seeds and schedule, to --epochs (default: the recorded)")),
-    ("run", ["--schedule"], dict(help="prdp | auto | fixed:K | rtol (default prdp)")),
-    ("run", ["--k-max"], dict(
-        type=_k_max, default="full",
-        help="PRDP's cap on K: full (the default: the scene's own k_max, else K_full of "
-        "its probe), none, or a number >= the scene's k_init")),
-    ("compare", ["--resume"], dict(
-        action="store_true",
-        help="continue the comparison in --out: finished runs are read, interrupted ones "
-        "resume from their checkpoint")),
-    ("compare", ["--routes"], dict(
-        type=routes,
-        help="other solvers to run PRDP and full fidelity with: ksp/pc[:option=value,...] "
-        "(cg/icc,cg/gamg) or the scene's ROUTES names (default: its preset's; '' none; "
-        "auto: a short pilot at full fidelity picks one)")),
-    ("compare", ["--schedules"], dict(
-        type=_schedules, default=("prdp",),
-        help="reduced-fidelity schedules to run on every route, comma-separated: prdp "
-        "(PRDP on the iteration cap K; the default) and rtol (PRDP on PETSc's rtol)")),
-]  # fmt: skip
 
 
 def make_parser(
@@ -111,16 +56,50 @@ def make_parser(
             )  # fmt: skip
         seed = p.add_mutually_exclusive_group()
         seed.add_argument("--seed", type=int, help="random seed (default 0)")
-        if name == "compare":
-            seed.add_argument(
-                "--seeds", type=seeds,
-                help="compare on each of these seeds (0-3 or 0,2,5), each with a second "
-                "full-fidelity run from other initial weights, and summarise over the seeds",
+        arguments.add_preset(p, None, "preset name (quick | paper; default quick)")
+        p.add_argument(
+            "--set", action="append", default=[], type=_setting, metavar="KEY=VALUE",
+            help="change one of the preset's settings (repeatable), e.g. --set modes=32",
+        )  # fmt: skip
+        arguments.add_epochs(p)
+        arguments.add_threads(p)
+        p.add_argument(
+            "--parallel", choices=("domain", "batch"),
+            help="under mpiexec: distribute every solve (domain) or split every mini-batch "
+            "across the ranks (batch)",
+        )  # fmt: skip
+        p.add_argument(
+            "--checkpoint-every", type=arguments.positive, default=1, metavar="N",
+            help="save checkpoint.pt every N epochs and at the end (default 1)",
+        )  # fmt: skip
+        p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+        arguments.add_debug(p)
+        if name == "run":
+            arguments.add_out(p, "output folder (default with --resume: that folder)", False)
+            p.add_argument(
+                "--resume", metavar="DIR",
+                help="continue the run in DIR from its checkpoint.pt, with its recorded scene, "
+                "preset, seeds and schedule, to --epochs (default: the recorded)",
             )  # fmt: skip
-        for commands, flags, options in OPTIONS:
-            if name in commands.split():
-                p.add_argument(*flags, **options)
-        add_debug(p)
+            p.add_argument("--schedule", help="prdp | auto | fixed:K | rtol (default prdp)")
+            p.add_argument(
+                "--k-max", type=_k_max, default="full",
+                help="PRDP's cap on K: full (the default: the scene's own k_max, else K_full "
+                "of its probe), none, or a number >= the scene's k_init",
+            )  # fmt: skip
+        else:
+            arguments.add_seeds(
+                seed, None, "compare on each of these seeds, each with a second full-fidelity "
+                "run from other initial weights, and summarise over the seeds",
+            )  # fmt: skip
+            arguments.add_out(p)
+            p.add_argument(
+                "--resume", action="store_true",
+                help="continue the comparison in --out: finished runs are read, interrupted "
+                "ones resume from their checkpoint",
+            )  # fmt: skip
+            arguments.add_routes(p)
+            arguments.add_schedules(p)
     return parser
 
 

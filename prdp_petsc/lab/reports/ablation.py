@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli.arguments import add_debug, positive, routes, seeds
+from ..cli import arguments
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "ablation", "format_ablation", "main"]
@@ -144,8 +144,8 @@ def _parser() -> argparse.ArgumentParser:
         "writes DIR/ablation.json and prints the table.",
     )
     parser.add_argument("scene", help="scene file (demos/ns2d.py)")
-    parser.add_argument("--preset", default="quick", help="baseline preset string")
-    parser.add_argument("--seeds", type=seeds, default=[0, 1, 2], help="seeds, e.g. 0-2 or 0,3,5")
+    arguments.add_preset(parser, help="the baseline's preset (default quick)")
+    arguments.add_seeds(parser)
     parser.add_argument(
         "--lever",
         nargs="+",
@@ -154,12 +154,12 @@ def _parser() -> argparse.ArgumentParser:
         metavar=("NAME", "KEY=VALUE"),
         help="a lever: its name and the preset settings it changes (repeatable)",
     )
-    parser.add_argument("--schedules", default="prdp,rtol", help="reduced schedules")
-    parser.add_argument("--routes", type=routes, default=None, help="routes (default: the scene's)")
-    parser.add_argument("--epochs", type=positive, default=None, help="epochs (default: preset's)")
+    arguments.add_schedules(parser, "prdp,rtol")
+    arguments.add_routes(parser)
+    arguments.add_epochs(parser)
     parser.add_argument("--no-twin", action="store_true", help="skip the twin runs")
-    parser.add_argument("--out", required=True, help="output folder")
-    add_debug(parser)
+    arguments.add_out(parser)
+    arguments.add_debug(parser)
     return parser
 
 
@@ -175,14 +175,14 @@ def main(argv: list[str]) -> int:
     try:
         report = ablation(
             args.scene, levers, preset=args.preset, seeds=args.seeds, out=args.out,
-            schedules=tuple(s for s in args.schedules.split(",") if s),
+            schedules=args.schedules,
             routes=args.routes, epochs=args.epochs, twin=not args.no_twin,
             progress=False, plots=False, resume=True,
         )  # fmt: skip
     except ValueError as err:
         parser.error(str(err))
     print(format_ablation(report), end="")
-    print(f"wrote {Path(args.out) / 'ablation.json'}")
+    print(f"wrote {args.out / 'ablation.json'}")
     return 0
 
 

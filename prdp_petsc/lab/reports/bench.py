@@ -49,11 +49,18 @@ import subprocess
 import sys
 import tracemalloc
 import warnings
-from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import DeprecatedAlias, add_debug, add_size_preset, positive, routes
+from ..cli.arguments import (
+    add_debug,
+    add_k,
+    add_out,
+    add_size_preset,
+    add_threads,
+    positive,
+    routes,
+)
 from ..provenance import load_average, machine_info, write_result
 from . import bench_elasticity, bench_gpu, bench_jax, bench_mpi
 from . import benchmarking as bm
@@ -440,12 +447,12 @@ def _parser() -> argparse.ArgumentParser:
         help="benchmark to run (mpi: bench_mpi, elasticity: bench_elasticity, gpu: bench_gpu, "
         "jax: bench gpu on the CPU at the JAX comparison's sizes)",
     )
-    p.add_argument("--out", type=Path, required=True, help="folder for bench_<which>.json")
+    add_out(p, "folder for bench_<which>.json")
     add_size_preset(p, "tiny sizes (a smoke test)")
     p.add_argument(
         "--n", type=positive, help="overhead problem size, rounded to a plate_holes refinement"
     )
-    p.add_argument("--k", type=positive, help="K of the overhead problem (default 100)")
+    add_k(p, None, "K of the overhead problem (default 100)")
     p.add_argument("--unrolled-n", type=positive, help="unrolled comparison: about n unknowns")
     p.add_argument("--unrolled-k", type=positive, help="K of the unrolled comparison (300)")
     p.add_argument("--repeats", type=positive, help="timed repeats after warm-up (21)")
@@ -456,9 +463,7 @@ def _parser() -> argparse.ArgumentParser:
         metavar="KSP/PC",
         help="the KSP and PC type of every solve (default cg/jacobi; one route)",
     )
-    for old in ("--ksp-type", "--pc-type"):  # one release more: --routes KSP/PC
-        p.add_argument(old, action=DeprecatedAlias, new="--routes KSP/PC", help=argparse.SUPPRESS)
-    p.add_argument("--threads", type=positive, default=1, help="torch threads (default 1)")
+    add_threads(p)
     add_debug(p)
     return p
 
@@ -479,8 +484,7 @@ def main(argv: list[str]) -> int:
     if argv and argv[0] in others:
         return others[argv[0]].main(argv[1:])
     args = _parser().parse_args(argv)
-    ksp_type = args.ksp_type or args.routes[0]  # the deprecated --ksp-type/--pc-type first
-    pc_type = args.pc_type or args.routes[1]
+    ksp_type, pc_type = args.routes
     import torch
 
     quick = args.preset == "quick"

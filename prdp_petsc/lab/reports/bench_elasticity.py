@@ -24,11 +24,10 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import add_debug, add_size_preset, positive
+from ..cli.arguments import add_debug, add_k, add_out, add_size_preset
 from ..provenance import load_average, machine_info, write_result
 from .benchmarking import stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
@@ -137,10 +136,10 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="prdp-petsc bench elasticity", description=__doc__.split("\n")[0]
     )
-    p.add_argument("--out", type=Path, required=True, help="folder for bench_elasticity.json")
+    add_out(p, "folder for bench_elasticity.json")
     p.add_argument("--sizes", default="8,16,32", help="cells per axis, comma-separated (8,16,32)")
     p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (1e-8)")
-    p.add_argument("--k", type=positive, default=10, help="K of the capped solve (10)")
+    add_k(p, 10, "K of the capped solve")
     add_size_preset(p, "tiny sizes (2,4): a smoke test")
     add_debug(p)
     return p

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import DeprecatedAlias, DeprecatedFlag, add_debug, positive
+from ..cli.arguments import add_debug, add_k, add_out, add_preset, positive
 from ..provenance import machine_info, write_result
 from ..subprocesses import child_env
 from .benchmarking import interleaved, stopwatch
@@ -51,7 +51,6 @@ __all__ = [
     "format_report",
     "format_scaling_model",
     "main",
-    "parse_arguments",
     "scaling_model",
 ]
 
@@ -69,7 +68,7 @@ MODEL_RANKS = (64, 256, 1024)
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prdp-petsc bench mpi", description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, help="folder for bench_mpi.json")
+    add_out(p, "folder for bench_mpi.json", required=False)  # the --worker writes --json
     p.add_argument("--ranks", default="1,2", help="rank counts to compare (1,2)")
     p.add_argument("--refine", type=int, default=2, help="refinements of box3d (2: 58 575 nodes)")
     p.add_argument(
@@ -79,30 +78,19 @@ def _parser() -> argparse.ArgumentParser:
         "--layout", choices=["replicated", "owned"], default="replicated",
         help="data layout of the solve benchmark (replicated)",
     )  # fmt: skip
-    p.add_argument("--k", type=positive, default=200, help="K of the capped 3D solve (200)")
+    add_k(p, 200, "K of the capped 3D solve")
     p.add_argument("--repeats", type=positive, default=5, help="timed solves after one warm-up (5)")
     p.add_argument(
         "scene", nargs="?", default="demos/heat.py",
         help="scene file of the epoch benchmark (demos/heat.py)",
     )  # fmt: skip
-    p.add_argument(
-        "--scene", dest="scene_option", action=DeprecatedAlias, new="the positional SCENE_FILE",
-        help=argparse.SUPPRESS,
-    )  # fmt: skip
-    p.add_argument(
-        "--preset", default="paper3d",
-        help="the scene's preset (paper3d); a quick one (quick, quick3d) also runs tiny sizes",
-    )  # fmt: skip
+    add_preset(p, "paper3d", "the scene's preset (paper3d); quick, quick3d: also tiny sizes")
     p.add_argument("--schedule", default="fixed:96", help="K schedule of the epochs (K_full)")
     p.add_argument(
         "--epochs", type=int, default=3, help="epochs per run, the first warm-up (0: no epochs)"
     )
     p.add_argument("--mpiexec", default=os.environ.get("MPIEXEC", "mpiexec"))
     p.add_argument("--timeout", type=float, default=3600, help="seconds per mpiexec (3600)")
-    p.add_argument(
-        "--quick", action=DeprecatedFlag, dest="preset", const="quick", new="--preset quick",
-        help=argparse.SUPPRESS,
-    )  # fmt: skip
     add_debug(p)
     p.add_argument("--worker", choices=["solve", "epoch"], help=argparse.SUPPRESS)
     p.add_argument("--mode", help=argparse.SUPPRESS)
@@ -268,20 +256,9 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
         return json.loads(record.read_text())
 
 
-def parse_arguments(argv: list[str]) -> argparse.Namespace:
-    """The arguments of ``bench mpi``, the deprecated ``--scene FILE`` read as SCENE_FILE."""
-    parser = _parser()
-    args = parser.parse_args(argv)
-    if args.scene_option is not None:
-        if args.scene != parser.get_default("scene"):
-            parser.error("give the scene file once (the positional SCENE_FILE)")
-        args.scene = args.scene_option
-    return args
-
-
 def main(argv: list[str]) -> int:
     """Run ``bench mpi``; write ``<out>/bench_mpi.json``; return an exit code."""
-    args = parse_arguments(argv)
+    args = _parser().parse_args(argv)
     if args.worker:
         return _worker(args)
     if args.out is None:

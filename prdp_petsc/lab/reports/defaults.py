@@ -174,15 +174,15 @@ def notes(result: dict) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    from ..cli.arguments import add_debug, positive, seeds
+    from ..cli.arguments import add_debug, add_out, add_preset, add_seeds, add_threads
     from ..training.threads import torch_threads
 
     parser = argparse.ArgumentParser(prog="prdp-petsc defaults", description=__doc__.split("\n")[0])
     parser.add_argument("scene_file", help="scene file (demos/heat.py)")
-    parser.add_argument("--preset", default="paper", help="preset (default paper)")
-    parser.add_argument("--seeds", default=[0, 1, 2], type=seeds, help="seeds (default 0-2)")
-    parser.add_argument("--threads", default=1, type=positive, help="torch threads (default 1)")
-    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    add_preset(parser, "paper")
+    add_seeds(parser)
+    add_threads(parser)
+    add_out(parser)
     add_debug(parser)
     args = parser.parse_args(argv)
     with torch_threads(args.threads):

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import add_debug, positive
+from ..cli.arguments import add_debug, add_epochs, add_k, add_out, add_preset, positive
 from ..provenance import write_result
 from .kinds import DataSet, ReportKind, text_table
 from .memory import peak_rss_mb, reset_peak
@@ -90,15 +90,13 @@ def _parser() -> argparse.ArgumentParser:
         prog="prdp-petsc horizon", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("scene", help="scene file with the preset keys unroll and checkpoint")
-    parser.add_argument("--preset", default="quick", help="preset (default quick)")
+    add_preset(parser)
     parser.add_argument(
         "--m", type=positive, nargs="+", default=[2, 4, 8, 16], help="unroll lengths"
     )
-    parser.add_argument(
-        "--k", type=positive, default=20, help="fixed K of every solve (default 20)"
-    )
-    parser.add_argument("--epochs", type=positive, default=2, help="epochs per row (default 2)")
-    parser.add_argument("--out", help="output folder for horizon.json")
+    add_k(parser, 20, "fixed K of every solve")
+    add_epochs(parser, 2, "epochs per row")
+    add_out(parser, "folder for horizon.json", required=False)
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--no-checkpoint", action="store_true", help=argparse.SUPPRESS)
     add_debug(parser)

@@ -17,6 +17,7 @@ import torch
 
 import prdp_petsc as pp
 
+from ..cli.arguments import add_k, add_preset
 from ..training.scene import preset_config
 from .kinds import text_table
 
@@ -175,19 +176,10 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
     def adjoint_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
         """Print the adjoint figures of one training batch (`adjoint_report`), on one thread."""
-        parser.add_argument("--preset", default="quick", help="preset (default quick)")
-        parser.add_argument(
-            "--k",
-            type=int,
-            nargs="+",
-            default=[8, 64],
-            metavar="K",
-            help="the capped Ks (GMRES iterations) to differentiate with (default 8 64)",
-        )
+        add_preset(parser)
+        add_k(parser, [8, 64], "the capped Ks (GMRES iterations) to differentiate with")
 
         def run(args: argparse.Namespace) -> int:
-            if min(args.k) < 1:
-                parser.error(f"--k: every K must be >= 1, got {args.k}")
             torch.set_num_threads(1)
             print(format_adjoint_report(adjoint_report(scene, args.preset, tuple(args.k))))
             return 0

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import jinja2
 
+from ..cli.arguments import add_debug, add_out
 from ..training.summary import format_table
 from .kinds import DataSet, ReportKind, markdown_table
 from .record import record
@@ -297,7 +298,7 @@ def _folders(parser: argparse.ArgumentParser) -> None:
     """The options both sub-commands share: where the data and the plots are, --debug."""
     parser.add_argument("--data", default="docs/data", help="recorded data (docs/data)")
     parser.add_argument("--images", default="docs/images", help="recorded plots (docs/images)")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    add_debug(parser)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -323,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
         description="Write the results pages (and the README's generated fragments) from "
         "the recorded data; `prdp-petsc pages record NAME -- COMMAND` records data.",
     )
-    parser.add_argument("--out", required=True, help="folder of the pages, e.g. docs/results")
+    add_out(parser, "folder of the pages, e.g. docs/results")
     _folders(parser)
     parser.add_argument(
         "--readme", default="README.md", help="README whose fragments to rewrite ('' for none)"

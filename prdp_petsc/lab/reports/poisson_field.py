@@ -15,6 +15,7 @@ import numpy as np
 
 from prdp_petsc import load_mesh
 
+from ..cli.arguments import add_preset
 from .trained import train_and_keep
 
 __all__ = ["commands", "plot_fields", "recover"]
@@ -71,7 +72,7 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
     def plot_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
         """Recover κ with PRDP on a preset and draw it against the true κ (`plot_fields`)."""
-        parser.add_argument("--preset", default="quick", help="preset (default quick)")
+        add_preset(parser)
         parser.add_argument(
             "--out",
             default="poisson_field.png",

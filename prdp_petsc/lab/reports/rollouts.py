@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import gmean
 
+from ..cli.arguments import add_debug, add_out
 from ..provenance import write_result
 from ..training.seeds import ratio_statistics
 from .kinds import DataSet, ReportKind, interval, text_table
@@ -165,8 +166,8 @@ def _parser() -> argparse.ArgumentParser:
         "--ratio", action="append", default=[], metavar="NAME/REFERENCE", help="a ratio to report"
     )
     parser.add_argument("--step", type=int, help="the step of the error ratios (default: last)")
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    add_out(parser)
+    add_debug(parser)
     return parser
 
 

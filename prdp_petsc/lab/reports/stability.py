@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -422,14 +421,14 @@ def summary_line(c: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """``prdp-petsc stability --out DIR [--preset quick] [--cases NAME ...]``."""
-    from ..cli.arguments import add_debug, add_size_preset
+    from ..cli.arguments import add_debug, add_out, add_size_preset
 
     parser = argparse.ArgumentParser(
         prog="prdp-petsc stability",
         description="Stability suite of capped PETSc solves and their gradients; writes "
         "DIR/stability.json and DIR/stability.md.",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    add_out(parser)
     add_size_preset(parser, "small meshes (seconds)")
     parser.add_argument("--cases", nargs="*", choices=sorted(CASES), help="run only these")
     add_debug(parser)

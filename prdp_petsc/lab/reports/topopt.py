@@ -222,19 +222,10 @@ def commands(scene: ModuleType) -> dict[str, Callable]:
 
     def results_command(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
         """Converged solves, constant K, PRDP (auto) and rtol on three load cases."""
-        parser.add_argument("--preset", default="quick", help="preset (default quick)")
-        parser.add_argument(
-            "--seeds", type=arguments.seeds, default=[0, 1, 2], help="load cases (0-2)"
-        )
-        parser.add_argument(
-            "--k", type=arguments.positive, nargs="+", default=[2, 4, 8], help="constant Ks (2 4 8)"
-        )
-        parser.add_argument(
-            "--ks", dest="k", action=arguments.DeprecatedAlias, new="--k K [K ...]",
-            type=lambda text: [arguments.positive(k) for k in text.split(",")],
-            help=argparse.SUPPRESS,
-        )  # fmt: skip
-        parser.add_argument("--out", required=True, help="folder for topopt.json and the picture")
+        arguments.add_preset(parser)
+        arguments.add_seeds(parser, help="load cases")
+        arguments.add_k(parser, [2, 4, 8], "constant Ks")
+        arguments.add_out(parser, "folder for topopt.json and the picture")
 
         def run_results(args: argparse.Namespace) -> int:
             data = results(scene, args.preset, args.seeds, args.k)

@@ -20,8 +20,7 @@ from ..training.summary import ACCURACY_RATIO
 from .kinds import DataSet, ReportKind, markdown_table, percent
 from .unseen_problems import HELD_OUT, PROBLEMS, RTOL_FULL, Problem, build
 
-__all__ = ["CONSTANT_FRACTIONS", "HAND", "KIND", "compare", "main", "parse_arguments", "table",
-           "train"]  # fmt: skip
+__all__ = ["CONSTANT_FRACTIONS", "HAND", "KIND", "compare", "main", "table", "train"]
 
 #: the constant caps a baseline run tries, as fractions of K_full (rounded up)
 CONSTANT_FRACTIONS = (1 / 8, 1 / 4, 1 / 2)
@@ -209,21 +208,15 @@ def _baseline_table(result: dict) -> str:
     return markdown_table(header, rows)
 
 
-def parse_arguments(argv=None):
-    """The arguments of ``unseen``; ``--seeds`` as one list (the deprecated ``--seeds 0 1
-    2`` too)."""
+def _parser():
     import argparse
-    from pathlib import Path
 
-    from ..cli.arguments import add_debug, add_size_preset, deprecated, seeds
+    from ..cli.arguments import add_debug, add_out, add_seeds, add_size_preset
 
     parser = argparse.ArgumentParser(prog="prdp-petsc unseen")
-    parser.add_argument("--out", required=True, type=Path, help="folder for unseen.json")
+    add_out(parser, "folder for unseen.json")
     add_debug(parser)
-    parser.add_argument(
-        "--seeds", type=seeds, nargs="+", default=[[0, 1, 2]],
-        help="seeds, e.g. 0-2 or 0,3,5 (default 0-2)",
-    )  # fmt: skip
+    add_seeds(parser)
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS),
                         choices=[*PROBLEMS, *HELD_OUT])  # fmt: skip
     add_size_preset(parser, "small sizes and few epochs")
@@ -231,11 +224,7 @@ def parse_arguments(argv=None):
         "--baselines", action="store_true",
         help="also run the hand schedule and the constant caps K_full/8, /4, /2",
     )  # fmt: skip
-    args = parser.parse_args(argv)
-    groups, args.seeds = args.seeds, list(dict.fromkeys(s for group in args.seeds for s in group))
-    if len(groups) > 1:  # one release more: --seeds 0 1 2
-        deprecated("--seeds with several values", "--seeds " + ",".join(map(str, args.seeds)))
-    return args
+    return parser
 
 
 def main(argv=None) -> int:
@@ -246,7 +235,7 @@ def main(argv=None) -> int:
     """
     import torch
 
-    args = parse_arguments(argv)
+    args = _parser().parse_args(argv)
     torch.set_num_threads(1)
     result = compare(
         args.problems, args.seeds, quick=args.preset == "quick", baselines=args.baselines

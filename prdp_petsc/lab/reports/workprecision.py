@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.arguments import add_debug, add_size_preset, positive
+from ..cli.arguments import add_debug, add_out, add_size_preset, positive
 from ..provenance import load_average, write_result
 from ..training.routes import parse_routes, route_settings
 from .benchmarking import stopwatch
@@ -348,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
         "K on a geometric range; writes work_precision_<problem>.{json,png,md} in DIR.",
     )
     parser.add_argument("problem", choices=sorted(PROBLEMS))
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    add_out(parser)
     add_size_preset(parser, "small mesh and K range")
     parser.add_argument("--k-max", type=positive, default=None, help="largest K (power of two)")
     parser.add_argument(
