@@ -33,7 +33,7 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
     from ..training.harness import run
     from ..training.probe import probe
     from ..training.scene import load_scene
-    from ..training.seeds import ratio_statistics
+    from ..training.seeds import equal_accuracy_savings, ratio_statistics
     from ..training.summary import ACCURACY_RATIO
 
     module = load_scene(scene_file)
@@ -74,14 +74,12 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
         done = [r[name] for r in per_seed if "ratio" in r[name]]
         if not done:
             continue
-        equal = [r for r in done if r["equal_accuracy"]]
+        equal = equal_accuracy_savings(done, keys=("saved",))
         result[name] = {
             "ratio": ratio_statistics([r["ratio"] for r in done]),
-            "equal_accuracy": len(equal),
+            "equal_accuracy": equal["seeds"] if equal else 0,
             "compared": len(done),
-            "saved_at_equal_accuracy": (
-                sum(r["saved"] for r in equal) / len(equal) if equal else None
-            ),
+            "saved_at_equal_accuracy": equal["saved"]["mean"] if equal else None,
             "certified": sum(bool(r["certified"]) for r in done),
         }
     return result

@@ -74,19 +74,21 @@ def optional_ratio_statistics(ratios: list[float]) -> dict:
     return ratio_statistics(ratios)
 
 
-def equal_accuracy_savings(per_seed: list[dict]) -> dict | None:
-    """Savings over the seeds whose PRDP run reached full-fidelity accuracy only.
+def equal_accuracy_savings(
+    per_seed: list[dict], keys=("iterations_saved", "wall_time_saved")
+) -> dict | None:
+    """Savings over the seeds whose reduced run reached full-fidelity accuracy only.
 
-    A seed whose PRDP ended more than `ACCURACY_RATIO` times full fidelity's error
-    saved nothing at equal accuracy.  Returns ``{"seeds": n, "iterations_saved":
-    spread, "wall_time_saved": spread}`` (mean, min, max over those n seeds), or None
-    when no seed reached equal accuracy.
+    A seed whose run ended more than `ACCURACY_RATIO` times full fidelity's error (its
+    row's ``equal_accuracy`` false) saved nothing at equal accuracy.  Returns
+    ``{"seeds": n, key: spread, ...}`` for each of `keys` (mean, min, max over those n
+    seeds), or None when no seed reached equal accuracy.
     """
     equal = [r for r in per_seed if r.get("equal_accuracy")]
     if not equal:
         return None
     out = {"seeds": len(equal)}
-    for key in ("iterations_saved", "wall_time_saved"):
+    for key in keys:
         values = [r[key] for r in equal]
         out[key] = {"mean": sum(values) / len(values), "min": min(values), "max": max(values)}
     return out
