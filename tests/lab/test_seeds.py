@@ -17,6 +17,7 @@ from prdp_petsc.lab.training.seeds import (
     _aggregate,
     compare_seeds,
     equal_accuracy_savings,
+    format_ratio,
     format_seeds,
     optional_ratio_statistics,
     ratio_statistics,
@@ -52,6 +53,19 @@ def test_ratio_statistics_on_a_log_scale():
 def test_optional_ratio_statistics_without_a_ratio():
     assert optional_ratio_statistics([]) == {"geometric_mean": None, "interval": None, "n": 0}
     assert optional_ratio_statistics([4.0, 1.0]) == ratio_statistics([4.0, 1.0])
+
+
+def test_format_ratio_writes_the_mean_its_interval_and_a_note():
+    stats = {"geometric_mean": 2.0, "interval": [1.5, 2.75], "n": 3}
+    assert format_ratio(stats) == "2.000 (95 % interval 1.500–2.750)"
+    assert format_ratio(stats, ".2f", "×", "n = 3") == "2.00× (95 % interval 1.50–2.75, n = 3)"
+    assert format_ratio(stats, ci_spec=".1f") == "2.000 (95 % interval 1.5–2.8)"
+    one = {"geometric_mean": 1.25, "interval": None, "n": 1}
+    assert format_ratio(one, ".2f", "×") == "1.25×"
+    assert format_ratio(one, extra="n = 1") == "1.250 (n = 1)"
+    none = optional_ratio_statistics([])
+    assert format_ratio(none, extra="n = 0") == "— (n = 0)"
+    assert format_ratio(None) == "—"
 
 
 def test_equal_accuracy_savings_count_the_seeds_at_equal_accuracy_only():
@@ -252,7 +266,7 @@ def test_a_seed_without_comparison_counts_against_the_test():
 def test_the_interval_is_read_against_the_5_percent_test(ratios, verdict):
     rows = [_row(i, r) for i, r in enumerate(ratios)]
     table = format_seeds(_aggregate("s", list(range(len(rows))), rows))
-    assert verdict in table and "(n = 3)" in table
+    assert verdict in table and "n = 3)" in table
 
 
 def test_ratio_statistics_edge_cases():

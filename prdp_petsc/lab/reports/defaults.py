@@ -17,7 +17,7 @@ from pathlib import Path
 from prdp_petsc import PRDP
 
 from ..provenance import write_result
-from .kinds import DataSet, ReportKind, interval, text_table
+from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
 
@@ -120,9 +120,11 @@ def summary(result: dict, name: str, *, detail: bool = True) -> str:
     s = result.get(name)
     if s is None:
         return f"{name}: no seed finished"
-    ci = interval(s["ratio"]) if detail else ""
+    from ..training.seeds import format_ratio
+
+    ratio = format_ratio(s["ratio"]) if detail else f"{s['ratio']['geometric_mean']:.3f}"
     text = (
-        f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{ci}; "
+        f"{name}: error ratio {ratio}; "
         f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
     )
     if s["saved_at_equal_accuracy"] is not None:

@@ -28,6 +28,7 @@ __all__ = [
     "SPEEDUP_GOAL",
     "compare_seeds",
     "equal_accuracy_savings",
+    "format_ratio",
     "format_seeds",
     "lever_ratios",
     "optional_ratio_statistics",
@@ -72,6 +73,23 @@ def optional_ratio_statistics(ratios: list[float]) -> dict:
     if not ratios:
         return {"geometric_mean": None, "interval": None, "n": 0}
     return ratio_statistics(ratios)
+
+
+def format_ratio(
+    stats: dict | None, spec: str = ".3f", unit: str = "", extra: str = "", ci_spec: str = ""
+) -> str:
+    """``1.234× (95 % interval 1.100–1.384, n = 3)``: the geometric mean of `stats`
+    (`ratio_statistics`) in format `spec` with `unit`, then its interval (in `ci_spec`,
+    `spec` by default) and `extra` where there are any; ``—`` for a missing mean."""
+    mean = (stats or {}).get("geometric_mean")
+    inside = []
+    if (stats or {}).get("interval"):
+        lo, hi = stats["interval"]
+        inside.append(f"95 % interval {lo:{ci_spec or spec}}–{hi:{ci_spec or spec}}")
+    if extra:
+        inside.append(extra)
+    text = "—" if mean is None else f"{mean:{spec}}{unit}"
+    return text + (f" ({', '.join(inside)})" if inside else "")
 
 
 def equal_accuracy_savings(
@@ -340,7 +358,7 @@ def format_seeds(result: dict) -> str:
         lines.append("time to full-fidelity accuracy, B / A for 'A vs B' (above 1: A sooner):")
         for label, s in result["levers"].items():
             lines.append(
-                f"  {_ratio_line(label, s)} of {s['seeds']} seeds"
+                "  " + _ratio_line(label, s, f" of {s['seeds']} seeds")
                 if s["n"]
                 else f"  {label}: never both reached (of {s['seeds']} seeds)"
             )
@@ -397,9 +415,6 @@ def _percent(value: float | None) -> float | None:
     return None if value is None else 100 * value
 
 
-def _ratio_line(name: str, stats: dict) -> str:
-    line = f"{name}: geometric mean {stats['geometric_mean']:.3f}"
-    if stats.get("interval"):
-        lo, hi = stats["interval"]
-        line += f", 95 % interval {lo:.3f}–{hi:.3f}"
-    return line + f" (n = {stats['n']})"
+def _ratio_line(name: str, stats: dict, of: str = "") -> str:
+    extra = f"n = {stats['n']}{of}"
+    return f"{name}: geometric mean {format_ratio(stats, extra=extra)}"
