@@ -29,12 +29,12 @@ SCHEDULES = {"tuned": "prdp", "default": "auto"}
 
 def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None) -> dict:
     """Full fidelity, the tuned PRDP and the default construction on every seed."""
+    from ..training.accuracy import ACCURACY_RATIO
     from ..training.building import build_scene, release
     from ..training.harness import run
     from ..training.probe import probe
     from ..training.scene import load_scene
     from ..training.seeds import equal_accuracy_savings, ratio_statistics
-    from ..training.summary import ACCURACY_RATIO
 
     module = load_scene(scene_file)
     per_seed = []

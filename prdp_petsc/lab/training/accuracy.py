@@ -6,14 +6,8 @@ import math
 
 from prdp_petsc.prdp import ACCURACY_BAND
 
-__all__ = [
-    "ACCURACY_RATIO",
-    "WORST_SEED_RATIO",
-    "accuracy_target",
-    "equal_accuracy_k",
-    "equal_over_seeds",
-    "time_to_accuracy",
-]
+__all__ = ["ACCURACY_RATIO", "WORST_SEED_RATIO", "accuracy_target", "equal_accuracy_k",
+           "equal_over_seeds", "time_to_accuracy"]  # fmt: skip
 
 #: Largest ratio of final validation errors (run / full fidelity) that counts as equal accuracy.
 ACCURACY_RATIO = 1.0 + ACCURACY_BAND

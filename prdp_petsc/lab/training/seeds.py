@@ -19,10 +19,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from .accuracy import ACCURACY_RATIO
 from .compare import compare
 from .parallel import Parallel
 from .records import write_json
-from .summary import ACCURACY_RATIO, format_table, plain_table, stopped_runs
+from .summary import format_table, plain_table, stopped_runs
 
 __all__ = [
     "SPEEDUP_GOAL",
