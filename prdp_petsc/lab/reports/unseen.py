@@ -184,18 +184,18 @@ def _baseline_table(result: dict) -> str:
     """The default against the hand schedule and the best constant cap: error ratio
     (geometric mean, worst seed) and the iterations saved (mean over the seeds)."""
 
+    def saved(s: dict) -> str:
+        return f"{100 * sum(s['saved']) / len(s['saved']):.0f} %"
+
     def cell(s: dict) -> str:
-        mean = sum(s["saved"]) / len(s["saved"])
-        return f"{s['geomean_ratio']:.3f} ({s['worst_ratio']:.3f}), {100 * mean:.0f} %"
+        return f"{s['geomean_ratio']:.3f} ({s['worst_ratio']:.3f}), {saved(s)}"
 
     rows = []
     for name, p in result["problems"].items():
         b = p["baselines"]
         best = b["best_constant"]
         constants = [lab for lab in b if lab not in ("hand", "best_constant")]
-        best_cell = "none" if best is None else (
-            f"{best}: {100 * sum(b[best]['saved']) / len(b[best]['saved']):.0f} %"
-        )  # fmt: skip
+        best_cell = "none" if best is None else f"{best}: {saved(b[best])}"
         every = "; ".join(f"{lab}: {cell(b[lab])}" for lab in constants)
         rows.append((f"`{name}`", cell(p), cell(b["hand"]), best_cell, every))
     header = ["problem", "default: ratio, saved", "hand schedule: ratio, saved",
