@@ -1,10 +1,10 @@
-"""`equal_accuracy_k`: the smallest constant K within tol of full fidelity (the lab)."""
+"""Equal accuracy: over seeds, and the smallest constant K within tol of full fidelity."""
 
 import math
 
 import pytest
 
-from prdp_petsc.lab.training.accuracy import equal_accuracy_k
+from prdp_petsc.lab.training.accuracy import equal_accuracy_k, equal_over_seeds
 
 
 def _model_errors(ks, e_full=1e-3, c=0.5, rho=0.85):
@@ -59,3 +59,17 @@ def test_equal_accuracy_k_clamps_and_validates():
     assert nan["measured"] == 40 and nan["fitted"] is None and nan["ic_bound"] == 0.0
     with pytest.raises(ValueError, match="tol"):
         equal_accuracy_k({40: 1.0}, 40, tol=0)
+
+
+@pytest.mark.parametrize(
+    "ratios, equal",
+    [
+        ((1.0, 1.02, 1.08), True),  # mean 1.0328, worst 1.08
+        ((1.04, 1.05, 1.06), True),  # mean 1.04997: the bound is inclusive
+        ((1.0, 1.0, 1.12), False),  # mean 1.0385 but one seed above 1.10
+        ((1.06, 1.06, 1.06), False),  # no seed above 1.10 but the mean above 1.05
+    ],
+)
+def test_equal_over_seeds_bounds_the_mean_and_the_worst_seed(ratios, equal):
+    mean = math.prod(ratios) ** (1 / len(ratios))
+    assert equal_over_seeds(mean, max(ratios)) is equal

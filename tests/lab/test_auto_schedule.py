@@ -64,6 +64,9 @@ def test_defaults_report(tmp_path, capsys):
         assert r["ratio"] == pytest.approx(r["final_val_error"] / row["full"]["final_val_error"])
         assert r["saved"] == pytest.approx(1 - r["iterations"] / row["full"]["iterations"])
         assert result[name]["compared"] == 1
+        equal = r["ratio"] <= 1.05  # one seed: saved at equal accuracy is its own saving, or none
+        assert r["equal_accuracy"] == equal and result[name]["equal_accuracy"] == int(equal)
+        assert result[name]["saved_at_equal_accuracy"] == (r["saved"] if equal else None)
     assert row["default"]["certified"] in (True, False)
     assert row["tuned"]["certified"] is None  # the tuned controller runs no checks
     assert "default: error ratio" in capsys.readouterr().out

@@ -16,7 +16,10 @@ from prdp_petsc.lab.training.scene import load_scene, preset_config
 from prdp_petsc.lab.training.seeds import (
     _aggregate,
     compare_seeds,
+    equal_accuracy_savings,
+    format_ratio,
     format_seeds,
+    optional_ratio_statistics,
     ratio_statistics,
 )
 
@@ -45,6 +48,40 @@ def test_ratio_statistics_on_a_log_scale():
     assert same["interval"] == pytest.approx([1.1, 1.1])
     assert ratio_statistics([1.2])["interval"] is None
     assert ratio_statistics([1.0, math.inf])["geometric_mean"] == math.inf
+
+
+def test_optional_ratio_statistics_without_a_ratio():
+    assert optional_ratio_statistics([]) == {"geometric_mean": None, "interval": None, "n": 0}
+    assert optional_ratio_statistics([4.0, 1.0]) == ratio_statistics([4.0, 1.0])
+
+
+def test_format_ratio_writes_the_mean_its_interval_and_a_note():
+    stats = {"geometric_mean": 2.0, "interval": [1.5, 2.75], "n": 3}
+    assert format_ratio(stats) == "2.000 (95 % interval 1.500–2.750)"
+    assert format_ratio(stats, ".2f", "×", "n = 3") == "2.00× (95 % interval 1.50–2.75, n = 3)"
+    assert format_ratio(stats, ci_spec=".1f") == "2.000 (95 % interval 1.5–2.8)"
+    one = {"geometric_mean": 1.25, "interval": None, "n": 1}
+    assert format_ratio(one, ".2f", "×") == "1.25×"
+    assert format_ratio(one, extra="n = 1") == "1.250 (n = 1)"
+    none = optional_ratio_statistics([])
+    assert format_ratio(none, extra="n = 0") == "— (n = 0)"
+    assert format_ratio(None) == "—"
+
+
+def test_equal_accuracy_savings_count_the_seeds_at_equal_accuracy_only():
+    rows = [
+        {"equal_accuracy": True, "iterations_saved": 0.2, "wall_time_saved": 0.1, "saved": 0.3},
+        {"equal_accuracy": False, "iterations_saved": 0.9, "wall_time_saved": 0.9, "saved": 0.9},
+        {"equal_accuracy": True, "iterations_saved": 0.6, "wall_time_saved": -0.1, "saved": 0.5},
+    ]
+    out = equal_accuracy_savings(rows)
+    assert out["seeds"] == 2  # the second seed ended behind: nothing saved at equal accuracy
+    assert out["iterations_saved"] == pytest.approx({"mean": 0.4, "min": 0.2, "max": 0.6})
+    assert out["wall_time_saved"] == pytest.approx({"mean": 0.0, "min": -0.1, "max": 0.1})
+    assert equal_accuracy_savings(rows, keys=("saved",)) == {
+        "seeds": 2, "saved": pytest.approx({"mean": 0.4, "min": 0.3, "max": 0.5})
+    }  # fmt: skip
+    assert equal_accuracy_savings([rows[1]]) is None
 
 
 def test_torch_seed_changes_the_network_not_the_data(tmp_path):
@@ -229,7 +266,7 @@ def test_a_seed_without_comparison_counts_against_the_test():
 def test_the_interval_is_read_against_the_5_percent_test(ratios, verdict):
     rows = [_row(i, r) for i, r in enumerate(ratios)]
     table = format_seeds(_aggregate("s", list(range(len(rows))), rows))
-    assert verdict in table and "(n = 3)" in table
+    assert verdict in table and "n = 3)" in table
 
 
 def test_ratio_statistics_edge_cases():

@@ -82,17 +82,6 @@ def lever_effect(baseline: dict, lever: dict) -> dict:
     return effect
 
 
-def _geo(stats: dict | None, spec: str = ".2f") -> str:
-    """``1.63× [1.03–2.57]`` of `ratio_statistics`, ``—`` without a mean."""
-    if not stats or stats.get("geometric_mean") is None:
-        return "—"
-    text = f"{stats['geometric_mean']:{spec}}×"
-    if stats.get("interval"):
-        lo, hi = stats["interval"]
-        text += f" [{lo:{spec}}–{hi:{spec}}]"
-    return text
-
-
 def _mean_seconds(per_seed: list[dict], key: str) -> str:
     values = [r[key] for r in per_seed if r.get(key) is not None]
     return f"{sum(values) / len(values):.3g}" if values else "—"
@@ -100,6 +89,8 @@ def _mean_seconds(per_seed: list[dict], key: str) -> str:
 
 def format_ablation(report: dict) -> str:
     """Plain-text table: one row per configuration, then what each lever changed."""
+    from ..training.seeds import format_ratio
+
     header = ["config", "settings", "speedup", "≥ 2", "full s", "reduced s", "PRDP/full",
               "its saved", "bound"]  # fmt: skip
     rows = []
@@ -109,7 +100,7 @@ def format_ablation(report: dict) -> str:
         ratio = r.get("prdp_ratio", {}).get("geometric_mean")
         saved = (r.get("savings") or {}).get("iterations_saved", {}).get("mean")
         bound = (speed.get("solver_bound") or {}).get("geometric_mean")
-        rows.append((name, report["levers"].get(name, "—"), _geo(speed),
+        rows.append((name, report["levers"].get(name, "—"), format_ratio(speed, ".2f", "×"),
                      f"{speed.get('goal_met', 0)}/{speed.get('seeds', 0)}",
                      _mean_seconds(r["per_seed"], "full_seconds"),
                      _mean_seconds(r["per_seed"], "reduced_seconds"),
@@ -120,7 +111,7 @@ def format_ablation(report: dict) -> str:
         f"ablation of {report['scene']} --preset {report['preset']} over seeds "
         f"{', '.join(map(str, report['seeds']))}",
         "speedup: the fastest full-fidelity run's time to full-fidelity accuracy over the "
-        "fastest reduced run's (geometric mean [95 % interval]); full s / reduced s: those "
+        "fastest reduced run's (geometric mean, 95 % interval); full s / reduced s: those "
         "times, mean over the seeds; its saved: PRDP's inner iterations saved against K_full "
         "(mean); bound: the fastest full run's wall time over its time outside the solver",
         "",
@@ -129,11 +120,11 @@ def format_ablation(report: dict) -> str:
     if report["effects"]:
         lines += ["", "each lever against the baseline, seed by seed (baseline time / lever time):"]
         for name, effect in report["effects"].items():
-            lines.append(
-                f"  {name:<10} fastest reduced run {_geo(effect['reduced_vs_baseline'])} "
-                f"(n = {effect['reduced_vs_baseline']['n']}), fastest full run "
-                f"{_geo(effect['full_vs_baseline'])} (n = {effect['full_vs_baseline']['n']})"
+            reduced, full = (
+                format_ratio(s, ".2f", "×", f"n = {s['n']}")
+                for s in (effect["reduced_vs_baseline"], effect["full_vs_baseline"])
             )
+            lines.append(f"  {name:<10} fastest reduced run {reduced}, fastest full run {full}")
     return "\n".join(lines) + "\n"
 
 

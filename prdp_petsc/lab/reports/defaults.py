@@ -17,7 +17,7 @@ from pathlib import Path
 from prdp_petsc import PRDP
 
 from ..provenance import write_result
-from .kinds import DataSet, ReportKind, interval, text_table
+from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
 
@@ -29,12 +29,12 @@ SCHEDULES = {"tuned": "prdp", "default": "auto"}
 
 def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None) -> dict:
     """Full fidelity, the tuned PRDP and the default construction on every seed."""
+    from ..training.accuracy import ACCURACY_RATIO
     from ..training.building import build_scene, release
     from ..training.harness import run
     from ..training.probe import probe
     from ..training.scene import load_scene
-    from ..training.seeds import ratio_statistics
-    from ..training.summary import ACCURACY_RATIO
+    from ..training.seeds import equal_accuracy_savings, ratio_statistics
 
     module = load_scene(scene_file)
     per_seed = []
@@ -74,14 +74,12 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
         done = [r[name] for r in per_seed if "ratio" in r[name]]
         if not done:
             continue
-        equal = [r for r in done if r["equal_accuracy"]]
+        equal = equal_accuracy_savings(done, keys=("saved",))
         result[name] = {
             "ratio": ratio_statistics([r["ratio"] for r in done]),
-            "equal_accuracy": len(equal),
+            "equal_accuracy": equal["seeds"] if equal else 0,
             "compared": len(done),
-            "saved_at_equal_accuracy": (
-                sum(r["saved"] for r in equal) / len(equal) if equal else None
-            ),
+            "saved_at_equal_accuracy": equal["saved"]["mean"] if equal else None,
             "certified": sum(bool(r["certified"]) for r in done),
         }
     return result
@@ -122,9 +120,11 @@ def summary(result: dict, name: str, *, detail: bool = True) -> str:
     s = result.get(name)
     if s is None:
         return f"{name}: no seed finished"
-    ci = interval(s["ratio"]) if detail else ""
+    from ..training.seeds import format_ratio
+
+    ratio = format_ratio(s["ratio"]) if detail else f"{s['ratio']['geometric_mean']:.3f}"
     text = (
-        f"{name}: error ratio {s['ratio']['geometric_mean']:.3f}{ci}; "
+        f"{name}: error ratio {ratio}; "
         f"equal accuracy on {s['equal_accuracy']} of {s['compared']} seeds"
     )
     if s["saved_at_equal_accuracy"] is not None:

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from fnmatch import fnmatch
 
-__all__ = ["DataSet", "ReportKind", "interval", "markdown_table", "percent", "text_table"]
+__all__ = ["DataSet", "ReportKind", "markdown_table", "percent", "text_table"]
 
 
 def _nothing(ds: DataSet) -> list[str]:
@@ -105,13 +105,6 @@ def text_table(header: Sequence[str], rows: Iterable[Sequence]) -> str:
     if not cells:
         return "  ".join(header)
     return pd.DataFrame(cells, columns=list(header)).to_string(index=False)
-
-
-def interval(stats: dict, spec: str = ".3f") -> str:
-    """`` (95 % interval 1.62–2.71)`` of the ``interval`` of `stats`
-    (`prdp_petsc.lab.training.seeds.ratio_statistics`), "" where it has none."""
-    ci = stats.get("interval")
-    return f" (95 % interval {ci[0]:{spec}}–{ci[1]:{spec}})" if ci else ""
 
 
 def percent(value: float) -> str:

@@ -22,8 +22,8 @@ from scipy.stats import gmean
 
 from ..cli.arguments import add_debug, add_out
 from ..provenance import write_result
-from ..training.seeds import ratio_statistics
-from .kinds import DataSet, ReportKind, interval, text_table
+from ..training.seeds import format_ratio, ratio_statistics
+from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
 
@@ -125,7 +125,7 @@ def format_rollout_report(report: dict) -> str:
         for key, s in stats.items():
             label = f"error at step {at}" if key == "error" else key
             per = ", ".join(f"{v:.3f}" for v in s["per_seed"])
-            lines.append(f"  {label:<18} {per}  ->  {s['geometric_mean']:.3f}{interval(s)}")
+            lines.append(f"  {label:<18} {per}  ->  {format_ratio(s)}")
     return "\n".join(lines)
 
 
@@ -212,7 +212,7 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
         out.append(
             (
                 f"{ds.name}: error ratio {pair} at rollout step {d['step']}",
-                f"{e['geometric_mean']:.3f}{interval(e, '.2f')}, {e['n']} seeds",
+                f"{format_ratio(e, ci_spec='.2f')}, {e['n']} seeds",
             )
         )
     return out

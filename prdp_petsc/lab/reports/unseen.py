@@ -16,7 +16,7 @@ import time
 from prdp_petsc import PRDP, find_k_full
 
 from ..provenance import write_result
-from ..training.summary import ACCURACY_RATIO
+from ..training.accuracy import ACCURACY_RATIO, WORST_SEED_RATIO, equal_over_seeds
 from .kinds import DataSet, ReportKind, markdown_table, percent
 from .unseen_problems import HELD_OUT, PROBLEMS, RTOL_FULL, Problem, build
 
@@ -24,9 +24,6 @@ __all__ = ["CONSTANT_FRACTIONS", "HAND", "KIND", "compare", "main", "table", "tr
 
 #: the constant caps a baseline run tries, as fractions of K_full (rounded up)
 CONSTANT_FRACTIONS = (1 / 8, 1 / 4, 1 / 2)
-#: at equal accuracy, a problem's error ratios may reach this on one seed (their geometric
-#: mean: `ACCURACY_RATIO`)
-WORST_SEED_RATIO = 1.10
 #: the hand schedule: `PRDP.paper` (the reference's test) started and stepped at this
 #: fraction of K_full (rounded up), capped at K_full
 HAND = 1 / 10
@@ -129,11 +126,11 @@ def _against(full: dict, run: dict) -> dict:
 def _summary(runs: list[dict]) -> dict:
     """Geometric-mean and worst error ratio and the savings of `runs` (dicts with
     ``error_ratio`` and ``saved``)."""
-    from scipy.stats import gmean
+    from ..training.seeds import ratio_statistics
 
     ratios = [r["error_ratio"] for r in runs]
     return {
-        "geomean_ratio": float(gmean(ratios)),
+        "geomean_ratio": ratio_statistics(ratios)["geometric_mean"],
         "worst_ratio": max(ratios),
         "saved": [r["saved"] for r in runs],
     }
@@ -154,10 +151,8 @@ def _baselines(runs: list[dict]) -> dict:
 
 
 def _equal(summary: dict) -> bool:
-    """At equal accuracy: the geometric mean of the error ratios within `ACCURACY_RATIO`,
-    no seed above `WORST_SEED_RATIO`."""
-    return (summary["geomean_ratio"] <= ACCURACY_RATIO
-            and summary["worst_ratio"] <= WORST_SEED_RATIO)  # fmt: skip
+    """`equal_over_seeds` of a `_summary`."""
+    return equal_over_seeds(summary["geomean_ratio"], summary["worst_ratio"])
 
 
 def table(result: dict) -> str:
@@ -188,18 +183,18 @@ def _baseline_table(result: dict) -> str:
     """The default against the hand schedule and the best constant cap: error ratio
     (geometric mean, worst seed) and the iterations saved (mean over the seeds)."""
 
+    def saved(s: dict) -> str:
+        return f"{100 * sum(s['saved']) / len(s['saved']):.0f} %"
+
     def cell(s: dict) -> str:
-        mean = sum(s["saved"]) / len(s["saved"])
-        return f"{s['geomean_ratio']:.3f} ({s['worst_ratio']:.3f}), {100 * mean:.0f} %"
+        return f"{s['geomean_ratio']:.3f} ({s['worst_ratio']:.3f}), {saved(s)}"
 
     rows = []
     for name, p in result["problems"].items():
         b = p["baselines"]
         best = b["best_constant"]
         constants = [lab for lab in b if lab not in ("hand", "best_constant")]
-        best_cell = "none" if best is None else (
-            f"{best}: {100 * sum(b[best]['saved']) / len(b[best]['saved']):.0f} %"
-        )  # fmt: skip
+        best_cell = "none" if best is None else f"{best}: {saved(b[best])}"
         every = "; ".join(f"{lab}: {cell(b[lab])}" for lab in constants)
         rows.append((f"`{name}`", cell(p), cell(b["hand"]), best_cell, every))
     header = ["problem", "default: ratio, saved", "hand schedule: ratio, saved",
@@ -265,7 +260,8 @@ def _intro(ds: DataSet) -> str:
         "K_full/10, no checks) and the constant caps K_full/8, /4 and /2: error ratio "
         "as geometric mean (worst seed), iterations saved as the mean over the seeds; "
         "the best constant K is the one that saves most at equal accuracy (geometric "
-        "mean ≤ 1.05, no seed above 1.10), i.e. what stopping below K_full can save "
+        f"mean ≤ {ACCURACY_RATIO}, no seed above {WORST_SEED_RATIO:.2f}), i.e. what stopping "
+        "below K_full can save "
         "without any schedule."
         if baselines
         else ""

@@ -6,10 +6,19 @@ import math
 
 from prdp_petsc.prdp import ACCURACY_BAND
 
-__all__ = ["ACCURACY_RATIO", "accuracy_target", "equal_accuracy_k", "time_to_accuracy"]
+__all__ = ["ACCURACY_RATIO", "WORST_SEED_RATIO", "accuracy_target", "equal_accuracy_k",
+           "equal_over_seeds", "time_to_accuracy"]  # fmt: skip
 
 #: Largest ratio of final validation errors (run / full fidelity) that counts as equal accuracy.
 ACCURACY_RATIO = 1.0 + ACCURACY_BAND
+#: Largest ratio one seed may reach where the seeds' geometric mean counts as equal accuracy.
+WORST_SEED_RATIO = 1.10
+
+
+def equal_over_seeds(geometric_mean: float, worst: float) -> bool:
+    """Whether error ratios over seeds count as equal accuracy: their geometric mean at
+    most `ACCURACY_RATIO`, no seed above `WORST_SEED_RATIO`."""
+    return geometric_mean <= ACCURACY_RATIO and worst <= WORST_SEED_RATIO
 
 
 def accuracy_target(logs: dict, full_name: str) -> float | None:

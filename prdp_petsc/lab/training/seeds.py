@@ -19,15 +19,17 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from .accuracy import ACCURACY_RATIO
 from .compare import compare
 from .parallel import Parallel
 from .records import write_json
-from .summary import ACCURACY_RATIO, format_table, plain_table, stopped_runs
+from .summary import format_table, plain_table, stopped_runs
 
 __all__ = [
     "SPEEDUP_GOAL",
     "compare_seeds",
     "equal_accuracy_savings",
+    "format_ratio",
     "format_seeds",
     "lever_ratios",
     "optional_ratio_statistics",
@@ -74,19 +76,38 @@ def optional_ratio_statistics(ratios: list[float]) -> dict:
     return ratio_statistics(ratios)
 
 
-def equal_accuracy_savings(per_seed: list[dict]) -> dict | None:
-    """Savings over the seeds whose PRDP run reached full-fidelity accuracy only.
+def format_ratio(
+    stats: dict | None, spec: str = ".3f", unit: str = "", extra: str = "", ci_spec: str = ""
+) -> str:
+    """``1.234× (95 % interval 1.100–1.384, n = 3)``: the geometric mean of `stats`
+    (`ratio_statistics`) in format `spec` with `unit`, then its interval (in `ci_spec`,
+    `spec` by default) and `extra` where there are any; ``—`` for a missing mean."""
+    mean = (stats or {}).get("geometric_mean")
+    inside = []
+    if (stats or {}).get("interval"):
+        lo, hi = stats["interval"]
+        inside.append(f"95 % interval {lo:{ci_spec or spec}}–{hi:{ci_spec or spec}}")
+    if extra:
+        inside.append(extra)
+    text = "—" if mean is None else f"{mean:{spec}}{unit}"
+    return text + (f" ({', '.join(inside)})" if inside else "")
 
-    A seed whose PRDP ended more than `ACCURACY_RATIO` times full fidelity's error
-    saved nothing at equal accuracy.  Returns ``{"seeds": n, "iterations_saved":
-    spread, "wall_time_saved": spread}`` (mean, min, max over those n seeds), or None
-    when no seed reached equal accuracy.
+
+def equal_accuracy_savings(
+    per_seed: list[dict], keys=("iterations_saved", "wall_time_saved")
+) -> dict | None:
+    """Savings over the seeds whose reduced run reached full-fidelity accuracy only.
+
+    A seed whose run ended more than `ACCURACY_RATIO` times full fidelity's error (its
+    row's ``equal_accuracy`` false) saved nothing at equal accuracy.  Returns
+    ``{"seeds": n, key: spread, ...}`` for each of `keys` (mean, min, max over those n
+    seeds), or None when no seed reached equal accuracy.
     """
     equal = [r for r in per_seed if r.get("equal_accuracy")]
     if not equal:
         return None
     out = {"seeds": len(equal)}
-    for key in ("iterations_saved", "wall_time_saved"):
+    for key in keys:
         values = [r[key] for r in equal]
         out[key] = {"mean": sum(values) / len(values), "min": min(values), "max": max(values)}
     return out
@@ -338,7 +359,7 @@ def format_seeds(result: dict) -> str:
         lines.append("time to full-fidelity accuracy, B / A for 'A vs B' (above 1: A sooner):")
         for label, s in result["levers"].items():
             lines.append(
-                f"  {_ratio_line(label, s)} of {s['seeds']} seeds"
+                "  " + _ratio_line(label, s, f" of {s['seeds']} seeds")
                 if s["n"]
                 else f"  {label}: never both reached (of {s['seeds']} seeds)"
             )
@@ -395,9 +416,6 @@ def _percent(value: float | None) -> float | None:
     return None if value is None else 100 * value
 
 
-def _ratio_line(name: str, stats: dict) -> str:
-    line = f"{name}: geometric mean {stats['geometric_mean']:.3f}"
-    if stats.get("interval"):
-        lo, hi = stats["interval"]
-        line += f", 95 % interval {lo:.3f}–{hi:.3f}"
-    return line + f" (n = {stats['n']})"
+def _ratio_line(name: str, stats: dict, of: str = "") -> str:
+    extra = f"n = {stats['n']}{of}"
+    return f"{name}: geometric mean {format_ratio(stats, extra=extra)}"

@@ -15,7 +15,6 @@ from prdp_petsc.prdp import savings
 from .accuracy import ACCURACY_RATIO, accuracy_target, equal_accuracy_k, time_to_accuracy
 
 __all__ = [
-    "ACCURACY_RATIO",
     "TWIN",
     "fastest",
     "format_table",
