@@ -12,7 +12,7 @@ import torch
 from prdp_petsc.errors import InputError
 from prdp_petsc.lab.cli import main
 from prdp_petsc.lab.provenance import DISTRIBUTIONS, git_commit, provenance
-from prdp_petsc.lab.training.checkpoint import CHECKPOINT, load_checkpoint
+from prdp_petsc.lab.training.checkpoint import CHECKPOINT, load_checkpoint, recorded_run
 from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import load_trained, release, run, torch_threads
 
@@ -174,6 +174,37 @@ def test_load_trained_heat2d(tmp_path):
     with torch_threads(1):
         assert scene.validate() == result["epochs"][-1]["val_metric"]
     release(scene)
+
+
+def _as_before_the_merge(folder: Path, scene: str, preset: str) -> None:
+    """Make `folder`'s results.json read as a run of demos/<scene>.py, as runs of heat2d
+    and heat3d were recorded before the two became demos/heat.py."""
+    path = folder / "results.json"
+    recorded = json.loads(path.read_text())
+    recorded.update(scene=scene, scene_file=str(ROOT / "demos" / f"{scene}.py"), preset=preset)
+    path.write_text(json.dumps(recorded))
+
+
+def test_a_run_of_heat2d_from_before_the_merge_loads_and_resumes(tmp_path):
+    result = run(HEAT2D, "fixed:8", epochs=2, out=tmp_path, progress=False)
+    _as_before_the_merge(tmp_path, "heat2d", "quick")
+    scene = load_trained(tmp_path)
+    with torch_threads(1):
+        assert scene.validate() == result["epochs"][-1]["val_metric"]
+    release(scene)
+    resumed = run(resume=tmp_path, epochs=3, progress=False)
+    assert resumed["finished"] and len(resumed["epochs"]) == 3
+    assert resumed["scene_file"] == str(HEAT2D) and resumed["preset"] == "quick"
+
+
+def test_a_run_of_heat3d_from_before_the_merge_names_the_cube_presets(tmp_path):
+    (tmp_path / "results.json").write_text(json.dumps({
+        "scene": "heat3d", "scene_file": str(ROOT / "demos" / "heat3d.py"),
+        "preset": "paper k_step=5", "requested_epochs": 3,
+    }))  # fmt: skip
+    recorded = recorded_run(tmp_path)
+    assert recorded["scene_file"] == str(HEAT2D) and recorded["scene"] == "heat"
+    assert recorded["preset"] == "paper3d k_step=5"
 
 
 @pytest.mark.parametrize(
