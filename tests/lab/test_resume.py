@@ -130,6 +130,15 @@ def test_resume_after_sparse_checkpoints_trains_the_lost_epochs_again(noisy, tmp
     assert_same_training(straight, resumed, [tmp_path / "straight", tmp_path / "part"])
 
 
+def test_resume_refuses_a_checkpoint_whose_epochs_disagree_with_its_count(noisy, tmp_path):
+    run(noisy, "fixed:3", epochs=3, out=tmp_path, progress=False)
+    state = load_checkpoint(tmp_path / CHECKPOINT)
+    state["result"]["epochs"].pop()  # a damaged file: 3 epochs trained, 2 recorded
+    torch.save(state, tmp_path / CHECKPOINT)
+    with pytest.raises(InputError, match="the checkpoint records 2 epochs, not 3"):
+        run(resume=tmp_path, epochs=4, progress=False)
+
+
 @pytest.mark.parametrize(("scene", "cut"), [(HEAT2D, 3), (POISSON, 17)])
 def test_real_scenes_resume_bitwise(scene, cut, tmp_path):
     """A finished run of `cut` epochs, resumed to the preset's count, equals a straight

@@ -187,6 +187,10 @@ def check_resume(folder, recorded: dict, scene_file, given: dict, prdp: dict | N
 def continue_result(result: dict, state: dict) -> None:
     """Put the checkpoint's epochs and provenance into a resumed run's `result`."""
     before = state["result"]
+    if len(before["epochs"]) != state["epoch"]:  # a damaged file
+        raise InputError(
+            f"the checkpoint records {len(before['epochs'])} epochs, not {state['epoch']}"
+        )
     result["epochs"] = list(before["epochs"])
     result["resumed"] = [
         *before.get("resumed", []),
