@@ -43,7 +43,7 @@ for all three methods.  K_full is measured on A with right-hand sides ``M x_true
 Presets: ``quick`` (DP + Adam, κ = 1; tests), ``paper`` (DP + Adam, κ contrast), and
 one per method and conditioning: ``quick_{dp_sgd,sip}``, ``contrast_{dp_adam,dp_sgd,sip}``.
 
-Run ``python demos/poisson_sip.py run --preset contrast_sip``.
+Run ``python demos/poisson_sip.py run --preset contrast_sip --out DIR``.
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ layout (each solve one distributed PETSc solve, rows split by whole nodes); the 
 layout (`prdp_petsc.DistributedParametricMatrix`) refuses it: it holds one scalar
 unknown per mesh vertex, not vector fields.
 
-Run ``python demos/topopt3d.py run --preset paper --schedule auto`` for one
+Run ``python demos/topopt3d.py run --preset paper --schedule auto --out DIR`` for one
 optimisation; ``python demos/topopt3d.py results --preset paper --out DIR`` for the
 comparison of schedules (converged, constant K, PRDP, rtol) on three load cases,
 and ``prdp-petsc pages record topopt3d_paper -- scene demos/topopt3d.py results ...``

@@ -159,6 +159,26 @@ def test_the_mpi_scaling_model_recovers_the_law_it_was_fitted_to():
     assert scaling_model(replicated) is None
 
 
+@pytest.mark.parametrize(
+    ("argv", "scene", "preset"),
+    [
+        ([], "demos/heat.py", "paper3d"),
+        (["--preset", "quick"], "demos/heat.py", "quick3d"),
+        (["--preset", "paper"], "demos/heat.py", "paper3d"),
+        (["--preset", "quick3d"], "demos/heat.py", "quick3d"),
+        (["demos/heat.py", "--preset", "paper"], "demos/heat.py", "paper"),  # the L-shape
+        (["demos/ns2d.py", "--preset", "quick"], "demos/ns2d.py", "quick"),
+    ],
+)
+def test_bench_mpi_trains_the_cube_unless_told_another_scene(argv, scene, preset):
+    """Its epoch benchmark is the cube's (demos/heat3d.py's, now demos/heat.py's quick3d
+    and paper3d) for the report tools' --preset quick|paper, not heat.py's L-shape."""
+    from prdp_petsc.lab.reports.bench_mpi import _parser, epoch_scene
+
+    args = _parser().parse_args([*argv, "--out", "o"])
+    assert epoch_scene(args.scene, args.preset) == (scene, preset)
+
+
 def test_a_bench_mpi_record_gets_a_page_with_the_model(tmp_path):
     from prdp_petsc.lab.reports import pages
 

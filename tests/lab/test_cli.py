@@ -267,6 +267,22 @@ def test_petsc_options_after_a_bare_double_dash_belong_to_the_inner_command():
     )
 
 
+def test_the_lab_check_names_every_package_of_the_lab_extra(monkeypatch):
+    """Without one of them a command stops before it starts, not after a comparison
+    trained (pandas and tabulate print its tables)."""
+    import importlib.util
+    import re
+    import tomllib
+
+    from prdp_petsc.lab.cli import dispatch
+
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    extra = pyproject["project"]["optional-dependencies"]["lab"]
+    names = [re.match(r"[A-Za-z0-9_-]+", requirement)[0] for requirement in extra]
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    assert dispatch.missing_lab_packages() == names
+
+
 def test_without_the_lab_extra_the_command_says_how_to_install_it(monkeypatch, capsys):
     from prdp_petsc.lab import cli
     from prdp_petsc.lab.cli import dispatch

@@ -12,7 +12,7 @@ import torch
 from prdp_petsc.errors import InputError
 from prdp_petsc.lab.cli import main
 from prdp_petsc.lab.provenance import DISTRIBUTIONS, git_commit, provenance
-from prdp_petsc.lab.training.checkpoint import CHECKPOINT, load_checkpoint
+from prdp_petsc.lab.training.checkpoint import CHECKPOINT, load_checkpoint, recorded_run
 from prdp_petsc.lab.training.compare import compare
 from prdp_petsc.lab.training.harness import load_trained, release, run, torch_threads
 
@@ -130,6 +130,15 @@ def test_resume_after_sparse_checkpoints_trains_the_lost_epochs_again(noisy, tmp
     assert_same_training(straight, resumed, [tmp_path / "straight", tmp_path / "part"])
 
 
+def test_resume_refuses_a_checkpoint_whose_epochs_disagree_with_its_count(noisy, tmp_path):
+    run(noisy, "fixed:3", epochs=3, out=tmp_path, progress=False)
+    state = load_checkpoint(tmp_path / CHECKPOINT)
+    state["result"]["epochs"].pop()  # a damaged file: 3 epochs trained, 2 recorded
+    torch.save(state, tmp_path / CHECKPOINT)
+    with pytest.raises(InputError, match="the checkpoint records 2 epochs, not 3"):
+        run(resume=tmp_path, epochs=4, progress=False)
+
+
 @pytest.mark.parametrize(("scene", "cut"), [(HEAT2D, 3), (POISSON, 17)])
 def test_real_scenes_resume_bitwise(scene, cut, tmp_path):
     """A finished run of `cut` epochs, resumed to the preset's count, equals a straight
@@ -174,6 +183,37 @@ def test_load_trained_heat2d(tmp_path):
     with torch_threads(1):
         assert scene.validate() == result["epochs"][-1]["val_metric"]
     release(scene)
+
+
+def _as_before_the_merge(folder: Path, scene: str, preset: str) -> None:
+    """Make `folder`'s results.json read as a run of demos/<scene>.py, as runs of heat2d
+    and heat3d were recorded before the two became demos/heat.py."""
+    path = folder / "results.json"
+    recorded = json.loads(path.read_text())
+    recorded.update(scene=scene, scene_file=str(ROOT / "demos" / f"{scene}.py"), preset=preset)
+    path.write_text(json.dumps(recorded))
+
+
+def test_a_run_of_heat2d_from_before_the_merge_loads_and_resumes(tmp_path):
+    result = run(HEAT2D, "fixed:8", epochs=2, out=tmp_path, progress=False)
+    _as_before_the_merge(tmp_path, "heat2d", "quick")
+    scene = load_trained(tmp_path)
+    with torch_threads(1):
+        assert scene.validate() == result["epochs"][-1]["val_metric"]
+    release(scene)
+    resumed = run(resume=tmp_path, epochs=3, progress=False)
+    assert resumed["finished"] and len(resumed["epochs"]) == 3
+    assert resumed["scene_file"] == str(HEAT2D) and resumed["preset"] == "quick"
+
+
+def test_a_run_of_heat3d_from_before_the_merge_names_the_cube_presets(tmp_path):
+    (tmp_path / "results.json").write_text(json.dumps({
+        "scene": "heat3d", "scene_file": str(ROOT / "demos" / "heat3d.py"),
+        "preset": "paper k_step=5", "requested_epochs": 3,
+    }))  # fmt: skip
+    recorded = recorded_run(tmp_path)
+    assert recorded["scene_file"] == str(HEAT2D) and recorded["scene"] == "heat"
+    assert recorded["preset"] == "paper3d k_step=5"
 
 
 @pytest.mark.parametrize(

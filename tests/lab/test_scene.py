@@ -1,12 +1,23 @@
 """What the harness checks when it loads a scene (`prdp_petsc.lab.training.scene`)."""
 
 import pickle
+import re
+import shlex
 import textwrap
+from pathlib import Path
 
 import pytest
 
 from prdp_petsc.lab.training.harness import build_scene
-from prdp_petsc.lab.training.scene import Settings, check_presets, load_scene, preset_config
+from prdp_petsc.lab.training.scene import (
+    Settings,
+    check_presets,
+    load_scene,
+    merged_scene,
+    preset_config,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
 
 SCENE = """
 import numpy as np, scipy.sparse as sp, torch
@@ -96,3 +107,39 @@ def test_settings_are_a_dict_that_pickles_with_its_names():
     with pytest.raises(KeyError, match="preset 'quick a=1'"):
         again["b"]
     assert again.get("b", 2) == 2
+
+
+def test_a_scene_file_merged_into_another_is_named_as_it_is_now():
+    assert merged_scene("demos/heat2d.py", "paper_mlp") == ("demos/heat.py", "paper_mlp")
+    assert merged_scene("/x/demos/heat3d.py", "paper k_step=5") == (
+        "/x/demos/heat.py",
+        "paper3d k_step=5",
+    )
+    assert merged_scene("demos/ns2d.py", "paper") == ("demos/ns2d.py", "paper")
+
+
+def test_the_results_pages_regenerate_with_scene_files_and_presets_that_exist():
+    """A run recorded under demos/heat2d.py or heat3d.py is regenerated (and an earlier
+    experiment run) by demos/heat.py's name and presets: every scene file a page tells
+    to run exists and has the preset it names."""
+    from prdp_petsc.lab.reports import pages
+
+    written = pages.pages(ROOT / "docs" / "data", ROOT / "docs" / "images")
+    commands = [
+        line
+        for text in written.values()
+        for line in re.findall(r"Regenerate: `prdp-petsc pages record \S+ -- ([^`]*)`", text)
+    ]
+    earlier = written["index.md"].split("| experiment")[1]
+    commands += re.findall(r"`prdp-petsc ([^`]*)`", earlier)
+    scenes = {}
+    for command in commands:
+        argv = shlex.split(command)
+        for i, arg in enumerate(argv):
+            if arg.endswith(".py"):
+                assert (ROOT / arg).is_file(), command
+                module = scenes.setdefault(arg, load_scene(ROOT / arg))
+                if "--preset" in argv[i:]:
+                    preset = argv[argv.index("--preset", i) + 1].split()[0]
+                    assert preset in module.PRESETS, command
+    assert any("demos/heat.py --preset paper3d" in c for c in commands)

@@ -128,7 +128,7 @@ COMMANDS = {
 
 def missing_lab_packages() -> list[str]:
     """The packages of the ``lab`` extra that are not installed."""
-    names = ("matplotlib", "tqdm", "jinja2")
+    names = ("matplotlib", "tqdm", "tensorboard", "jinja2", "pandas", "tabulate")
     return [name for name in names if importlib.util.find_spec(name) is None]
 
 

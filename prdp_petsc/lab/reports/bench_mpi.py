@@ -13,9 +13,10 @@
     rank 0 split the mesh (`prdp_petsc.fem.partition`) and every rank assemble and
     hold its own piece (`prdp_petsc.fem.distributed`).
 ``epoch``
-    Training epochs of SCENE_FILE (default ``demos/heat.py``, ``--preset paper3d``: the
-    cube) serial, under ``--parallel domain`` and ``--parallel batch``: the median epoch
-    time after the first, and the speed-up.  ``--epochs 0`` leaves it out.
+    Training epochs of SCENE_FILE (default ``demos/heat.py`` on the cube: ``--preset
+    quick|paper`` are its ``quick3d|paper3d``, `epoch_scene`) serial, under ``--parallel
+    domain`` and ``--parallel batch``: the median epoch time after the first, and the
+    speed-up.  ``--epochs 0`` leaves it out.
 
 The page of an owned record adds `scaling_model`, a model of memory and halo traffic
 beyond the ranks measured.  A quick preset (``quick3d``) runs tiny sizes (a smoke test); timings
@@ -40,6 +41,7 @@ import numpy as np
 from ..cli.arguments import add_debug, add_k, add_out, add_preset, positive
 from ..provenance import machine_info, write_result
 from ..subprocesses import child_env
+from ..training.scene import merged_scene
 from .benchmarking import interleaved, stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb
@@ -48,6 +50,7 @@ from .problems import mean_edge_length, warm_spot
 __all__ = [
     "KIND",
     "MODEL_RANKS",
+    "epoch_scene",
     "format_report",
     "format_scaling_model",
     "main",
@@ -81,10 +84,11 @@ def _parser() -> argparse.ArgumentParser:
     add_k(p, 200, "K of the capped 3D solve")
     p.add_argument("--repeats", type=positive, default=5, help="timed solves after one warm-up (5)")
     p.add_argument(
-        "scene", nargs="?", default="demos/heat.py",
-        help="scene file of the epoch benchmark (demos/heat.py)",
+        "scene", nargs="?",
+        help="scene file of the epoch benchmark (default demos/heat.py on the cube, whose "
+        "--preset quick and paper are quick3d and paper3d)",
     )  # fmt: skip
-    add_preset(p, "paper3d", "the scene's preset (paper3d); quick, quick3d: also tiny sizes")
+    add_preset(p, "paper", "the scene's preset (paper); quick, quick3d: also tiny sizes")
     p.add_argument("--schedule", default="fixed:96", help="K schedule of the epochs (K_full)")
     p.add_argument(
         "--epochs", type=int, default=3, help="epochs per run, the first warm-up (0: no epochs)"
@@ -256,6 +260,15 @@ def _launch(args, ranks: int, worker: str, mode: str | None = None) -> dict:
         return json.loads(record.read_text())
 
 
+def epoch_scene(scene: str | None, preset: str) -> tuple[str, str]:
+    """The epoch benchmark's scene file and preset: without a scene file, the cube of
+    ``demos/heat.py`` that ``demos/heat3d.py`` was (``quick``, ``paper``: ``quick3d``,
+    ``paper3d``)."""
+    if scene is not None:
+        return scene, preset
+    return merged_scene("demos/heat3d.py", preset)
+
+
 def main(argv: list[str]) -> int:
     """Run ``bench mpi``; write ``<out>/bench_mpi.json``; return an exit code."""
     args = _parser().parse_args(argv)
@@ -263,6 +276,7 @@ def main(argv: list[str]) -> int:
         return _worker(args)
     if args.out is None:
         raise SystemExit("prdp-petsc bench mpi: --out is required")
+    args.scene, args.preset = epoch_scene(args.scene, args.preset)
     if args.preset.startswith("quick"):  # tiny sizes: a smoke test
         args.refine, args.k, args.repeats, args.epochs = 0, 20, 2, 2
     ranks = [int(r) for r in args.ranks.split(",")]

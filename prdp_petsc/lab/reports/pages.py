@@ -26,6 +26,7 @@ from pathlib import Path
 import jinja2
 
 from ..cli.arguments import add_debug, add_out
+from ..training.scene import merged_scene
 from ..training.summary import format_table
 from .kinds import DataSet, ReportKind, markdown_table
 from .record import record
@@ -128,6 +129,19 @@ _TEMPLATES = jinja2.Environment(
 )
 
 
+def _as_now(argv: list[str]) -> list[str]:
+    """A recorded command line as it runs now: a scene file merged into another since
+    its run, and its ``--preset``, by their names now (`merged_scene`)."""
+    argv = list(argv)
+    for i, arg in enumerate(argv):
+        if arg.endswith(".py"):
+            at = argv.index("--preset", i) + 1 if "--preset" in argv[i:] else None
+            argv[i], preset = merged_scene(arg, argv[at] if at else "")
+            if at:
+                argv[at] = preset
+    return argv
+
+
 def page(ds: DataSet) -> str:
     """The Markdown page of one data set (``templates/page.md.j2``)."""
     p = ds.provenance
@@ -148,7 +162,7 @@ def page(ds: DataSet) -> str:
         versions=", ".join(f"{names.get(k, k)} {v}" for k, v in p["versions"].items() if v),
         commit=commit,
         own=_own_record(ds),
-        argv=shlex.join(p["argv"]),
+        argv=shlex.join(_as_now(p["argv"])),
         images=[Path(image) for image in ds.images],
         **ds.kind.parts(ds),
     )
@@ -206,9 +220,11 @@ def index(sets: list, earlier: dict | None) -> str:
          f"{ds.provenance['started'][:10]}, {_minutes(ds.provenance['wall_s'])}")
         for ds in sets
     ]  # fmt: skip
-    experiments = [
-        (e["title"], f"`{e['command']}`") for e in (earlier or {}).get("experiments", [])
-    ]
+    experiments = []
+    for e in (earlier or {}).get("experiments", []):  # each runs as shown: by today's names
+        argv = shlex.split(e["command"])
+        now = _as_now(argv)
+        experiments.append((e["title"], f"`{shlex.join(now) if now != argv else e['command']}`"))
     return _TEMPLATES.get_template("index.md.j2").render(
         generated=GENERATED.format(name="*"),
         machines=_machines(sets),

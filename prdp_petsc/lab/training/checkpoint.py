@@ -26,7 +26,7 @@ from prdp_petsc import InputError
 
 from .building import build_scene
 from .records import RESULTS
-from .scene import load_scene
+from .scene import load_scene, merged_scene
 
 __all__ = [
     "CHECKPOINT",
@@ -145,7 +145,8 @@ def restore(
 
 
 def recorded_run(folder) -> dict:
-    """The ``results.json`` of a run to resume (FileNotFoundError without one)."""
+    """The ``results.json`` of a run to resume (FileNotFoundError without one); a run of
+    a scene file since merged into another names the new one (`merged_scene`)."""
     path = Path(folder) / RESULTS
     if not path.is_file():
         raise FileNotFoundError(
@@ -154,6 +155,9 @@ def recorded_run(folder) -> dict:
     recorded = json.loads(path.read_text())
     if "scene_file" not in recorded or "requested_epochs" not in recorded:
         raise InputError(f"{path} was written by an older prdp_petsc: it cannot be resumed")
+    if not Path(recorded["scene_file"]).is_file():  # perhaps merged into another since
+        scene_file, preset = merged_scene(recorded["scene_file"], recorded["preset"])
+        recorded.update(scene_file=scene_file, scene=Path(scene_file).stem, preset=preset)
     return recorded
 
 
@@ -183,6 +187,10 @@ def check_resume(folder, recorded: dict, scene_file, given: dict, prdp: dict | N
 def continue_result(result: dict, state: dict) -> None:
     """Put the checkpoint's epochs and provenance into a resumed run's `result`."""
     before = state["result"]
+    if len(before["epochs"]) != state["epoch"]:  # a damaged file
+        raise InputError(
+            f"the checkpoint records {len(before['epochs'])} epochs, not {state['epoch']}"
+        )
     result["epochs"] = list(before["epochs"])
     result["resumed"] = [
         *before.get("resumed", []),

@@ -42,11 +42,13 @@ import torch
 from prdp_petsc import PRDP, KSPSolver
 
 __all__ = [
+    "MERGED_SCENES",
     "PRDP_SETTINGS",
     "Scene",
     "Settings",
     "check_presets",
     "load_scene",
+    "merged_scene",
     "preset_config",
     "shuffled_batches",
     "with_prdp_settings",
@@ -195,6 +197,26 @@ def check_presets(module) -> None:
                 f"{first!r} does not; every preset names the same settings (give "
                 f"{first!r} the key, with the value that keeps it as it is)"
             )
+
+
+#: Scene files merged into another: the old file's stem -> (the file beside it now, the
+#: new names of its presets)
+MERGED_SCENES = {
+    "heat2d": ("heat.py", {}),
+    "heat3d": ("heat.py", {"quick": "quick3d", "paper": "paper3d"}),
+}
+
+
+def merged_scene(scene_file: str, preset: str) -> tuple[str, str]:
+    """`scene_file` and `preset` (``"paper k_step=5"``) as they are named now: those of
+    a scene file merged into another (`MERGED_SCENES`), the others as they are."""
+    merged = MERGED_SCENES.get(Path(scene_file).stem)
+    if merged is None:
+        return scene_file, preset
+    file, presets = merged
+    name, _, changes = preset.partition(" ")
+    now = " ".join(filter(None, (presets.get(name, name), changes)))
+    return str(Path(scene_file).with_name(file)), now
 
 
 def _scene_name(module) -> str:
