@@ -22,7 +22,7 @@ the capped K still shows in its error (the known limitations).
 
 Warm starts across epochs (``warm_start_epochs: True``; default False): each training
 sample's Newton loop starts from that sample's capped result of the last epoch
-(`prdp_petsc.WarmStarts`) instead of from ûⁿ⁺¹, so the two capped Newton
+(`prdp_petsc.autograd.warm_starts.WarmStarts`) instead of from ûⁿ⁺¹, so the two capped Newton
 steps of every epoch continue where the last epoch's stopped; the gradient is the
 implicit one at the returned iterate either way (the start receives none).
 ``pc_lag: N`` (default 1) sets the Jacobian's PC up only at every N-th Jacobian

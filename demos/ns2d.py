@@ -53,7 +53,7 @@ Settings beyond the sizes:
   Corrector).
 * ``train_solver: "schur"`` trains with the Schur route (K counts its iterations).
 * ``warm_start_epochs: True`` starts every training solve from that window's solution
-  of the last epoch (`prdp_petsc.WarmStarts`); ``pc_lag: N`` sets the training
+  of the last epoch (`prdp_petsc.autograd.warm_starts.WarmStarts`); ``pc_lag: N`` sets the training
   solver's PC up only at every N-th operator (`prdp_petsc.KSPSolver`'s ``pc_lag``).
 * ``routes``: the KSP/PC routes ``compare`` also runs (names in ``ROUTES``).
 

@@ -41,7 +41,7 @@ Presets: ``quick`` (n = 3: 6 × 3 × 3 elements; tests), ``paper`` (n = 10: 20 �
 = 2 000 elements, 7 623 unknowns) and ``large`` (n = 40: 128 000 elements,
 393 600 unknowns; not run by the tests).  ``--parallel domain`` runs in the replicated
 layout (each solve one distributed PETSc solve, rows split by whole nodes); the owned
-layout (`prdp_petsc.DistributedParametricMatrix`) refuses it: it holds one scalar
+layout (`prdp_petsc.fem.distributed.DistributedParametricMatrix`) refuses it: it holds one scalar
 unknown per mesh vertex, not vector fields.
 
 Run ``python demos/topopt3d.py run --preset paper --schedule auto --out DIR`` for one

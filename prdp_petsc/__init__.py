@@ -71,9 +71,9 @@ def __getattr__(name: str):
         globals()[name] = value  # later look-ups skip this function
         return value
     if name in _MOVED:
-        raise AttributeError(
-            f"prdp_petsc.{name} moved to the lab: {_MOVED[name]} (pip install 'prdp-petsc[lab]')"
-        )
+        where = _MOVED[name]
+        how = "" if where.startswith("demos/") else " (pip install 'prdp-petsc[lab]')"
+        raise AttributeError(f"prdp_petsc.{name} moved out of the library: {where}{how}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -141,5 +141,5 @@ def test_names_that_moved_to_the_lab_say_where():
         ("NonlinearHeat", "demos/heat_nonlinear.py"),
     )
     for name, where in moved:
-        with pytest.raises(AttributeError, match=f"moved to the lab: .*{where}"):
+        with pytest.raises(AttributeError, match=f"moved out of the library: .*{where}"):
             getattr(prdp_petsc, name)

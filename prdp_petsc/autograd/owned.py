@@ -1,8 +1,8 @@
 """The torch bridge in the owned layout: every rank's tensors hold its own rows only.
 
 With a `prdp_petsc.fem.distributed.DistributedParametricMatrix` operator,
-`prdp_petsc.solve`, `prdp_petsc.matvec` and `prdp_petsc.Dirichlet` take and return
-this rank's rows (and its own θ) as torch tensors; they come here.  The maths is
+`prdp_petsc.solve`, `prdp_petsc.autograd.bridge.matvec` and `prdp_petsc.Dirichlet` take
+and return this rank's rows (and its own θ) as torch tensors; they come here.  The maths is
 the replicated bridge's, run by the same autograd functions
 (`prdp_petsc.autograd.implicit`): forward ``KSPSolve``, backward one transpose solve
 ``Aᵀλ = g``, ``∂L/∂b = λ``, ``∂L/∂θ = −Gᵀ(λ[rows] ⊙ x[cols])``; only the ghost
@@ -102,8 +102,8 @@ class _OwnedProduct:
 def owned_matvec(
     A: DistributedParametricMatrix, v: torch.Tensor, theta: torch.Tensor
 ) -> torch.Tensor:
-    """`prdp_petsc.matvec` for a `DistributedParametricMatrix`: this rank's entries of v
-    (its column block) in, its rows of ``A(θ) v`` out (collective)."""
+    """`prdp_petsc.autograd.bridge.matvec` for a `DistributedParametricMatrix`: this
+    rank's entries of v (its column block) in, its rows of ``A(θ) v`` out (collective)."""
     _agree_shape(A, v, A.local_shape[1], "v")
     as_numpy(v, "v")
     values = A.values(as_numpy(theta, "theta", finite=False))

@@ -24,7 +24,7 @@ other sizes), all from one run:
     backward at K = 300 on `five_point` (175 × 175), gradient in b, with the peak
     resident-set growth of each in a fresh subprocess.
 
-Every ratio is a bm.paired median (`prdp_petsc.lab.reports.benchmarking`); ``timing_noise``
+Every ratio is a paired median (`prdp_petsc.lab.reports.benchmarking.paired`); ``timing_noise``
 says how busy the machine was, and every timing is in the JSON; they describe one
 machine, never assert them.  torch runs on ``--threads`` (default 1: PETSc's AIJ kernels
 are serial).  Targets: overhead ≤ 5 % at about 1e5 unknowns; small systems ≤ 25 % for
@@ -69,7 +69,7 @@ from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb, reset_peak, rss_mb
 from .problems import five_point, plate_reaction
 
-__all__ = ["KIND", "main", "timing_noise"]
+__all__ = ["KIND", "main"]
 
 logger = logging.getLogger(__name__)
 
