@@ -639,10 +639,10 @@ class PRDP:
         reference = min(self.next_k(), self.k_full)
         last = self._checks[-1] if self._checks else None
         inside = last is not None and last.k == self._k and last.gap <= self.tol / 2
+        if not self._refining and inside and not self._affordable(reference, end=not settled):
+            return False, f"recheck of K={self._k} waits: checks at the budget", None
         if settled:
             self._settled = self._k
-        elif not self._refining and inside and not self._affordable(reference):
-            return False, f"recheck of K={self._k} waits: checks at the budget", None
         cert = self._check(check, reference)
         self._last_check = epoch
         if not cert.certified:
@@ -660,7 +660,7 @@ class PRDP:
         ran = max(self.window, epoch - self._level_start)
         return self._level_start + ran * max(RECHECK_GROWTH, self.tol / gap)
 
-    def _affordable(self, reference: int) -> bool:
+    def _affordable(self, reference: int, end: bool = True) -> bool:
         """Whether a recheck of the certified K against `reference` keeps the checks
         within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
 
@@ -669,7 +669,7 @@ class PRDP:
         estimated from the last one's cost per unit of ``k + reference``; for a check
         without ``spent()``, an epoch at K costs K and a check ``k + reference``.
         """
-        units = self._k + reference + self._k + self.k_full  # this recheck, and the end's
+        units = self._k + reference + (self._k + self.k_full if end else 0)  # and the end's
         last = self._checks[-1] if self._checks else None
         spent = _spent(self.check)
         if spent is not None and last is not None and last.cost is not None:
