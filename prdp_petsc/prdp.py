@@ -345,7 +345,10 @@ class PRDP:
     Notes
     -----
     **When a check runs** (with a ``check``): `window` epochs into every K; on a
-    plateau while K is not yet certified (at most once per `window` epochs); and,
+    plateau while K is not yet certified (at most once per `window` epochs); on the
+    first plateau after K is certified (once per K: training has reached what K lets
+    it reach, where a capped optimum parts from the full one; within the budget below,
+    the end's certificate not reserved); and,
     once K is certified, again when K has run `RECHECK_GROWTH` (2) times the epochs it
     had run at its last check, or ``tol / gap`` times where that is more: a model
     specialises as it trains, so a K certified early is checked again, about log2(T)
