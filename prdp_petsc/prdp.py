@@ -345,7 +345,10 @@ class PRDP:
     Notes
     -----
     **When a check runs** (with a ``check``): `window` epochs into every K; on a
-    plateau while K is not yet certified (at most once per `window` epochs); and,
+    plateau while K is not yet certified (at most once per `window` epochs); on the
+    first plateau after K is certified (once per K: training has reached what K lets
+    it reach, where a capped optimum parts from the full one; within the budget below,
+    the end's certificate not reserved); and,
     once K is certified, again when K has run `RECHECK_GROWTH` (2) times the epochs it
     had run at its last check, or ``tol / gap`` times where that is more: a model
     specialises as it trains, so a K certified early is checked again, about log2(T)
@@ -455,6 +458,7 @@ class PRDP:
         self._level_start = 0  # epoch at which the current K began
         self._next_check = self.window  # epoch of the next due check
         self._last_check = -self.window  # epoch of the last check
+        self._settled = None  # the certified K whose plateau has been checked once
         self._scale = 0.0  # largest norm of check(reference) at the current K
 
     @classmethod
@@ -628,14 +632,20 @@ class PRDP:
             return False, f"at the cap K={self._k}", None
         filled = len(e) - self.window >= self._start
         r = _ratio(e[-1], e[-self.window]) if filled else 0.0
-        plateau = self._refining and r > self.tau_step and epoch - self._last_check >= self.window
-        if not (epoch >= self._next_check or plateau):
+        flat = filled and r > self.tau_step and epoch - self._last_check >= self.window
+        plateau = self._refining and flat
+        # the first plateau at a certified K: training has reached what K lets it reach,
+        # where a capped optimum parts from the full one; checked once per K, on time
+        settled = not self._refining and flat and self._settled != self._k
+        if not (epoch >= self._next_check or plateau or settled):
             return False, f"r={r:.4g}, next check at epoch {self._next_check:.0f}", None
         reference = min(self.next_k(), self.k_full)
         last = self._checks[-1] if self._checks else None
         inside = last is not None and last.k == self._k and last.gap <= self.tol / 2
-        if not self._refining and inside and not self._affordable(reference):
+        if not self._refining and inside and not self._affordable(reference, end=not settled):
             return False, f"recheck of K={self._k} waits: checks at the budget", None
+        if settled:
+            self._settled = self._k
         cert = self._check(check, reference)
         self._last_check = epoch
         if not cert.certified:
@@ -653,7 +663,7 @@ class PRDP:
         ran = max(self.window, epoch - self._level_start)
         return self._level_start + ran * max(RECHECK_GROWTH, self.tol / gap)
 
-    def _affordable(self, reference: int) -> bool:
+    def _affordable(self, reference: int, end: bool = True) -> bool:
         """Whether a recheck of the certified K against `reference` keeps the checks
         within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
 
@@ -662,7 +672,7 @@ class PRDP:
         estimated from the last one's cost per unit of ``k + reference``; for a check
         without ``spent()``, an epoch at K costs K and a check ``k + reference``.
         """
-        units = self._k + reference + self._k + self.k_full  # this recheck, and the end's
+        units = self._k + reference + (self._k + self.k_full if end else 0)  # and the end's
         last = self._checks[-1] if self._checks else None
         spent = _spent(self.check)
         if spent is not None and last is not None and last.cost is not None:
@@ -807,7 +817,7 @@ class PRDP:
             "history": [asdict(s) for s in self._history],
             "checks": [asdict(c) for c in self._checks], "scale": self._scale,
             "level_start": self._level_start, "next_check": self._next_check,
-            "last_check": self._last_check,
+            "last_check": self._last_check, "settled": self._settled,
         }  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
@@ -828,3 +838,4 @@ class PRDP:
         self._level_start = int(state.get("level_start", 0))
         self._next_check = float(state.get("next_check", self.window))  # inf: no recheck
         self._last_check = int(state.get("last_check", -self.window))
+        self._settled = state.get("settled")  # absent in older checkpoints: not checked

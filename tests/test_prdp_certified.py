@@ -368,6 +368,39 @@ def test_a_gap_within_half_the_band_waits_for_the_budget():
         check.epoch(ctrl.k)
         ctrl.update(1.0)
     epochs = [c.epoch for c in ctrl.checks]
-    assert ctrl.k == 8 and epochs[0] == 2 and len(epochs) >= 2 and min(epochs[1:]) >= 40
+    assert ctrl.k == 8 and epochs[0] == 2 and len(epochs) >= 2 and min(epochs[1:]) >= 13
+    # the metric is flat from the start: its first plateau at the certified K is checked
+    # once the checks so far and it fit the budget, the end's certificate not reserved
+    plateau = ctrl.checks[1]
+    spent_then = sum(c.cost for c in ctrl.checks[:2])
+    assert spent_then <= CHECK_BUDGET * (3 * 8 * (plateau.epoch + 1) + spent_then)  # epochs 0..e
+    assert all(e >= 40 for e in epochs[2:])  # later rechecks reserve the end's as before
     ctrl.certify()
     assert check.checks <= CHECK_BUDGET * check.total
+
+
+def test_a_plateau_at_a_certified_k_is_checked_before_the_scheduled_recheck():
+    # an optimisation loop reaches the capped problem's optimum at epoch 20: the metric
+    # stops falling and the gradient at a cap k < K_full fades as (k / 64)^3 against
+    # K_full's (its descent on the full problem: an eighth at each level).  K = 8 was
+    # certified at epoch 2 with a gap within half the band, so the budget postpones its
+    # recheck (epochs of one solve: the recheck and the end's reserve fit only at ~135);
+    # the plateau check fits at ~54 and every level up to K_full fails its descent.
+    epoch = [0]
+
+    def check(k):
+        if epoch[0] < 20:
+            return np.array([1.0, 0.01 * 0.5 ** (k - 8)])
+        return np.array([min(1.0, (k / 64) ** 3), 0.0])
+
+    metered = Metered(check, batches=1)
+    ctrl = pp.PRDP.for_problem(64, check=metered)
+    refined = None
+    for epoch[0] in range(100):
+        metered.epoch(ctrl.k)
+        ctrl.update(0.9 ** min(epoch[0], 20))
+        if refined is None and ctrl.k > 8:
+            refined = epoch[0]
+    assert ctrl.checks[0].epoch == 2 and ctrl.checks[0].certified
+    assert refined is not None and 40 <= refined <= 60, refined
+    assert ctrl.k == 64
