@@ -635,7 +635,8 @@ class PRDP:
         flat = filled and r > self.tau_step and epoch - self._last_check >= self.window
         plateau = self._refining and flat
         # the first plateau at a certified K: training has reached what K lets it reach,
-        # where a capped optimum parts from the full one; checked once per K, on time
+        # where a capped optimum parts from the full one; checked once per K, as soon as
+        # it fits the budget without the end's reserve
         settled = not self._refining and flat and self._settled != self._k
         if not (epoch >= self._next_check or plateau or settled):
             return False, f"r={r:.4g}, next check at epoch {self._next_check:.0f}", None
@@ -665,7 +666,8 @@ class PRDP:
 
     def _affordable(self, reference: int, end: bool = True) -> bool:
         """Whether a recheck of the certified K against `reference` keeps the checks
-        within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
+        within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved
+        unless `end` is False (the check of a first plateau at a certified K).
 
         Costs are what the check's ``spent()`` measures (every check so far, and every
         inner iteration of the solvers it runs through, training included), a check
