@@ -24,6 +24,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BUILD = ROOT / ".ci" / "petsc-cuda.sh"
 RUN = ROOT / ".ci" / "device-run.sh"
+CHECK = ROOT / ".ci" / "device-check.sh"
 PINS = ROOT / ".ci" / "cuda-toolkit.txt"
 
 # CUDA 13.0's components: those versioned with the toolkit, and the maths libraries with
@@ -60,7 +61,7 @@ def pins() -> dict[str, str]:
     return found
 
 
-@pytest.mark.parametrize("script", [BUILD, RUN], ids=lambda p: p.name)
+@pytest.mark.parametrize("script", [BUILD, RUN, CHECK], ids=lambda p: p.name)
 def test_scripts_parse(script):
     assert subprocess.run(["bash", "-n", str(script)]).returncode == 0
 

@@ -654,15 +654,30 @@ def device_info(device: str, jax: bool) -> dict:
     return info
 
 
-def bench_gpu(args, device: str, notes: dict, budget: Budget) -> dict:
+def bench_gpu(args, device: str, notes: dict, budget: Budget, save=None) -> dict:
     """Every problem, cell and time to tolerance of `args` on `device`, with the contenders
-    that `notes` (`environment`) lets run there; a JSON-ready dict."""
+    that `notes` (`environment`) lets run there; a JSON-ready dict.  `save`, if given, is
+    called with the dict so far after each problem (a run cut short keeps what it did)."""
     availability = {}
     for c in (*CONTENDERS, GAMG):
         why = "left out by --skip" if c.name in args.skip else notes.get(c.needs)
         availability[c.name] = {"describe": c.describe, "available": why is None, "note": why}
     contenders = [c for c in CONTENDERS if availability[c.name]["available"]]
     problems, cells, agreement, tolerance = {}, [], {}, {}
+
+    def result() -> dict:
+        return {
+            "device": device_info(device, notes["jax"] is None),
+            "problems": problems,
+            "contenders": availability,
+            "cells": cells,
+            "cpu_gpu_agreement": agreement
+            if device == "cuda"
+            else {"note": "no CUDA device: the whole run is on the CPU path"},
+            "time_to_tolerance": tolerance,
+            "skipped": budget.skipped,
+        }
+
     for name in args.problems:
         if not budget.allows(f"problem {name}"):
             continue
@@ -683,17 +698,9 @@ def bench_gpu(args, device: str, notes: dict, budget: Budget) -> dict:
             gamg = availability[GAMG.name]["available"]
             tolerance[name] = time_to_tolerance(case, contenders, gamg, args, budget)
         case.release()
-    if device != "cuda":
-        agreement = {"note": "no CUDA device: the whole run is on the CPU path"}
-    return {
-        "device": device_info(device, notes["jax"] is None),
-        "problems": problems,
-        "contenders": availability,
-        "cells": cells,
-        "cpu_gpu_agreement": agreement,
-        "time_to_tolerance": tolerance,
-        "skipped": budget.skipped,
-    }
+        if save is not None:
+            save(result())
+    return result()
 
 
 # -- the report ----------------------------------------------------------------------------
@@ -701,6 +708,8 @@ def format_report(d: dict) -> str:
     """The printed summary of a `bench_gpu` result: the issue's table and the ratios."""
     dev = d["device"]
     lines = [f"device: {dev['name']} ({dev['kind']}; PETSc with CUDA: {dev['petsc_cuda']})"]
+    if d.get("partial"):
+        lines.append("  cut short: the problems finished before the run was stopped")
     lines += [
         f"  skipped {n}: {c['note']}" for n, c in d["contenders"].items() if not c["available"]
     ]
@@ -910,15 +919,24 @@ def main(
         os.environ.setdefault("XLA_FLAGS", _XLA_ONE_THREAD)
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    result = {
-        "benchmark": "gpu",
-        **bench_gpu(args, *environment(args.device), Budget(args.budget_s or None)),
-        "settings": {k: v for k, v in vars(args).items() if k not in ("out", "debug")},
-        "provenance": provenance(torch.get_num_threads(), 1),
-        "machine": machine(),
-        "versions": versions("jax", "jaxlib", "lineax", "equinox", "cupy", "jax-cuda13-plugin"),
-        "wall_s": time.perf_counter() - t0,
-    }
+
+    def framed(measured: dict, **more) -> dict:
+        return {
+            "benchmark": "gpu",
+            **measured,
+            "settings": {k: v for k, v in vars(args).items() if k not in ("out", "debug")},
+            "provenance": provenance(torch.get_num_threads(), 1),
+            "machine": machine(),
+            "versions": versions("jax", "jaxlib", "lineax", "equinox", "cupy", "jax-cuda13-plugin"),
+            "wall_s": time.perf_counter() - t0,
+            **more,
+        }
+
+    def save(partial: dict) -> None:  # the problems so far, in case the run is cut short
+        write_result(args.out, "bench_gpu.json", framed(partial, partial=True))
+
+    measured = bench_gpu(args, *environment(args.device), Budget(args.budget_s or None), save)
+    result = framed(measured)
     write_result(args.out, "bench_gpu.json", result)
     print(format_report(result), end="")
     return 0
