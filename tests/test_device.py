@@ -385,3 +385,35 @@ def test_device_matvec_equals_the_host_product():
             results.append((y.detach(), v.grad, t.grad))
         for e, got in zip(*results, strict=True):
             assert (got - e).abs().max() <= 1e-13 * e.abs().max()
+
+
+def test_operator_norm_from_the_values_equals_petscs(symmetric, advective):
+    """`DeviceCSR.norm` (a product with a 0/1 summing matrix, where the values live) is
+    PETSc's max(‖A‖₁, ‖A‖_∞) of the Mat, for each new set of values."""
+    from prdp_petsc.core.safeguards import operator_norm
+
+    for P in (symmetric, advective):  # an unsymmetric one: ‖A‖₁ ≠ ‖A‖_∞
+        layout = DeviceCSR(types=DeviceTypes.resolve("standard", "aij"))
+        for seed in (0, 1):
+            theta = random_theta(P.n_params, seed=seed).numpy()
+            values = torch.as_tensor(P.values(theta).copy())
+            layout.update(DLPackCSR(P.indptr, P.indices, values, P.shape), None)
+            A = abs(P.matrix(theta))
+            expected = max(A.sum(axis=0).max(), A.sum(axis=1).max())
+            assert layout.norm() == pytest.approx(expected, rel=1e-14)
+            assert layout.norm() == pytest.approx(operator_norm(layout.mat), rel=1e-14)
+        layout.destroy()
+
+
+@pytest.mark.parametrize(
+    "entries, expected",
+    [([1.0, -2.0, 3.0], False), ([1.0, np.nan, 3.0], True), ([1.0, -np.inf, 3.0], True),
+     ([1e308, 1e308, -1e308], False), ([1e308, np.nan, 1e308], True)],
+)  # fmt: skip
+def test_nonfinite_sees_nan_and_inf_not_overflow(entries, expected):
+    from prdp_petsc.core.device import nonfinite
+
+    vec = wrap(torch.tensor(entries, dtype=torch.float64), len(entries), "v", "cpu")
+    assert nonfinite(vec) is expected
+    vec.destroy()
+

@@ -42,7 +42,15 @@ from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
 
-__all__ = ["DeviceTypes", "WrappedRows", "dlpack_memory", "libpetsc", "set_values_coo", "wrap"]
+__all__ = [
+    "DeviceTypes",
+    "WrappedRows",
+    "dlpack_memory",
+    "libpetsc",
+    "nonfinite",
+    "set_values_coo",
+    "wrap",
+]
 
 #: Vec and Mat type names by the memory they keep their entries in
 _VEC_TYPES = {
@@ -197,6 +205,17 @@ def libpetsc() -> ctypes.CDLL:
     return lib
 
 
+def nonfinite(vec: PETSc.Vec) -> bool:
+    """Whether `vec` has a NaN or Inf entry, from ``‖v‖₁`` (a sum, which every NaN and
+    Inf reaches, where a maximum's comparisons may pass over a NaN) and, only where that
+    is infinite (an Inf, or an overflow of large finite entries), ``‖v‖_∞``.  Two
+    scalars cross to the host at most."""
+    total = vec.norm(PETSc.NormType.NORM_1)
+    if math.isnan(total):
+        return True
+    return math.isinf(total) and not math.isfinite(vec.norm(PETSc.NormType.INFINITY))
+
+
 def set_values_coo(mat: PETSc.Mat, values: PETSc.Vec) -> None:
     """``MatSetValuesCOO(mat, values, INSERT_VALUES)`` from the array of Vec `values` as it
     lies: the device pointer of a CUDA Vec, the host pointer otherwise (PETSc checks the
@@ -237,9 +256,9 @@ class WrappedRows:
     -----
     NaN or Inf in a right-hand side is refused (`NonFiniteError`) from PETSc's norms
     before any row is solved: ``‖b‖₂``, which the solve computes anyway (PETSc keeps
-    it), and only where that is not finite ``‖b‖_∞``, which cannot overflow.  A
-    solution's finiteness is likewise one ``‖x‖_∞`` per row (`finite`), asked only
-    where the solve did not already see a finite ``‖x‖``.
+    A right-hand side or a solution with NaN or Inf is found by `nonfinite` (one or two
+    PETSc norms per row); a solution's only where the solve did not already see a
+    finite ``‖x‖``, and in CUDA memory on every row.
     """
 
     def __init__(self, rhs, out, size: int, memory: str, kind, value=None) -> None:
@@ -258,6 +277,7 @@ class WrappedRows:
         self.b: list[PETSc.Vec] = []
         self.x: list[PETSc.Vec] = []
         self._out = out if value is None else value
+        self.memory = memory
         try:
             for i, (row, target) in enumerate(zip(rhs_rows, out_rows, strict=True)):
                 name = what if len(rhs_rows) == 1 else f"row {i} of the {what}"
@@ -270,12 +290,7 @@ class WrappedRows:
             raise
 
     def _check_finite(self, kind, what: str) -> None:
-        infinity = PETSc.NormType.INFINITY
-        bad = [
-            i
-            for i, vec in enumerate(self.b)
-            if not (math.isfinite(vec.norm()) or math.isfinite(vec.norm(infinity)))
-        ]
+        bad = [i for i, vec in enumerate(self.b) if nonfinite(vec)]
         if bad:
             where = f" (rows {bad[:5]}{', ...' if len(bad) > 5 else ''})" if len(self.b) > 1 else ""
             raise NonFiniteError(f"{kind} solve: the {what} contains NaN or Inf{where}")
@@ -288,8 +303,8 @@ class WrappedRows:
         return step.solve_vecs(self.b[i], self.x[i])
 
     def finite(self) -> bool:
-        """Whether every solution row is finite: one ``‖x‖_∞`` each (NaN gives NaN)."""
-        return all(math.isfinite(vec.norm(PETSc.NormType.INFINITY)) for vec in self.x)
+        """Whether every solution row is finite (`nonfinite` of each)."""
+        return not any(nonfinite(vec) for vec in self.x)
 
     def value(self):
         """`out` as the caller gave it (or the `value` given)."""

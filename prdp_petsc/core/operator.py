@@ -62,7 +62,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from ..errors import InputError, NonFiniteError
-from .device import DeviceTypes, set_values_coo, wrap
+from .device import DeviceTypes, nonfinite, set_values_coo, wrap
 from .ownership import immutable, own
 from .parallel import ownership_range
 from .safeguards import operator_norm
@@ -626,6 +626,7 @@ class DeviceCSR(OperatorLayout):
         super().__init__(comm, block_size, version, types)
         self._pattern: tuple | None = None  # (indptr, indices, shape) of the Mat held
         self._data = None  # the values object set last
+        self._sums: PETSc.Mat | None = None  # `norm`'s row and column summing Mat
 
     @classmethod
     def accepts(cls, A) -> bool:
@@ -643,7 +644,7 @@ class DeviceCSR(OperatorLayout):
         memory = self.types.memory if self.types is not None else "cpu"
         values = wrap(A.data, len(A.indices), "the operator's values", memory)
         try:
-            if not np.isfinite(values.norm(PETSc.NormType.INFINITY)):
+            if nonfinite(values):
                 raise NonFiniteError("A has NaN or Inf entries")
             if not same_pattern:
                 self._make_mat(A, shape)
@@ -678,7 +679,44 @@ class DeviceCSR(OperatorLayout):
 
     def destroy(self) -> None:
         super().destroy()
-        self._pattern = self._data = None
+        if self._sums is not None:
+            self._sums.destroy()
+        self._pattern = self._data = self._sums = None
+
+    def norm(self) -> float:
+        """``max(‖A‖₁, ‖A‖_∞)`` computed where the values live: one product of a 0/1
+        matrix S (a row per row of A, then a row per column, each summing that line's
+        entries) with the values' absolute values, and one PETSc norm, so only the
+        result crosses to the host (PETSc's ``MatNorm`` of a CUDA Mat copies the whole
+        Mat to the host first).  Kept until the values change."""
+        if self.types is None:  # host values: PETSc's MatNorm reads them in place
+            return super().norm()
+        if self._norm is not None and self._norm[0] == self.version:
+            return self._norm[1]
+        indptr, indices, shape = self._pattern
+        nnz = len(indices)
+        if self._sums is None:  # once per pattern
+            rows = np.repeat(np.arange(shape[0], dtype=PETSc.IntType), np.diff(indptr))
+            self._sums = PETSc.Mat().create(comm=PETSc.COMM_SELF)
+            self._sums.setSizes((shape[0] + shape[1], nnz))
+            self._sums.setType(self.mat.getType())
+            self._sums.setVecType(self.types.vec_type)
+            lines = np.concatenate([rows, shape[0] + np.asarray(indices, dtype=PETSc.IntType)])
+            entries = np.tile(np.arange(nnz, dtype=PETSc.IntType), 2)
+            self._sums.setPreallocationCOO(lines, entries)
+            self._sums.setValuesCOO(np.ones(2 * nnz))
+        values = wrap(self._data, nnz, "the operator's values", self.types.memory)
+        absolute, sums = self._sums.createVecs()
+        try:
+            values.copy(absolute)
+            absolute.abs()
+            self._sums.mult(absolute, sums)
+            norm = sums.norm(PETSc.NormType.INFINITY)
+        finally:
+            for vec in (values, absolute, sums):
+                vec.destroy()
+        self._norm = (self.version, norm)
+        return norm
 
     def _tested_symmetric(self) -> bool:
         """PETSc's ``MatIsSymmetric`` on the values set."""

@@ -798,7 +798,8 @@ class KSPSolver:
             warnings.warn(unused, UnusedOptionWarning, stacklevel=4)
         # the step saw a finite ‖x‖ of every row (so no NaN/Inf), or a sum: fast path
         if rows is not None:
-            finite = step.finite or rows.finite()  # one PETSc norm per row
+            # one PETSc norm per row; in CUDA memory on every row (`nonfinite`)
+            finite = (step.finite and rows.memory == "cpu") or rows.finite()
         else:
             finite = step.finite or bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))
         if layout.distributed and not layout.replicated:

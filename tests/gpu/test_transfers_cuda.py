@@ -2,10 +2,13 @@
 no copy between host and device moves a vector or a row of θ, only scalars (CG's dot
 products and norms, which PETSc reads on the host).
 
-The copies are those the CUDA profiler (CUPTI, through ``torch.profiler``) records for the
-whole process, PETSc's own included; a deliberate copy of one vector inside the profiled
-steps shows that it sees them.  Runs where torch sees a GPU and PETSc was built with CUDA
-(``.ci/device-run.sh``); skipped everywhere else, with one reason.
+PETSc's Jacobi checks the inverted diagonal for zeros on the host (a copy there and back
+at every PC set-up, i.e. every new θ) unless the Mat is known SPD or
+``pc_jacobi_fixdiagonal`` is off, as here.  The copies are those the CUDA profiler
+(CUPTI, through ``torch.profiler``) records for the whole process, PETSc's own
+included; a deliberate copy of one vector inside the profiled steps shows that it sees
+them.  Runs where torch sees a GPU and PETSc was built with CUDA (``.ci/device-run.sh``);
+skipped everywhere else, with one reason.
 """
 
 import collections
@@ -47,7 +50,13 @@ def test_training_steps_move_no_vector_between_host_and_device(tmp_path):
     A = interior_operator(unit_square(4), "P0").A_II
     n, p = A.shape[0], A.n_params
     solver = pp.KSPSolver(
-        {"ksp_type": "cg", "pc_type": "jacobi", "vec_type": "cuda", "mat_type": "aijcusparse"},
+        {
+            "ksp_type": "cg",
+            "pc_type": "jacobi",
+            "pc_jacobi_fixdiagonal": False,
+            "vec_type": "cuda",
+            "mat_type": "aijcusparse",
+        },
         max_it=20,
     )
     target = torch.stack([random_theta(p, seed=10 + i) for i in range(BATCH)]).cuda()
