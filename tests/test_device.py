@@ -416,4 +416,3 @@ def test_nonfinite_sees_nan_and_inf_not_overflow(entries, expected):
     vec = wrap(torch.tensor(entries, dtype=torch.float64), len(entries), "v", "cpu")
     assert nonfinite(vec) is expected
     vec.destroy()
-
