@@ -416,3 +416,28 @@ def test_nonfinite_sees_nan_and_inf_not_overflow(entries, expected):
     vec = wrap(torch.tensor(entries, dtype=torch.float64), len(entries), "v", "cpu")
     assert nonfinite(vec) is expected
     vec.destroy()
+
+
+def test_constant_operator_with_values_in_the_solvers_memory(symmetric):
+    """A DLPackCSR A: the scipy route's x and gradient, and an unchanged values tensor
+    sets nothing on later calls (no comparison of values)."""
+    P = symmetric
+    csr = P.matrix(random_theta(P.n_params, seed=3).numpy()).tocsr()
+    values = torch.as_tensor(csr.data.copy())
+    A = DLPackCSR(csr.indptr, csr.indices, values, csr.shape)
+    b = randn(BATCH, csr.shape[0], seed=8)
+    results = []
+    for operator in (csr, A):
+        solver = pp.KSPSolver({**METHODS["cg_jacobi"], **HOST_TYPES}, max_it=7)
+        bb = b.clone().requires_grad_(True)
+        x = pp.solve(operator, bb, solver)
+        (x * randn(*x.shape, seed=9)).sum().backward()
+        results.append((x.detach(), bb.grad))
+    torch.testing.assert_close(results[1], results[0], rtol=1e-13, atol=0)
+    version = solver.operator_version
+    pp.solve(A, b, solver)
+    assert solver.operator_version == version
+    pp.solve(DLPackCSR(csr.indptr, csr.indices, 2 * values, csr.shape), b, solver)
+    assert solver.operator_version > version
+    with pytest.raises(InputError, match="theta"):
+        pp.solve(A, b, solver, theta=random_theta(P.n_params))

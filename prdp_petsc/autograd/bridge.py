@@ -88,6 +88,8 @@ def solve(
         `~prdp_petsc.fem.distributed.DistributedParametricMatrix` selects the
         *owned* layout: `b`, `theta`, `x0` and x hold this rank's rows and
         parameters only, and the call is collective (`prdp_petsc.autograd.owned`).
+        On the device path a constant operator may also be a
+        `~prdp_petsc.core.operator.DLPackCSR` with its values in the solver's memory.
     b : torch.Tensor, float64, shape (n,) or (B, n)
         Right-hand side(s).  With one θ (or a scipy A) the batch shares one
         operator and one PC setup.
@@ -149,8 +151,7 @@ def solve(
     library: the immutable matrix's own), and of a scipy matrix the caller can
     still change a copy of its values made when they change (one comparison per
     call finds an unchanged matrix unchanged) and of its pattern once per new
-    pattern; an array the caller marked read-only, and every array it views,
-    is taken at its word, uncopied (`prdp_petsc.core.operator.immutable`).
+    pattern.
     With `x0` and a scipy `A`, the product ``A x0`` keeps a read-only snapshot.
 
     A batch of operators runs one ``KSPSolve`` per sample, each after

@@ -18,7 +18,11 @@ A `~prdp_petsc.core.solver.KSPSolver` whose options name a ``vec_type`` or ``mat
   PC up.  A batch of operators (θ of shape (B, p)) is one (B, nnz) product; sample i
   solves on its row of values.
 * A scipy operator is host memory: its values reach the Mat once per change (the
-  solver keeps and compares them on the host, as on the default path).
+  solver keeps and compares them on the host, as on the default path: one pass over
+  the values per call).  A constant operator whose values are already in the solver's
+  memory is a `~prdp_petsc.core.operator.DLPackCSR` (values a torch tensor there):
+  recognised by the values tensor's identity, so an unchanged one costs nothing per
+  call (a tensor edited in place is not seen: pass a new tensor for new values).
 * What crosses to the host per call: PETSc's scalars (norms, iterations, reasons) and
   the booleans of θ's checks (finite, positive, unchanged).
 
@@ -282,11 +286,17 @@ def device_solve(A, b, solver: KSPSolver, theta, outcome) -> LinearSolution:
     else:
         if theta is not None:
             raise InputError("theta= is only meaningful for a ParametricMatrix A")
-        if not sp.issparse(A):
-            raise TypeError(f"A must be a scipy sparse matrix or ParametricMatrix, got {type(A)}")
-        csr = as_csr(A, finite=False)  # the solver tests values it has not seen
-        _check_tensor(b, csr[3][0], "b")
-        operator = DeviceOperator(csr, None, None, None)
+        if isinstance(A, DLPackCSR):  # values already in the solver's memory
+            _check_tensor(b, int(A.shape[0]), "b")
+            operator = DeviceOperator(A, None, None, None)
+        elif sp.issparse(A):
+            csr = as_csr(A, finite=False)  # the solver tests values it has not seen
+            _check_tensor(b, csr[3][0], "b")
+            operator = DeviceOperator(csr, None, None, None)
+        else:
+            raise TypeError(
+                f"A must be a scipy sparse matrix, a DLPackCSR or a ParametricMatrix, got {type(A)}"
+            )
     x = DeviceSolve.apply(b, theta, operator, solver, outcome)
     return LinearSolution(x, operator.forward, outcome)
 
