@@ -145,6 +145,7 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
     assert {ds.name: ds.kind.name for ds in sets} == {
         "bench_bridge": "bench",
         "bench_jax": "bench-jax",
+        "bench_gpu": "bench-gpu",
         "heat2d": "compare",
         "stability": "stability",
         "work_precision_heat3d": "work-precision",
@@ -175,7 +176,9 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
     assert {"defaults_heat1d", "defaults_heat2d", "defaults_heat3d"} <= {ds.name for ds in sets}
     for ds in sets:
         p = ds.provenance
-        assert p["command"].startswith("prdp-petsc ") and p["exit_status"] == 0
+        assert p["command"].startswith("prdp-petsc ")
+        # a run stopped at its time limit is recorded only with what it saved, marked so
+        assert p["exit_status"] == 0 or (ds.main.get("partial") and p.get("note"))
         assert p["machine"]["cpu_count"] >= 1 and len(p["git"]["commit"]) == 40
         known = {name for name, version in p["versions"].items() if version}
         assert {"petsc", "petsc4py", "torch", "scikit-fem"} <= known

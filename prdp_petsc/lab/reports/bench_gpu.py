@@ -715,7 +715,8 @@ def format_report(d: dict) -> str:
     dev = d["device"]
     lines = [f"device: {dev['name']} ({dev['kind']}; PETSc with CUDA: {dev['petsc_cuda']})"]
     if d.get("partial"):
-        lines.append("  cut short: the problems finished before the run was stopped")
+        missing = [p for p in d["settings"]["problems"] if p not in d["problems"]]
+        lines.append(f"  cut short: the run was stopped before {', '.join(missing) or 'its end'}")
     lines += [
         f"  skipped {n}: {c['note']}" for n, c in d["contenders"].items() if not c["available"]
     ]
@@ -791,6 +792,12 @@ def verdicts(d: dict) -> list[tuple[str, str, bool | None]]:
         return target, f"worst {r:.2f} ({c['problem']}, K = {c['k']})", r <= bound
 
     out = [worst("bridge over raw petsc4py <= 1.15", "prdp_petsc/raw_petsc", 1.15)]
+    # PETSc's own CG without the bridge, against jax: how far the jax targets are reachable
+    own = [c["ratios"][pair]["median"] for c in d["cells"] for pair in
+           ("raw_petsc/jax_cg", "raw_petsc_sr/jax_cg") if pair in c["ratios"]]  # fmt: skip
+    if own:
+        text = f"{min(own):.2f} to {max(own):.2f} over the cells (raw_petsc, raw_petsc_sr)"
+        out.append(("for reference: raw petsc4py / jax_cg, no bridge", text, None))
     for name in ("prdp_petsc", "prdp_petsc_sr"):
         for bound, label, sizes in ((3.5, "12 k", (0, 59_000)), (2.0, ">= 59 k", (59_000, np.inf)),
                                     (1.3, "784 k", (700_000, np.inf))):  # fmt: skip

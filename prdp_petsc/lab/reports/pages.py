@@ -162,6 +162,8 @@ def page(ds: DataSet) -> str:
         versions=", ".join(f"{names.get(k, k)} {v}" for k, v in p["versions"].items() if v),
         commit=commit,
         own=_own_record(ds),
+        runner=p.get("runner"),  # a run made elsewhere (a GPU machine) and copied here
+        note=p.get("note"),
         argv=shlex.join(_as_now(p["argv"])),
         images=[Path(image) for image in ds.images],
         **ds.kind.parts(ds),
