@@ -341,26 +341,30 @@ class PRDP:
         Geometric refinement factor (>= 1; 1: the reference's additive steps).
     tol : float
         Accuracy band of a check (`ACCURACY_BAND`, 0.05).
+    epochs : int, optional
+        How many times `update` will be called (the run's epochs), if known: the
+        checks' budget then counts the whole run (see the Notes).
 
     Notes
     -----
     **When a check runs** (with a ``check``): `window` epochs into every K; on a
     plateau while K is not yet certified (at most once per `window` epochs); on the
     first plateau after K is certified (once per K: training has reached what K lets
-    it reach, where a capped optimum parts from the full one; within the budget below,
-    the end's certificate not reserved); and,
-    once K is certified, again when K has run `RECHECK_GROWTH` (2) times the epochs it
-    had run at its last check, or ``tol / gap`` times where that is more: a model
-    specialises as it trains, so a K certified early is checked again, about log2(T)
-    times over T epochs while its gap stays near the band, and not before the end when
-    the gap is far inside it (a gap at a tenth of the band waits ten times as long).  A
-    recheck of a K certified with a gap within half the band also waits until it fits
-    the budget: the checks so far, it, and the certificate at the end within
-    `CHECK_BUDGET` (10 %) of every inner iteration of the run, as the check measures
-    them (``check.spent()``: `prdp_petsc.gradient_check` counts its solvers'
-    iterations), else counting an epoch at K as K and a check as ``k + reference``.  A
-    gap nearer the band is rechecked on time whatever it costs (a model that drifts out
-    of the band there is trained at too small a K for the rest of the run), and the
+    it reach, where a capped optimum parts from the full one); and, once K is
+    certified, again when K has run `RECHECK_GROWTH` (2) times the epochs it had run at
+    its last check, or ``tol / gap`` times where that is more: a model specialises as
+    it trains, so a K certified early is checked again, about log2(T) times over T
+    epochs while its gap stays near the band, and not before the end when the gap is
+    far inside it (a gap at a tenth of the band waits ten times as long).  Every check
+    of a certified K (the plateau's and the rechecks) waits until it fits the budget:
+    the checks so far, it, and the certificate at the end within `CHECK_BUDGET` (10 %)
+    of every inner iteration of the run, as the check measures them
+    (``check.spent()``: `prdp_petsc.gradient_check` counts its solvers' iterations),
+    else counting an epoch at K as K and a check as ``k + reference``.  The run's cost
+    is what it has cost so far plus, with `epochs` (the number of `update` calls the
+    run will make), the epochs still to come at the current K: told the run's length,
+    the controller spends the budget when a check is due rather than when the run so
+    far has paid for it (a short run of cheap epochs affords no recheck at all).  The
     first check at each K and the checks before K is certified decide the refinements
     and are never postponed.  A check during training compares
     K with the next level (`Certificate.reference`) while that is below K_full, with
@@ -411,7 +415,7 @@ class PRDP:
     def __init__(
         self, k_init=1, k_step=1, k_max=None, tau_step=0.98, tau_stop=0.9, ema_window=6,
         window=3, k_min=1, use_ema=True, *, restart_window=False, tau_worse=1.0,
-        k_full=None, growth=1.0, tol=ACCURACY_BAND, check=None,
+        k_full=None, growth=1.0, tol=ACCURACY_BAND, check=None, epochs=None,
     ):  # fmt: skip
         def _int(name, value, low):
             value = operator.index(value)
@@ -447,6 +451,7 @@ class PRDP:
         if check is not None and self.k_full is None:
             raise ValueError("a check needs k_full (PRDP.for_problem(k_full, check=...) sets it)")
         self.check = check
+        self.epochs = None if epochs is None else _int("epochs", epochs, 1)
         self.use_ema, self.restart_window = bool(use_ema), bool(restart_window)
         self.alpha = 2.0 / (self.ema_window + 1.0) if self.use_ema else 1.0
         self._k, self._refining, self._checkpoint = self.k_init, True, math.inf
@@ -492,7 +497,8 @@ class PRDP:
         tol : float
             Accuracy band of the checks.
         **settings
-            Any other `PRDP` argument, overriding these defaults.
+            Any other `PRDP` argument, overriding these defaults; give ``epochs`` (the
+            run's length) whenever it is known.
         """
         errors = getattr(k_full, "errors", None)
         k_full = operator.index(k_full)
@@ -642,8 +648,8 @@ class PRDP:
             return False, f"r={r:.4g}, next check at epoch {self._next_check:.0f}", None
         reference = min(self.next_k(), self.k_full)
         last = self._checks[-1] if self._checks else None
-        inside = last is not None and last.k == self._k and last.gap <= self.tol / 2
-        if not self._refining and inside and not self._affordable(reference, end=not settled):
+        recheck = last is not None and last.k == self._k and last.certified
+        if not self._refining and recheck and not self._affordable(reference):
             return False, f"recheck of K={self._k} waits: checks at the budget", None
         if settled:
             self._settled = self._k
@@ -664,27 +670,35 @@ class PRDP:
         ran = max(self.window, epoch - self._level_start)
         return self._level_start + ran * max(RECHECK_GROWTH, self.tol / gap)
 
-    def _affordable(self, reference: int, end: bool = True) -> bool:
-        """Whether a recheck of the certified K against `reference` keeps the checks
-        within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved
-        unless `end` is False (the check of a first plateau at a certified K).
+    def _affordable(self, reference: int) -> bool:
+        """Whether a check of the certified K against `reference` keeps the checks
+        within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
 
         Costs are what the check's ``spent()`` measures (every check so far, and every
         inner iteration of the solvers it runs through, training included), a check
         estimated from the last one's cost per unit of ``k + reference``; for a check
-        without ``spent()``, an epoch at K costs K and a check ``k + reference``.
+        without ``spent()``, an epoch at K costs K and a check ``k + reference``.  The
+        run's cost is what it has cost so far, plus, where `epochs` is known, the
+        epochs still to come at the current K (each at the cost per unit of K that
+        training has had so far).
         """
-        units = self._k + reference + (self._k + self.k_full if end else 0)  # and the end's
+        units = self._k + reference + self._k + self.k_full  # this check and the end's
         last = self._checks[-1] if self._checks else None
         spent = _spent(self.check)
         if spent is not None and last is not None and last.cost is not None:
             checks, total = spent
-            estimate = units * last.cost / (last.k + last.against)
+            per_unit = last.cost / (last.k + last.against)
         else:
             checks = sum(c.k + c.against for c in self._checks)
             total = sum(s.k for s in self._history) + self._k + checks
-            estimate = units
-        return checks + estimate <= CHECK_BUDGET * (total + estimate)
+            per_unit = 1.0
+        estimate = units * per_unit
+        future = 0.0
+        if self.epochs is not None:
+            trained = sum(s.k for s in self._history)  # an epoch's cost per unit of K
+            per_k = (total - checks) / trained if trained else per_unit
+            future = max(0, self.epochs - len(self._history)) * self._k * per_k
+        return checks + estimate <= CHECK_BUDGET * (total + estimate + future)
 
     def _check(self, check, reference: int) -> Certificate:
         """Evaluate `check` at K and at `reference` on the current weights; keep and

@@ -93,8 +93,9 @@ def test_refines_until_the_check_certifies_then_stays():
     assert ctrl.k == 8 and not ctrl.refining
     s = ctrl.savings()
     assert s["certified"] is True and s["gap"] < 0.05 and s["ic"] == pytest.approx(1 - 8 / 64)
-    # K = 8 certified with a gap of 4 %, near the band: rechecked on time, budget or not
-    assert 2 <= s["checks"] <= 10  # checks at doubling intervals, not every epoch
+    # K = 8 certified with a gap of 4 %: a recheck (8 + 16) and the end's certificate
+    # (8 + 64) would pass 10 % of these 40 epochs at K = 8, so none is made
+    assert s["checks"] == 1
     # every check (one evaluation at K, one at the cap it is compared with) is counted,
     # as an epoch at its cap
     spent = 40 * 8 + sum(c.k + c.against for c in ctrl.checks)
@@ -370,37 +371,49 @@ def test_a_gap_within_half_the_band_waits_for_the_budget():
     epochs = [c.epoch for c in ctrl.checks]
     assert ctrl.k == 8 and epochs[0] == 2 and len(epochs) >= 2 and min(epochs[1:]) >= 13
     # the metric is flat from the start: its first plateau at the certified K is checked
-    # once the checks so far and it fit the budget, the end's certificate not reserved
+    # once the checks so far, it and the end's certificate fit the budget
     plateau = ctrl.checks[1]
-    spent_then = sum(c.cost for c in ctrl.checks[:2])
+    spent_then = sum(c.cost for c in ctrl.checks[:2]) + 8 + 64
     assert spent_then <= CHECK_BUDGET * (3 * 8 * (plateau.epoch + 1) + spent_then)  # epochs 0..e
-    assert all(e >= 40 for e in epochs[2:])  # later rechecks reserve the end's as before
     ctrl.certify()
     assert check.checks <= CHECK_BUDGET * check.total
 
 
-def test_a_plateau_at_a_certified_k_is_checked_before_the_scheduled_recheck():
-    # an optimisation loop reaches the capped problem's optimum at epoch 20: the metric
-    # stops falling and the gradient at a cap k < K_full fades as (k / 64)^3 against
-    # K_full's (its descent on the full problem: an eighth at each level).  K = 8 was
-    # certified at epoch 2 with a gap within half the band, so the budget postpones its
-    # recheck (epochs of one solve: the recheck and the end's reserve fit only at ~135);
-    # the plateau check fits at ~54 and every level up to K_full fails its descent.
-    epoch = [0]
+def optimum_at_epoch_20(epoch):
+    """An optimisation loop that reaches the capped problem's optimum at epoch 20: then the
+    gradient at a cap k < K_full fades as (k / 64)^3 against K_full's (its descent on the
+    full problem: an eighth at each level); before, K = 8 is 1 % off."""
 
     def check(k):
         if epoch[0] < 20:
             return np.array([1.0, 0.01 * 0.5 ** (k - 8)])
         return np.array([min(1.0, (k / 64) ** 3), 0.0])
 
-    metered = Metered(check, batches=1)
-    ctrl = pp.PRDP.for_problem(64, check=metered)
+    return check
+
+
+@pytest.mark.parametrize("told", [True, False])
+def test_a_plateau_at_a_certified_k_is_checked_as_soon_as_the_run_can_afford_it(told):
+    # K = 8 is certified at epoch 2; the metric stops falling at epoch 20, where every
+    # level below K_full fails its descent.  A plateau check and the end's certificate
+    # cost 8 + 16 + 8 + 64 units, 10 % of 1 200: told the run's 300 epochs of one solve
+    # (2 400 units), the controller can afford it at the first plateau; not told, only
+    # once the run so far has cost that (epoch ~135)
+    epoch = [0]
+    metered = Metered(optimum_at_epoch_20(epoch), batches=1)
+    ctrl = pp.PRDP.for_problem(64, check=metered, epochs=300 if told else None)
     refined = None
-    for epoch[0] in range(100):
+    for epoch[0] in range(300):
         metered.epoch(ctrl.k)
         ctrl.update(0.9 ** min(epoch[0], 20))
         if refined is None and ctrl.k > 8:
             refined = epoch[0]
+    ctrl.certify()
     assert ctrl.checks[0].epoch == 2 and ctrl.checks[0].certified
-    assert refined is not None and 40 <= refined <= 60, refined
-    assert ctrl.k == 64
+    assert refined is not None and (20 <= refined <= 40 if told else refined >= 100), refined
+    assert ctrl.k == 64 and metered.checks <= CHECK_BUDGET * metered.total
+
+
+def test_epochs_must_be_a_positive_count():
+    with pytest.raises(ValueError, match="epochs must be >= 1"):
+        pp.PRDP.for_problem(64, epochs=0)

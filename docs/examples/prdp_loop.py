@@ -53,7 +53,7 @@ def val_loss():
 # the check: the validation gradient through the solve capped at k (no training step)
 check = pp.gradient_check(val_loss, net.parameters(), solver)
 k_full = pp.find_k_full(bc.A_II, b, solver, theta=np.ones(mesh.t.shape[1]))
-prdp = pp.PRDP.for_problem(k_full, check=check)
+prdp = pp.PRDP.for_problem(k_full, check=check, epochs=40)  # the run's length
 for _epoch in range(40):
     solver.max_it = prdp.k
     opt.zero_grad()

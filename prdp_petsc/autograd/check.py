@@ -56,7 +56,7 @@ def gradient_check(
     Examples
     --------
     >>> check = pp.gradient_check(lambda: val_loss(net), net.parameters(), solver)
-    >>> prdp = pp.PRDP.for_problem(k_full, check=check)
+    >>> prdp = pp.PRDP.for_problem(k_full, check=check, epochs=epochs)
     """
     params = list(parameters)
     if not params:

@@ -37,7 +37,7 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
     controller = None
     solver.reset_stats()
     if schedule == "prdp":
-        controller = PRDP.for_problem(k_full, check=problem.check())
+        controller = PRDP.for_problem(k_full, check=problem.check(), epochs=problem.epochs)
     elif schedule == "hand":
         step = _cap(HAND, k_full)
         controller = PRDP.paper(k_init=step, k_step=step, k_max=max(k_full, step))

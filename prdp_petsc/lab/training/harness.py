@@ -289,7 +289,7 @@ def _train(
     generator = torch.Generator().manual_seed(torch_seed)
     check = gradient_check(scene) if plan.kind == "auto" else None
     if plan.kind == "auto":  # `run` has set k_full and k_init
-        controller = PRDP.for_problem(**scene.prdp, check=check)
+        controller = PRDP.for_problem(**scene.prdp, check=check, epochs=epochs)
     else:
         controller = PRDP(**scene.prdp) if plan.kind != "fixed" else None
     levels = result.get("rtol") if plan.kind == "rtol" else None
