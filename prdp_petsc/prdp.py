@@ -694,10 +694,10 @@ class PRDP:
             per_unit = 1.0
         estimate = units * per_unit
         future = 0.0
-        if self.epochs is not None:
-            trained = sum(s.k for s in self._history)  # an epoch's cost per unit of K
-            per_k = (total - checks) / trained if trained else per_unit
-            future = max(0, self.epochs - len(self._history)) * self._k * per_k
+        if self.epochs is not None:  # `update` is deciding after the epoch just trained
+            trained = sum(s.k for s in self._history) + self._k  # that epoch's K included
+            per_k = (total - checks) / trained  # an epoch's cost per unit of K
+            future = max(0, self.epochs - len(self._history) - 1) * self._k * per_k
         return checks + estimate <= CHECK_BUDGET * (total + estimate + future)
 
     def _check(self, check, reference: int) -> Certificate:
