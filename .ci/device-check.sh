@@ -13,7 +13,7 @@
 #              with Jacobi CG and with GAMG (BUDGET_S, ROUNDS, CALLS); its JSON is written
 #              after each problem, so a run cut short keeps what it measured.  On an H200 the
 #              first three problems took 105 s and lshape9 (784 k) did not finish in the
-#              430 s left of a 560 s call: give it a call of its own
+#              rest of a 560 s call: give it a call of its own
 #
 # Each step has its own time limit and the run goes on past a failed step; the exit status
 # is that of the first failure.
