@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from prdp_petsc.lab.reports import bench_gpu
+from prdp_petsc.lab.reports import bench_gpu, gpu_contenders
 from prdp_petsc.lab.reports.bench import main
 
 PEERS = ("jax_cg", "lineax_cg")
@@ -36,7 +36,7 @@ def test_cells_time_every_contender_and_agree(quick):
     have_jax = all(quick["contenders"][p]["available"] for p in PEERS)
     assert quick["problems"]["lshape3"]["n"] == 161
     assert [(c["problem"], c["k"]) for c in quick["cells"]] == [("lshape3", 2), ("lshape3", 5)]
-    expected = {c.name for c in bench_gpu.CONTENDERS if have_jax or c.name not in PEERS}
+    expected = {c.name for c in gpu_contenders.CONTENDERS if have_jax or c.name not in PEERS}
     for cell in quick["cells"]:
         assert set(cell["median_s"]) == expected, cell["notes"]
         assert all(t > 0 for t in cell["median_s"].values())
@@ -96,7 +96,7 @@ def test_an_absent_peer_is_skipped_with_a_note(monkeypatch, tmp_path):
     monkeypatch.setattr(bench_gpu, "environment", without_jax)
     d = _run(tmp_path, "--problems", "lshape2", "--k", "3", "--rounds", "1", "--calls", "1",
              "--tol-problems", "", "--skip", "raw_petsc_transpose,prdp_petsc_sr")  # fmt: skip
-    described = {c.name: c.describe for c in bench_gpu.CONTENDERS}
+    described = {c.name: c.describe for c in gpu_contenders.CONTENDERS}
     for name in PEERS:
         assert d["contenders"][name] == {
             "describe": described[name],
@@ -117,7 +117,7 @@ def test_a_contender_that_fails_is_noted_and_the_others_run(monkeypatch, tmp_pat
         raise RuntimeError("no device here")
 
     contenders = [c._replace(build=broken) if c.name == "torch_pcg" else c
-                  for c in bench_gpu.CONTENDERS]  # fmt: skip
+                  for c in gpu_contenders.CONTENDERS]  # fmt: skip
     monkeypatch.setattr(bench_gpu, "CONTENDERS", tuple(contenders))
     d = _run(tmp_path, "--problems", "lshape2", "--k", "3", "--rounds", "1", "--calls", "1",
              "--tol-problems", "", "--skip", "jax_cg,lineax_cg")  # fmt: skip
@@ -135,28 +135,28 @@ def test_the_budget_skips_what_would_start_after_it(tmp_path):
 
 def test_problems_are_the_issues(tmp_path):
     # the sizes the issue names: 12 033 unknowns at refined(6), 59 319 on 41³ points
-    label, matrix = bench_gpu.problem("lshape6")
+    label, matrix = gpu_contenders.problem("lshape6")
     A = matrix()
     assert label == "L-shape P1" and A.shape == (12033, 12033)
-    heat = bench_gpu.problem("heat3d5")[1]()
+    heat = gpu_contenders.problem("heat3d5")[1]()
     assert heat.shape == (27, 27)
     for M in (A, heat):  # SPD: symmetric to rounding, positive diagonal, Cholesky works
         assert abs(M - M.T).max() <= 1e-14 * abs(M).max()
         assert (M.diagonal() > 0).all()
     assert np.linalg.eigvalsh(heat.toarray()).min() > 0
     # the jitter moves the interior vertices: the matrix is not the unjittered one's
-    still = bench_gpu.lshape(3, jitter=0.0)
-    moved = bench_gpu.problem("lshape3")[1]()
+    still = gpu_contenders.lshape(3, jitter=0.0)
+    moved = gpu_contenders.problem("lshape3")[1]()
     assert still.shape == moved.shape and abs(still - moved).max() > 1e-3
     for name in ("square7", "heat3d2"):
         with pytest.raises(Exception, match="unknown problem"):
-            bench_gpu.problem(name)
+            gpu_contenders.problem(name)
 
 
 def test_tight_cg_matches_the_direct_reference():
-    A = bench_gpu.lshape(4)
+    A = gpu_contenders.lshape(4)
     rng = np.random.default_rng(1)
-    case = bench_gpu.Case("lshape4", A, rng.standard_normal(A.shape[0]),
+    case = gpu_contenders.Case("lshape4", A, rng.standard_normal(A.shape[0]),
                           rng.standard_normal(A.shape[0]))  # fmt: skip
     direct = bench_gpu.reference_gradient(case, direct_max_n=10**6)
     tight = bench_gpu.reference_gradient(case, direct_max_n=1)
@@ -177,9 +177,9 @@ def test_smallest_k_brackets_to_one_percent():
 
 
 def test_cpu_gpu_agreement_compares_two_runs():
-    A = bench_gpu.lshape(2)
+    A = gpu_contenders.lshape(2)
     rng = np.random.default_rng(2)
-    case = bench_gpu.Case("lshape2", A, rng.standard_normal(A.shape[0]),
+    case = gpu_contenders.Case("lshape2", A, rng.standard_normal(A.shape[0]),
                           rng.standard_normal(A.shape[0]))  # fmt: skip
     same = bench_gpu.cpu_gpu_agreement(case, 10, devices=("cpu", "cpu"))
     assert same["x"] == 0.0 and same["grad"] == 0.0 and same["target"] == 1e-10

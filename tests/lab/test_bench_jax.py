@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from prdp_petsc.lab.reports import bench_gpu, bench_jax, pages
+from prdp_petsc.lab.reports import bench_jax, gpu_contenders, pages
 from prdp_petsc.lab.reports.bench import main
 from prdp_petsc.lab.reports.kinds import DataSet
 
@@ -57,7 +57,7 @@ def test_bench_jax_without_jax_says_how_to_install(monkeypatch, tmp_path, capsys
 
 
 def test_five_point_is_a_problem():
-    label, matrix = bench_gpu.problem("five_point20")
+    label, matrix = gpu_contenders.problem("five_point20")
     A = matrix()
     assert label == "5-point -Δ" and A.shape == (400, 400) and A.nnz == 5 * 400 - 4 * 20
 
