@@ -441,3 +441,14 @@ def test_constant_operator_with_values_in_the_solvers_memory(symmetric):
     assert solver.operator_version > version
     with pytest.raises(InputError, match="theta"):
         pp.solve(A, b, solver, theta=random_theta(P.n_params))
+
+
+def test_a_solution_that_overflows_unseen_by_petsc_is_refused(symmetric):
+    """Richardson scaled past overflow without a norm: PETSc reports the cap, and only the
+    finiteness test of the solution rows finds the Inf."""
+    options = {"ksp_type": "richardson", "ksp_richardson_scale": 1e300, "pc_type": "none",
+               "ksp_norm_type": "none", **HOST_TYPES}  # fmt: skip
+    solver = pp.KSPSolver(options, max_it=4)
+    theta = random_theta(symmetric.n_params)
+    with pytest.raises(SolverError, match="NaN/Inf"):
+        pp.solve(symmetric, randn(symmetric.shape[0], seed=21), solver, theta=theta)

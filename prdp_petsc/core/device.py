@@ -254,11 +254,9 @@ class WrappedRows:
 
     Notes
     -----
-    NaN or Inf in a right-hand side is refused (`NonFiniteError`) from PETSc's norms
-    before any row is solved: ``‖b‖₂``, which the solve computes anyway (PETSc keeps
-    A right-hand side or a solution with NaN or Inf is found by `nonfinite` (one or two
-    PETSc norms per row); a solution's only where the solve did not already see a
-    finite ``‖x‖``, and in CUDA memory on every row.
+    NaN or Inf in a right-hand side is refused (`NonFiniteError`) before any row is
+    solved, and in a solution found once every row is (`finite`), each by `nonfinite`:
+    one or two PETSc norms per row, where they live.
     """
 
     def __init__(self, rhs, out, size: int, memory: str, kind, value=None) -> None:
@@ -277,7 +275,6 @@ class WrappedRows:
         self.b: list[PETSc.Vec] = []
         self.x: list[PETSc.Vec] = []
         self._out = out if value is None else value
-        self.memory = memory
         try:
             for i, (row, target) in enumerate(zip(rhs_rows, out_rows, strict=True)):
                 name = what if len(rhs_rows) == 1 else f"row {i} of the {what}"

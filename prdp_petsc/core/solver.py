@@ -796,11 +796,9 @@ class KSPSolver:
         side.setup_version = self._op.version
         if check and (unused := self._unused_after(side, pushed)):
             warnings.warn(unused, UnusedOptionWarning, stacklevel=4)
-        # the step saw a finite ‖x‖ of every row (so no NaN/Inf), or a sum: fast path
-        if rows is not None:
-            # one PETSc norm per row; in CUDA memory on every row (`nonfinite`)
-            finite = (step.finite and rows.memory == "cpu") or rows.finite()
-        else:
+        if rows is not None:  # the device path: `nonfinite` of every row, where it lives
+            finite = rows.finite()
+        else:  # the step saw a finite ‖x‖ of every row (so no NaN/Inf), or a sum
             finite = step.finite or bool(np.isfinite(out.sum()) or np.all(np.isfinite(out)))
         if layout.distributed and not layout.replicated:
             finite = bool(layout.agree_max(np.array([not finite]))[0] == 0)
