@@ -491,6 +491,10 @@ def build(config: dict, seed: int) -> lab.Scene:
             samples=idx.tolist(),
         )
 
+    # the gradient check's batch: every third training window (an epoch may be one batch,
+    # and a check differentiates its batch twice)
+    check_windows = torch.arange(0, n_train, 3)
+
     def rollout_states(steps: int, step) -> torch.Tensor:
         with torch.no_grad():
             states, s = [], val[0]
@@ -533,6 +537,7 @@ def build(config: dict, seed: int) -> lab.Scene:
         optimizer=optimizer,
         batches=epoch_batches,
         loss=loss,
+        check_loss=lambda: loss(check_windows),
         validate=validate,
         rollout=rollout,
         uncorrected_rollout=uncorrected_rollout,

@@ -89,3 +89,18 @@ def test_a_check_never_trains_a_scene_whose_loss_steps_its_optimiser():
     assert torch.equal(theta.detach(), before)
     assert not scene.optimizer.state  # Adam has taken no step
     assert np.array_equal(check(20), first)  # the same weights, the same batch
+
+
+def test_a_scenes_check_loss_is_what_the_check_differentiates():
+    # poisson3d's epoch is `steps` Adam steps (as many solves); its check is one solve
+    scene = build_scene(load_scene(HEAT1D.parent / "poisson3d.py"), "quick", 0)
+    check = gradient_check(scene)
+    g = check(4)
+    spent, _ = check.spent()
+    assert 0 < spent <= 2 * 4  # one forward and one adjoint solve at K = 4
+    theta = scene.optimizer.param_groups[0]["params"][0]
+    for s in scene.solvers:
+        s.max_it = 4
+    (expected,) = torch.autograd.grad(scene.check_loss(), [theta])
+    assert np.allclose(g, expected.numpy())
+    assert not scene.optimizer.state  # the check took no Adam step

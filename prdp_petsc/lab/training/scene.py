@@ -100,6 +100,12 @@ class Scene:
         own part: not synchronised from rank 0, and under ``--parallel domain`` every
         other parameter's gradient is summed over the ranks.  Such a run cannot be
         resumed on several ranks.
+    check_loss : callable ``() -> torch.Tensor``, optional
+        The loss the ``auto`` schedule's gradient check differentiates
+        (`prdp_petsc.lab.training.schedules.gradient_check`): fixed data, no optimizer
+        steps.  Default: `loss` on one fixed batch.  A scene whose epoch is one batch, or
+        whose `loss` takes optimizer steps, gives a smaller one, so a check costs less
+        than an epoch.
     """
 
     solvers: list[KSPSolver]
@@ -117,6 +123,7 @@ class Scene:
     rollout: Callable[[], Sequence[float]] | None = None
     uncorrected_rollout: Callable[[], Sequence[float]] | None = None
     owned_parameters: list = field(default_factory=list)
+    check_loss: Callable[[], torch.Tensor] | None = None
 
     def __post_init__(self):
         if not self.solvers or not all(isinstance(s, KSPSolver) for s in self.solvers):

@@ -90,14 +90,19 @@ def rtol_levels(rtol_full: float, rtol_init: float = RTOL_INIT, factor: float = 
 
 
 def gradient_check(scene):
-    """The ``auto`` schedule's check: `prdp_petsc.gradient_check` of the training loss
-    on one fixed batch (the first of ``scene.batches`` under `CHECK_SEED`), through
-    every scene solver.  The parameters and the optimizer's state are restored after
-    every check (a scene's loss may take optimizer steps), so a check never trains.
+    """The ``auto`` schedule's check: `prdp_petsc.gradient_check` of ``scene.check_loss``,
+    or else of the training loss on one fixed batch (the first of ``scene.batches`` under
+    `CHECK_SEED`), through every scene solver.  The parameters and the optimizer's state
+    are restored after every check (a scene's loss may take optimizer steps), so a check
+    never trains.
     """
-    batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
+    if scene.check_loss is not None:
+        loss = scene.check_loss
+    else:
+        batch = next(iter(scene.batches(0, torch.Generator().manual_seed(CHECK_SEED))))
+        loss = lambda: scene.loss(batch)  # noqa: E731
     params = [p for g in scene.optimizer.param_groups for p in g["params"] if p.requires_grad]
-    gradient = library_gradient_check(lambda: scene.loss(batch), params, scene.solvers)
+    gradient = library_gradient_check(loss, params, scene.solvers)
 
     def check(k: int) -> np.ndarray:
         values = [p.detach().clone() for p in params]
