@@ -104,3 +104,24 @@ def test_a_scenes_check_loss_is_what_the_check_differentiates():
     (expected,) = torch.autograd.grad(scene.check_loss(), [theta])
     assert np.allclose(g, expected.numpy())
     assert not scene.optimizer.state  # the check took no Adam step
+
+
+def test_defaults_baselines_name_the_best_constant_cap_at_equal_accuracy(tmp_path):
+    from prdp_petsc.lab.reports.defaults import defaults
+    from prdp_petsc.lab.training.accuracy import constant_caps
+
+    result = defaults(HEAT1D, "quick", [0], baselines=True)
+    row = result["per_seed"][0]
+    caps = constant_caps(row["k_full"])
+    assert result["baselines"] == list(caps) == ["K_full/8", "K_full/4", "K_full/2"]
+    for label in caps:  # a constant cap's run saves what its cap says, to the iteration
+        r, full = row[label], row["full"]
+        assert r["k_final"] == caps[label]
+        assert r["saved"] == pytest.approx(1 - r["iterations"] / full["iterations"])
+        s = result[label]
+        assert s["equal_over_seeds"] == (
+            s["ratio"]["geometric_mean"] <= 1.05 and r["ratio"] <= 1.10
+        )
+    fits = [b for b in caps if result[b]["equal_over_seeds"]]
+    assert result["best_constant"] == max(fits, key=lambda b: result[b]["saved"], default=None)
+    assert "best constant cap at equal accuracy" in format_defaults(result) or not fits

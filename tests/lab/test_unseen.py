@@ -13,6 +13,7 @@ import pytest
 
 import prdp_petsc as pp
 from prdp_petsc.lab.reports import unseen, unseen_problems
+from prdp_petsc.lab.training.accuracy import constant_caps
 
 
 @pytest.mark.parametrize("name", ["heat_sink", "annulus_inverse", "box3d_regions"])
@@ -72,7 +73,7 @@ def test_baselines_put_the_default_beside_the_hand_schedule_and_constant_caps():
     result = unseen.compare(["box3d_regions"], [0], quick=True, baselines=True)
     p = result["problems"]["box3d_regions"]
     run, b = p["runs"][0], p["baselines"]
-    caps = unseen.constant_caps(run["k_full"])
+    caps = constant_caps(run["k_full"]).values()
     assert set(run["baselines"]) == {"hand", *(f"fixed:{k}" for k in caps)}
     assert set(b) == {"hand", "K_full/8", "K_full/4", "K_full/2", "best_constant"}
     for label in ("K_full/8", "K_full/4", "K_full/2"):

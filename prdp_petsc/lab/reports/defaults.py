@@ -5,7 +5,9 @@ full fidelity (constant K_full), the scene's tuned PRDP (schedule ``prdp``) and 
 default construction (schedule ``auto``: ``PRDP.for_problem(K_full)`` with a gradient
 check) and writes ``DIR/defaults.json``: every run's final validation error, inner
 iterations (checks included), final K and certificate, and per schedule the error ratios
-over full fidelity with the savings at equal accuracy.
+over full fidelity with the savings at equal accuracy.  ``--baselines`` adds the
+constant caps K_full/8, /4, /2 (`prdp_petsc.lab.training.accuracy.constant_caps`) and
+names the one that saves the most at equal accuracy over the seeds.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 from prdp_petsc import PRDP
 
 from ..provenance import write_result
+from ..training.accuracy import ACCURACY_RATIO, constant_caps, equal_over_seeds
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
@@ -27,9 +30,14 @@ logger = logging.getLogger(__name__)
 SCHEDULES = {"tuned": "prdp", "default": "auto"}
 
 
-def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None) -> dict:
-    """Full fidelity, the tuned PRDP and the default construction on every seed."""
-    from ..training.accuracy import ACCURACY_RATIO
+def defaults(
+    scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None,
+    baselines: bool = False,
+) -> dict:  # fmt: skip
+    """Full fidelity, the tuned PRDP and the default construction on every seed; with
+    `baselines`, each constant cap of `constant_caps` too (``result["baselines"]``:
+    their labels; ``result["best_constant"]``: the one at equal accuracy over the seeds,
+    `equal_over_seeds`, that saves the most, or None)."""
     from ..training.building import build_scene, release
     from ..training.harness import run
     from ..training.probe import probe
@@ -45,8 +53,10 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
         release(scene)
         row = {"seed": seed, "k_full": k_full}
         runs = {"full": f"fixed:{k_full}", **SCHEDULES}
+        if baselines:
+            runs.update({label: f"fixed:{k}" for label, k in constant_caps(k_full).items()})
         for name, schedule in runs.items():
-            folder = None if out is None else Path(out) / f"seed_{seed}" / name
+            folder = None if out is None else Path(out) / f"seed_{seed}" / name.replace("/", "_")
             prdp = {"k_full": k_full, "k_init": start} if schedule == "auto" else None
             log = run(scene_file, schedule, preset=preset, seed=seed, threads=threads,
                       progress=False, module=module, out=folder, prdp=prdp)  # fmt: skip
@@ -60,7 +70,7 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
                 "certified": (log.get("certificate") or {}).get("certified"),
             }
         full = row["full"]
-        for name in SCHEDULES:
+        for name in list(runs)[1:]:
             r = row[name]
             if r["stopped"] or full["stopped"]:
                 continue
@@ -70,19 +80,35 @@ def defaults(scene_file, preset: str, seeds: list[int], *, threads: int = 1, out
         per_seed.append(row)
     result = {"scene": Path(scene_file).stem, "preset": preset, "seeds": list(seeds),
               "per_seed": per_seed, "schedules": dict(SCHEDULES)}  # fmt: skip
-    for name in SCHEDULES:
+    if baselines:
+        result["baselines"] = list(constant_caps(1))
+    for name in _compared(result):
         done = [r[name] for r in per_seed if "ratio" in r[name]]
         if not done:
             continue
+        ratios = [r["ratio"] for r in done]
         equal = equal_accuracy_savings(done, keys=("saved",))
         result[name] = {
-            "ratio": ratio_statistics([r["ratio"] for r in done]),
+            "ratio": ratio_statistics(ratios),
+            "worst_ratio": max(ratios),
             "equal_accuracy": equal["seeds"] if equal else 0,
             "compared": len(done),
             "saved_at_equal_accuracy": equal["saved"]["mean"] if equal else None,
+            "saved": sum(r["saved"] for r in done) / len(done),
             "certified": sum(bool(r["certified"]) for r in done),
         }
+        result[name]["equal_over_seeds"] = len(done) == len(per_seed) and equal_over_seeds(
+            result[name]["ratio"]["geometric_mean"], max(ratios)
+        )
+    if baselines:
+        fits = [b for b in result["baselines"] if result.get(b, {}).get("equal_over_seeds")]
+        result["best_constant"] = max(fits, key=lambda b: result[b]["saved"], default=None)
     return result
+
+
+def _compared(result: dict) -> list[str]:
+    """The schedules compared with full fidelity: `SCHEDULES`, then the baselines."""
+    return [*SCHEDULES, *result.get("baselines", [])]
 
 
 def format_defaults(result: dict, *, with_notes: bool = True) -> str:
@@ -108,9 +134,34 @@ def format_defaults(result: dict, *, with_notes: bool = True) -> str:
     ]
     lines += [summary(result, name) for name in SCHEDULES]
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
+    if "baselines" in result:
+        lines += ["", baselines_table(result)]
     if with_notes:
         lines += notes(result)
     return "\n".join(lines)
+
+
+def baselines_table(result: dict) -> str:
+    """Every schedule over the seeds, the constant caps beside the two PRDPs: error ratio
+    (geometric mean, worst seed), mean saving, and whether that is equal accuracy over the
+    seeds (`equal_over_seeds`), with the best constant cap named."""
+    rows = []
+    for name in _compared(result):
+        s = result.get(name)
+        if s is None:
+            rows.append([name, "no seed finished", "", "", ""])
+            continue
+        equal = "yes" if s["equal_over_seeds"] else "no"
+        rows.append([name, f"{s['ratio']['geometric_mean']:.3f}", f"{s['worst_ratio']:.3f}",
+                     f"{100 * s['saved']:.1f}%", equal])  # fmt: skip
+    best = result.get("best_constant")
+    verdict = (
+        f"best constant cap at equal accuracy: {best}, {fewer(result[best]['saved'])}"
+        if best
+        else "no constant cap below K_full reaches equal accuracy over the seeds"
+    )
+    header = ["schedule", "ratio (geo. mean)", "worst seed", "saved", "equal accuracy"]
+    return "\n".join([text_table(header, rows), verdict])
 
 
 def summary(result: dict, name: str, *, detail: bool = True) -> str:
@@ -183,11 +234,15 @@ def main(argv: list[str]) -> int:
     add_seeds(parser)
     add_threads(parser)
     add_out(parser)
+    parser.add_argument(
+        "--baselines", action="store_true",
+        help="also train the constant caps K_full/8, /4, /2 and name the best at equal accuracy",
+    )  # fmt: skip
     add_debug(parser)
     args = parser.parse_args(argv)
     with torch_threads(args.threads):
         result = defaults(args.scene_file, args.preset, args.seeds, threads=args.threads,
-                          out=args.out)  # fmt: skip
+                          out=args.out, baselines=args.baselines)  # fmt: skip
     write_result(args.out, "defaults.json", result)
     print(format_defaults(result))
     return 0
@@ -202,7 +257,15 @@ def _headline(ds: DataSet) -> list[tuple[str, str]]:
         "final error over full fidelity's, default construction (PRDP.for_problem) "
         "and tuned settings"
     )
-    return [(what, "; ".join(parts))]
+    rows = [(what, "; ".join(parts))]
+    if "baselines" in d:
+        best = d.get("best_constant")
+        rows.append((
+            f"{d['scene']} --preset {d['preset']}: the constant cap below K_full that saves the "
+            "most at equal accuracy over the seeds (K_full/8, /4, /2 tried)",
+            f"{best}, {fewer(d[best]['saved'])}" if best else "none reaches equal accuracy",
+        ))  # fmt: skip
+    return rows
 
 
 KIND = ReportKind(

@@ -10,20 +10,23 @@ schedule) and a schedule chosen by hand (`HAND`).
 
 from __future__ import annotations
 
-import math
 import time
 
 from prdp_petsc import PRDP, find_k_full
 
 from ..provenance import write_result
-from ..training.accuracy import ACCURACY_RATIO, WORST_SEED_RATIO, equal_over_seeds
+from ..training.accuracy import (
+    ACCURACY_RATIO,
+    WORST_SEED_RATIO,
+    constant_caps,
+    equal_over_seeds,
+    fraction_of,
+)
 from .kinds import DataSet, ReportKind, markdown_table, percent
 from .unseen_problems import HELD_OUT, PROBLEMS, RTOL_FULL, Problem, build
 
-__all__ = ["CONSTANT_FRACTIONS", "HAND", "KIND", "compare", "main", "table", "train"]
+__all__ = ["HAND", "KIND", "compare", "main", "table", "train"]
 
-#: the constant caps a baseline run tries, as fractions of K_full (rounded up)
-CONSTANT_FRACTIONS = (1 / 8, 1 / 4, 1 / 2)
 #: the hand schedule: `PRDP.paper` (the reference's test) started and stepped at this
 #: fraction of K_full (rounded up), capped at K_full
 HAND = 1 / 10
@@ -39,7 +42,7 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
     if schedule == "prdp":
         controller = PRDP.for_problem(k_full, check=problem.check(), epochs=problem.epochs)
     elif schedule == "hand":
-        step = _cap(HAND, k_full)
+        step = fraction_of(k_full, HAND)
         controller = PRDP.paper(k_init=step, k_step=step, k_max=max(k_full, step))
     constant = k_full if schedule == "full" else None
     if schedule.startswith("fixed:"):
@@ -81,7 +84,8 @@ def compare(names, seeds, *, quick: bool = False, baselines: bool = False) -> di
     """Full fidelity and the default PRDP on every problem and seed: the records and,
     per problem, the final-error ratios (PRDP / full) and the iterations saved; with
     `baselines`, the same for the hand schedule and each constant cap of
-    `CONSTANT_FRACTIONS` (``"baselines"``: schedule -> ratios and savings per seed)."""
+    `prdp_petsc.lab.training.accuracy.constant_caps` (``"baselines"``: schedule ->
+    ratios and savings per seed)."""
     out = {"quick": quick, "seeds": list(seeds), "problems": {}}
     for name in names:
         runs = []
@@ -93,7 +97,7 @@ def compare(names, seeds, *, quick: bool = False, baselines: bool = False) -> di
             run = {"seed": seed, "k_full": k_full, "full": full, "prdp": prdp,
                    **_against(full, prdp)}  # fmt: skip
             if baselines:
-                schedules = ["hand", *(f"fixed:{k}" for k in constant_caps(k_full))]
+                schedules = ["hand", *(f"fixed:{k}" for k in constant_caps(k_full).values())]
                 run["baselines"] = {
                     s: _against(full, train(build(name, seed, quick), s, k_full)) for s in schedules
                 }
@@ -103,15 +107,6 @@ def compare(names, seeds, *, quick: bool = False, baselines: bool = False) -> di
         if baselines:
             out["problems"][name]["baselines"] = _baselines(runs)
     return out
-
-
-def constant_caps(k_full: int) -> list[int]:
-    """The constant caps of a baseline: `CONSTANT_FRACTIONS` of K_full, rounded up."""
-    return sorted({_cap(f, k_full) for f in CONSTANT_FRACTIONS})
-
-
-def _cap(fraction: float, k_full: int) -> int:
-    return max(1, math.ceil(fraction * k_full))
 
 
 def _against(full: dict, run: dict) -> dict:
@@ -140,9 +135,9 @@ def _baselines(runs: list[dict]) -> dict:
     """Per baseline (``hand``, ``K_full/8``, ``K_full/4``, ``K_full/2``): the summary
     over the seeds, whether it is at equal accuracy, and the best constant cap there."""
     out = {"hand": _summary([r["baselines"]["hand"] for r in runs])}
-    for frac in CONSTANT_FRACTIONS:
-        rows = [r["baselines"][f"fixed:{_cap(frac, r['k_full'])}"] for r in runs]
-        out[f"K_full/{round(1 / frac)}"] = _summary(rows)
+    for label in constant_caps(runs[0]["k_full"]):
+        rows = [r["baselines"][f"fixed:{constant_caps(r['k_full'])[label]}"] for r in runs]
+        out[label] = _summary(rows)
     for summary in out.values():
         summary["equal_accuracy"] = _equal(summary)
     constants = [lab for lab in out if lab != "hand" and out[lab]["equal_accuracy"]]

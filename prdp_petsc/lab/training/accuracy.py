@@ -6,13 +6,28 @@ import math
 
 from prdp_petsc.prdp import ACCURACY_BAND
 
-__all__ = ["ACCURACY_RATIO", "WORST_SEED_RATIO", "accuracy_target", "equal_accuracy_k",
-           "equal_over_seeds", "time_to_accuracy"]  # fmt: skip
+__all__ = ["ACCURACY_RATIO", "CONSTANT_FRACTIONS", "WORST_SEED_RATIO", "accuracy_target",
+           "constant_caps", "equal_accuracy_k", "equal_over_seeds", "fraction_of",
+           "time_to_accuracy"]  # fmt: skip
 
 #: Largest ratio of final validation errors (run / full fidelity) that counts as equal accuracy.
 ACCURACY_RATIO = 1.0 + ACCURACY_BAND
 #: Largest ratio one seed may reach where the seeds' geometric mean counts as equal accuracy.
 WORST_SEED_RATIO = 1.10
+#: The constant caps a baseline tries, as fractions of K_full (rounded up): the best one at
+#: equal accuracy is what stopping below K_full saves without a schedule
+CONSTANT_FRACTIONS = (1 / 8, 1 / 4, 1 / 2)
+
+
+def fraction_of(k_full: int, fraction: float) -> int:
+    """`fraction` of K_full as a cap: rounded up, at least 1."""
+    return max(1, math.ceil(fraction * k_full))
+
+
+def constant_caps(k_full: int) -> dict[str, int]:
+    """The baselines' constant caps by label: ``{"K_full/8": ..., "K_full/4": ...,
+    "K_full/2": ...}`` (`CONSTANT_FRACTIONS` of `k_full`, `fraction_of`)."""
+    return {f"K_full/{round(1 / f)}": fraction_of(k_full, f) for f in CONSTANT_FRACTIONS}
 
 
 def equal_over_seeds(geometric_mean: float, worst: float) -> bool:
