@@ -1,17 +1,19 @@
 """What several scenes and reports share: random smooth fields and torch sparse matrices.
 
 `gaussian_bumps` draws the initial conditions of ``demos/heat.py`` and the sources of
-``demos/poisson_sip.py``; `torch_sparse` carries a SciPy matrix into torch for the
-scenes that multiply by one under autograd.
+``demos/poisson_sip.py``; `torch_sparse` (COO) and `torch_csr` carry a SciPy matrix into
+torch for the scenes and benchmarks that multiply by one.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
 import torch
 
-__all__ = ["gaussian_bumps", "torch_sparse"]
+__all__ = ["gaussian_bumps", "torch_csr", "torch_sparse"]
 
 
 def gaussian_bumps(
@@ -58,3 +60,18 @@ def torch_sparse(M: sp.spmatrix) -> torch.Tensor:
     return torch.sparse_coo_tensor(
         index, torch.from_numpy(M.data), M.shape, check_invariants=True
     ).coalesce()
+
+
+def torch_csr(M: sp.spmatrix) -> torch.Tensor:
+    """`M` as a torch sparse CSR tensor (float64, int64 indices), without torch's warning
+    that sparse CSR support is in beta."""
+    M = M.tocsr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(
+            torch.from_numpy(M.indptr.astype(np.int64)),
+            torch.from_numpy(M.indices.astype(np.int64)),
+            torch.from_numpy(M.data.astype(np.float64)),
+            size=M.shape,
+            check_invariants=False,
+        )

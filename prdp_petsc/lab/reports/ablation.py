@@ -217,9 +217,3 @@ KIND = ReportKind(
     "result (per seed: errors, times, the runs compared) is kept in `ablation.json`.",
     output=lambda ds: format_ablation(ds.main).rstrip("\n"),
 )
-
-
-if __name__ == "__main__":  # pragma: no cover
-    import sys
-
-    raise SystemExit(main(sys.argv[1:]))

@@ -43,12 +43,10 @@ import argparse
 import ctypes
 import gc
 import json
-import logging
 import os
 import subprocess
 import sys
 import tracemalloc
-import warnings
 
 import numpy as np
 
@@ -61,17 +59,16 @@ from ..cli.arguments import (
     positive,
     routes,
 )
+from ..components.emulators import torch_csr
 from ..provenance import load_average, machine_info, write_result
+from ..training.threads import torch_threads
 from . import bench_elasticity, bench_gpu, bench_jax, bench_mpi
 from . import benchmarking as bm
-from .benchmarking import timing_noise
 from .kinds import DataSet, ReportKind, markdown_table
 from .memory import peak_rss_mb, reset_peak, rss_mb
 from .problems import five_point, plate_reaction
 
 __all__ = ["KIND", "main"]
-
-logger = logging.getLogger(__name__)
 
 RAW_KEYS = ("raw_forward", "raw_transpose", "raw_adjoint_as_solve")
 MODES = ("implicit", "unrolled", "handwritten")
@@ -148,7 +145,7 @@ def bench_overhead(n: int, k: int, repeats: int, warmup: int, ksp_type: str, pc_
             side: float(np.median(r[f"bridge_{side}"] - r[f"bridge_{side}_ksp"]))
             for side in ("forward", "backward")
         },
-        "timing_noise": timing_noise(t["raw_forward"]),
+        "timing_noise": bm.summary(t["raw_forward"])["noise"],
         "median_s": {key: float(np.median(v)) for key, v in t.items()},
         "timings_s": t,
         "ksp": {"raw": [raw.getType(), raw.getPC().getType()], "bridge": bm.ksp_types(solver)},
@@ -336,20 +333,6 @@ def _mode_solve(mode: str, A, b, solver, pc_type: str):
     return solve(A, b, solver, mode=mode)
 
 
-def _torch_csr(M):
-    import torch
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        return torch.sparse_csr_tensor(
-            torch.from_numpy(M.indptr.astype(np.int64)),
-            torch.from_numpy(M.indices.astype(np.int64)),
-            torch.from_numpy(M.data.astype(np.float64)),
-            size=M.shape,
-            check_invariants=False,
-        )
-
-
 def handwritten_unrolled_cg(A, b, k: int, *, jacobi: bool = True):
     """K steps of (Jacobi-)preconditioned CG from x = 0 in torch, the iteration of
     ``mode="unrolled"``, through a matrix product whose backward multiplies by ``Aᵀ``
@@ -357,7 +340,7 @@ def handwritten_unrolled_cg(A, b, k: int, *, jacobi: bool = True):
     import torch
 
     A = A.tocsr()
-    A_t, At_t = _torch_csr(A), _torch_csr(A.T.tocsr())
+    A_t, At_t = torch_csr(A), torch_csr(A.T)
 
     class SpMV(torch.autograd.Function):
         @staticmethod
@@ -495,10 +478,8 @@ def main(argv: list[str]) -> int:
     repeats = args.repeats or (3 if quick else 21)
     unrolled_repeats = max(3, repeats // 4)
     memory_ks = (uk,) if quick else (max(1, uk // 3), uk)
-    default_threads = torch.get_num_threads()
-    torch.set_num_threads(args.threads)
-    try:
-        machine = {**machine_info(), "torch_default_threads": default_threads}
+    machine = {**machine_info(), "torch_default_threads": torch.get_num_threads()}
+    with torch_threads(args.threads):
         (over, small, unr), wall = bm.stopwatch(
             lambda: (
                 bench_overhead(n, k, repeats, 2, ksp_type, pc_type),
@@ -506,8 +487,6 @@ def main(argv: list[str]) -> int:
                 bench_unrolled(un, uk, unrolled_repeats, 1, ksp_type, pc_type, memory_ks),
             )
         )
-    finally:
-        torch.set_num_threads(default_threads)
     peak = unr["peak_rss_increase_mb"]
     batches = small["batches"]
     result = {
@@ -652,8 +631,3 @@ KIND = ReportKind(
         "single timing is in the JSON."
     ],
 )
-
-
-if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO)
-    sys.exit(main(sys.argv[1:]))

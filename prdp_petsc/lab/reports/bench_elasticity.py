@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 
 import numpy as np
 
 from ..cli.arguments import add_debug, add_k, add_out, add_size_preset
 from ..provenance import load_average, machine_info, write_result
+from ..training.threads import torch_threads
 from .benchmarking import stopwatch
 from .kinds import DataSet, ReportKind, markdown_table
 from .problems import clamped_cube
@@ -148,19 +148,14 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     """Run ``bench elasticity``; write ``<out>/bench_elasticity.json``; return 0."""
     args = _parser().parse_args(argv)
-    import torch
 
     quick = args.preset == "quick"
     sizes = [2, 4] if quick else [int(v) for v in args.sizes.split(",")]
     if len(sizes) < 2 or sorted(sizes) != sizes or min(sizes) < 1:
         raise SystemExit("--sizes needs two or more increasing cell counts, e.g. 8,16,32")
-    default_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        machine = machine_info()
+    machine = machine_info()
+    with torch_threads(1):
         result, wall = stopwatch(run, sizes, rtol=args.rtol, k=args.k)
-    finally:
-        torch.set_num_threads(default_threads)
     result["wall_s"] = wall
     result["machine"] = {**machine, "load_average_end": load_average()}
     result["settings"]["quick"] = quick
@@ -204,8 +199,3 @@ KIND = ReportKind(
     output=lambda ds: format_report(ds.main).rstrip("\n"),
     printed=False,
 )
-
-
-if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO)
-    sys.exit(main(sys.argv[1:]))

@@ -25,7 +25,6 @@ __all__ = [
     "raw_ksp",
     "stopwatch",
     "summary",
-    "timing_noise",
 ]
 
 STATISTIC = (
@@ -70,12 +69,6 @@ def summary(values) -> dict:
     over the median."""
     q1, q2, q3 = np.percentile(values, [25, 50, 75])
     return {"median": float(q2), "q1": float(q1), "q3": float(q3), "noise": float((q3 - q1) / q2)}
-
-
-def timing_noise(values) -> float:
-    """Interquartile range over median of a timing series: above ~0.05 the machine was
-    busy during the run, and the paired ratios are the figures to trust."""
-    return summary(values)["noise"]
 
 
 def bench_solver(ksp_type: str, pc_type: str, k: int):

@@ -13,7 +13,6 @@ names the one that saves the most at equal accuracy over the seeds.
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 
 from prdp_petsc import PRDP
@@ -23,8 +22,6 @@ from ..training.accuracy import ACCURACY_RATIO, constant_caps, equal_over_seeds
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
-
-logger = logging.getLogger(__name__)
 
 #: the reduced schedules compared, by the name the page gives them
 SCHEDULES = {"tuned": "prdp", "default": "auto"}

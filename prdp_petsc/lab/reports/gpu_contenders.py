@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, partial
@@ -25,6 +24,7 @@ import torch
 import prdp_petsc as pp
 from prdp_petsc.core.operator import DLPackCSR
 
+from ..components.emulators import torch_csr
 from .problems import five_point
 
 __all__ = [
@@ -120,15 +120,7 @@ class Case:
     @cached_property
     def on_device(self) -> tuple:
         """(A as a torch sparse CSR tensor, 1/diag(A), b, x_ref) on the device."""
-        with warnings.catch_warnings():  # "sparse CSR support is in beta"
-            warnings.simplefilter("ignore", UserWarning)
-            A = torch.sparse_csr_tensor(
-                torch.as_tensor(self.A.indptr, dtype=torch.int64),
-                torch.as_tensor(self.A.indices, dtype=torch.int64),
-                torch.as_tensor(self.A.data),
-                size=self.A.shape,
-                check_invariants=False,
-            )
+        A = torch_csr(self.A)
         inv_diag = _tensor(1.0 / self.A.diagonal(), self.device)
         return A.to(self.device), inv_diag, *self.tensors(self.device)
 

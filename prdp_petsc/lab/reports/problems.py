@@ -38,6 +38,8 @@ __all__ = [
     "five_point",
     "mean_edge_length",
     "plate_reaction",
+    "poisson_problem",
+    "unit_load",
     "warm_spot",
 ]
 
@@ -97,23 +99,40 @@ def _finish(name, A, theta, b, mesh, symmetric, description, info: dict) -> Prob
     return Problem(name, A, theta, b, d, symmetric, description, info)
 
 
-def _unit_load(basis) -> np.ndarray:
+def unit_load(basis) -> np.ndarray:
+    """The load vector of the source f = 1 on `basis`."""
     from skfem import LinearForm
 
     return LinearForm(lambda v, w: 1.0 * v).assemble(basis)
 
 
+def poisson_problem(mesh, *, dirichlet: bool = True, form=None):
+    """(A(θ), load vector of f = 1, P1 basis) for −∇·(κ∇u) = 1 on `mesh` (triangles), κ
+    per triangle (`form`: another P0-parametrised bilinear form, `prdp_petsc.from_form`);
+    with `dirichlet`, A and b on the unknowns of u = 0 on the whole boundary."""
+    from skfem import Basis, ElementTriP0, ElementTriP1
+
+    from prdp_petsc import from_form
+
+    basis = Basis(mesh, ElementTriP1())
+    if form is None:
+        A = diffusion_operator(basis)
+    else:
+        A = from_form(form, basis, basis.with_element(ElementTriP0()), positive=True)
+    b = unit_load(basis)
+    if not dirichlet:
+        return A, b, basis
+    d = Dirichlet(A, basis.get_dofs())
+    return d.A_II, b[d.interior], basis
+
+
 def poisson(refine: int = 2) -> Problem:
     """2D Poisson ``−∇·(κ∇u) = 1`` on ``plate_holes``, zero Dirichlet values everywhere."""
-    from skfem import Basis, ElementTriP1
-
     mesh = load_mesh("plate_holes", refine)
-    basis = Basis(mesh, ElementTriP1())
-    bc = Dirichlet(diffusion_operator(basis), basis.get_dofs())
+    A, b, _ = poisson_problem(mesh)
     description = f"−∇·(κ∇u) = 1 on plate_holes (refine {refine}), P1, u = 0 on all boundaries"
-    theta, b = np.ones(mesh.t.shape[1]), _unit_load(basis)[bc.interior]
     info = {"mesh": "plate_holes", "refine": refine}
-    return _finish("poisson", bc.A_II, theta, b, mesh, True, description, info)
+    return _finish("poisson", A, np.ones(mesh.t.shape[1]), b, mesh, True, description, info)
 
 
 def heat3d(refine: int = 1, dt_ratio: float = 10.0) -> Problem:
@@ -160,7 +179,7 @@ def advection(refine: int = 1, epsilon: float = 0.01) -> Problem:
 
     bc = Dirichlet(diffusion_operator(basis) + convection.assemble(basis), basis.get_dofs())
     description = f"−∇·(ε∇u) + β·∇u = 1 on annulus (refine {refine}), ε = {epsilon:g}, spiral wind"
-    theta, b = np.full(mesh.t.shape[1], float(epsilon)), _unit_load(basis)[bc.interior]
+    theta, b = np.full(mesh.t.shape[1], float(epsilon)), unit_load(basis)[bc.interior]
     peclet = mean_edge_length(mesh) / (2 * epsilon)
     info = {"mesh": "annulus", "refine": refine, "epsilon": epsilon, "mesh_peclet": peclet}
     return _finish("advection", bc.A_II, theta, b, mesh, False, description, info)

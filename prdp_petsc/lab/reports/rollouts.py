@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 from pathlib import Path
 
@@ -26,8 +25,6 @@ from ..training.seeds import format_ratio, ratio_statistics
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "main", "rollout_report", "format_rollout_report"]
-
-logger = logging.getLogger(__name__)
 
 
 def _load(folder: Path) -> dict:

@@ -36,6 +36,7 @@ import scipy.sparse as sp
 
 from ..provenance import write_result
 from .kinds import DataSet, ReportKind, markdown_table
+from .problems import poisson_problem
 
 __all__ = ["CASES", "KIND", "TAYLOR_RIGHT", "evaluate", "main", "run_cases", "summary_counts",
            "summary_line", "taylor_rate", "to_markdown"]  # fmt: skip
@@ -76,24 +77,6 @@ def taylor_rate(J, theta: np.ndarray, dJ: np.ndarray, h: np.ndarray, *, points: 
     if keep.size < 3:
         return float("nan"), info
     return float(np.polyfit(np.log(eps[keep]), np.log(rem[keep]), 1)[0]), info
-
-
-def poisson_problem(mesh, *, dirichlet: bool = True, form=None):
-    """(A(θ) on the unknowns, load vector of f = 1, basis) for −∇·(κ∇u) = 1."""
-    from skfem import Basis, ElementTriP0, ElementTriP1, LinearForm
-
-    from prdp_petsc import Dirichlet, diffusion_operator, from_form
-
-    basis = Basis(mesh, ElementTriP1())
-    if form is None:
-        A = diffusion_operator(basis)
-    else:
-        A = from_form(form, basis, basis.with_element(ElementTriP0()), positive=True)
-    b = LinearForm(lambda v, w: 1.0 * v).assemble(basis)
-    if not dirichlet:
-        return A, b, basis
-    d = Dirichlet(A, basis.get_dofs())
-    return d.A_II, b[d.interior], basis
 
 
 def centroids(mesh) -> np.ndarray:
@@ -471,7 +454,3 @@ KIND = ReportKind(
     printed=False,
     after=lambda ds: [to_markdown(ds.main["rows"]).rstrip("\n")],
 )
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())

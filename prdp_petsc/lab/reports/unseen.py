@@ -300,7 +300,3 @@ KIND = ReportKind(
     printed=False,
     after=_every_run,
 )
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

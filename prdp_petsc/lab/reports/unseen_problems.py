@@ -53,6 +53,7 @@ from prdp_petsc.autograd.check import GradientCheck
 
 from ..components.emulators import torch_sparse
 from ..components.networks import mlp
+from .problems import spiral_wind, unit_load
 
 __all__ = ["HELD_OUT", "PROBLEMS", "RTOL_FULL", "Problem", "build"]
 
@@ -195,7 +196,7 @@ class LogCoefficient(NetworkInverse):
         self.phi = torch.from_numpy(_modes(mesh.p[:, mesh.t].mean(axis=1), self.modes, rng))
         coef = rng.normal(0.0, 0.5, size=(n, self.modes))
         theta = np.exp(coef @ self.phi.numpy().T)
-        b = fem_rhs(basis)[self.dir.interior]
+        b = unit_load(basis)[self.dir.interior]
         u = np.stack([spla.spsolve(sp.csc_matrix(self.dir.A_II.matrix(t)), b) for t in theta])
         u *= 1.0 + self.noise * rng.standard_normal(u.shape)
         self.b = torch.from_numpy(b)
@@ -257,13 +258,6 @@ class SliverMLP(LogCoefficient):
         return torch.nn.functional.huber_loss(pred / scale, obs / scale, delta=0.05)
 
 
-def fem_rhs(basis) -> np.ndarray:
-    """The load vector of a unit source on `basis`."""
-    from skfem import LinearForm
-
-    return LinearForm(lambda v, w: 1.0 * v).assemble(basis)
-
-
 class AdvectionSource(NetworkInverse):
     name = "advection_source"
 
@@ -276,9 +270,7 @@ class AdvectionSource(NetworkInverse):
 
         @BilinearForm
         def operator(u, v, w):
-            x, y = w.x
-            r2 = x**2 + y**2
-            wind = (-y + 0.3 * x / r2, x + 0.3 * y / r2)
+            wind = spiral_wind(*w.x)
             return 0.02 * dot(grad(u), grad(v)) + (wind[0] * grad(u)[0] + wind[1] * grad(u)[1]) * v
 
         interior = basis.complement_dofs(basis.get_dofs())
@@ -398,7 +390,7 @@ class AnnulusInverse(FieldFit):
         mesh = basis.mesh
         self.dir = Dirichlet(diffusion_operator(basis, "P1"), basis.get_dofs().all())
         truth = _modes(mesh.p, 5, rng) @ rng.normal(0.0, 0.4, 5)
-        b = fem_rhs(basis)[self.dir.interior]
+        b = unit_load(basis)[self.dir.interior]
         u = spla.spsolve(sp.csc_matrix(self.dir.A_II.matrix(np.exp(truth))), b)
         self.data = torch.from_numpy(u * (1.0 + 0.01 * rng.standard_normal(u.shape)))
         self.b = torch.from_numpy(b)
@@ -432,7 +424,7 @@ class HeatSink(DesignProblem):
         basis = Basis(mesh, ElementQuad1())
         sink = basis.get_dofs(lambda x: (x[0] < 1e-9) & (abs(x[1] - 0.5) < 0.1 + 0.05 * seed))
         self.dir = Dirichlet(diffusion_operator(basis, "P0"), sink.all())
-        self.f = torch.from_numpy(fem_rhs(basis))
+        self.f = torch.from_numpy(unit_load(basis))
         self.b = self.f[self.dir.interior]
         centres = mesh.p[:, mesh.t].mean(axis=1)
         dist = np.linalg.norm(centres[:, :, None] - centres[:, None, :], axis=0)

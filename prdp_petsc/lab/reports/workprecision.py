@@ -413,7 +413,3 @@ KIND = ReportKind(
     output=lambda ds: to_markdown(ds.main).rstrip("\n"),
     printed=False,
 )
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
