@@ -34,10 +34,7 @@ def plot_fields(scene: ModuleType, theta, out_png) -> None:
 
     The mesh is the L-shape at the refinement whose element count matches ``len(theta)``.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
     from matplotlib.tri import Triangulation
 
     theta = np.asarray(theta, dtype=np.float64)
@@ -53,7 +50,8 @@ def plot_fields(scene: ModuleType, theta, out_png) -> None:
     area = np.abs(e1[0] * e2[1] - e1[1] * e2[0])  # the validation metric's weights
     error = np.sqrt(np.sum(area * (kappa - kappa_true) ** 2) / np.sum(area * kappa_true**2))
     vmin, vmax = min(kappa_true.min(), kappa.min()), max(kappa_true.max(), kappa.max())
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), constrained_layout=True)
+    fig = Figure(figsize=(10, 4.4), layout="constrained")
+    axes = fig.subplots(1, 2)
     for ax, values, title in (
         (axes[0], kappa_true, "true κ"),
         (axes[1], kappa, f"recovered κ (relative L2 error {error:.2f})"),
@@ -63,7 +61,6 @@ def plot_fields(scene: ModuleType, theta, out_png) -> None:
         ax.set_title(title)
     fig.colorbar(image, ax=axes, shrink=0.9, label="κ")
     fig.savefig(out_png, dpi=120)
-    plt.close(fig)
 
 
 def commands(scene: ModuleType) -> dict[str, Callable]:

@@ -184,20 +184,12 @@ def plot_designs(
     scene: ModuleType, data: dict, out_png, labels=("converged", "PRDP (auto)")
 ) -> None:
     """The density on the mid-plane y = ½ of every load case, for `labels` side by side."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     n = data["config"]["n"]
     cases = data["cases"]
-    fig, axes = plt.subplots(
-        len(cases),
-        len(labels),
-        figsize=(4.2 * len(labels), 2.4 * len(cases)),
-        squeeze=False,
-        constrained_layout=True,
-    )
+    fig = Figure(figsize=(4.2 * len(labels), 2.4 * len(cases)), layout="constrained")
+    axes = fig.subplots(len(cases), len(labels), squeeze=False)
     problem = scene.Cantilever((2 * n, n, n))
     ix, iy, iz = np.floor(problem.centroids * n).astype(int)
     mid = iy == n // 2
@@ -213,7 +205,6 @@ def plot_designs(
             ax.set_xlabel("x")
             ax.set_ylabel("z")
     fig.savefig(out_png, dpi=110)
-    plt.close(fig)
 
 
 def commands(scene: ModuleType) -> dict[str, Callable]:

@@ -282,15 +282,13 @@ def to_markdown(result: dict) -> str:
 
 def plot(result: dict, path: Path) -> None:
     """Forward error, gradient error and 1 − cosine against total time, one curve per pair."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     colors = {"none": "C7", "jacobi": "C0", "sor": "C2", "icc": "C1", "ilu": "C1", "gamg": "C3"}
     colors["gamg-plain"] = "C4"
     styles = {"cg": ("-", "o"), "gmres": ("--", "s"), "bcgs": ("-.", "^"), "richardson": (":", "x")}
-    fig, axes = plt.subplots(1, 3, figsize=(19, 5.6), sharex=True)
+    fig = Figure(figsize=(19, 5.6))
+    axes = fig.subplots(1, 3, sharex=True)
     keys = (
         ("forward_error", "forward error ‖x_K − x*‖/‖x*‖"),
         ("gradient_error", "gradient error ‖g_K − g*‖/‖g*‖"),
@@ -325,7 +323,6 @@ def plot(result: dict, path: Path) -> None:
     )
     fig.subplots_adjust(left=0.04, right=0.88, top=0.88, bottom=0.12, wspace=0.2)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:
