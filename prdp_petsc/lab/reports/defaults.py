@@ -274,9 +274,11 @@ KIND = ReportKind(
     headline=_headline,
     intro="What `prdp-petsc defaults` printed: per seed, full fidelity (constant K_full), the "
     "scene's tuned PRDP (its preset's settings) and the default construction "
-    "(`PRDP.for_problem(K_full)` with a gradient check on a fixed training batch; the "
-    "scene's PRDP settings unused). Ratios are final validation errors over full "
-    "fidelity's; savings count forward and adjoint inner iterations, the checks included.",
+    "(`PRDP.for_problem(K_full)` with a gradient check of the scene's `check_loss`, by "
+    "default its training loss on one fixed batch; the scene's PRDP settings unused) and, "
+    "with `--baselines`, the constant caps K_full/8, /4, /2. Ratios are final validation "
+    "errors over full fidelity's; savings count forward and adjoint inner iterations, the "
+    "checks included.",
     output=lambda ds: format_defaults(ds.main, with_notes=False),
     after=lambda ds: notes(ds.main),
 )
