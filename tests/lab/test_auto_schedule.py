@@ -125,3 +125,19 @@ def test_defaults_baselines_name_the_best_constant_cap_at_equal_accuracy(tmp_pat
     fits = [b for b in caps if result[b]["equal_over_seeds"]]
     assert result["best_constant"] == max(fits, key=lambda b: result[b]["saved"], default=None)
     assert "best constant cap at equal accuracy" in format_defaults(result) or not fits
+
+
+def test_defaults_resume_reads_finished_runs_and_trains_the_missing_ones(tmp_path):
+    import shutil
+
+    from prdp_petsc.lab.reports.defaults import defaults, notes
+
+    first = defaults(HEAT1D, "quick", [0], out=tmp_path)
+    assert "reused" not in first
+    shutil.rmtree(tmp_path / "seed_0" / "default")
+    again = defaults(HEAT1D, "quick", [0], out=tmp_path, resume=True)
+    assert again["reused"] == ["seed 0 full", "seed 0 tuned"]
+    before, after = first["per_seed"][0], again["per_seed"][0]
+    assert after["full"] == before["full"] and after["tuned"] == before["tuned"]  # read back
+    assert after["default"]["iterations"] == before["default"]["iterations"]  # trained again
+    assert any("--resume" in line for line in notes(again))

@@ -29,24 +29,28 @@ SCHEDULES = {"tuned": "prdp", "default": "auto"}
 
 def defaults(
     scene_file, preset: str, seeds: list[int], *, threads: int = 1, out=None,
-    baselines: bool = False,
+    baselines: bool = False, resume: bool = False,
 ) -> dict:  # fmt: skip
     """Full fidelity, the tuned PRDP and the default construction on every seed; with
     `baselines`, each constant cap of `constant_caps` too (``result["baselines"]``:
     their labels; ``result["best_constant"]``: the one at equal accuracy over the seeds,
-    `equal_over_seeds`, that saves the most, or None)."""
+    `equal_over_seeds`, that saves the most, or None).  With `resume`, a run that
+    finished in `out` with the same settings is read, not trained again
+    (`prdp_petsc.lab.training.compare.finished_run`; ``result["reused"]`` names them)."""
     from ..training.building import build_scene, release
+    from ..training.compare import finished_run
     from ..training.harness import run
     from ..training.probe import probe
     from ..training.scene import load_scene
     from ..training.seeds import equal_accuracy_savings, ratio_statistics
 
     module = load_scene(scene_file)
-    per_seed = []
+    per_seed, reused = [], []
     for seed in seeds:
         scene = build_scene(module, preset, seed)
         measured = probe(scene)  # K_full, and the capped solves' errors: the default's start
         k_full, start = int(measured), PRDP.for_problem(measured).k_init
+        epochs = scene.epochs
         release(scene)
         row = {"seed": seed, "k_full": k_full}
         runs = {"full": f"fixed:{k_full}", **SCHEDULES}
@@ -55,8 +59,15 @@ def defaults(
         for name, schedule in runs.items():
             folder = None if out is None else Path(out) / f"seed_{seed}" / name.replace("/", "_")
             prdp = {"k_full": k_full, "k_init": start} if schedule == "auto" else None
-            log = run(scene_file, schedule, preset=preset, seed=seed, threads=threads,
-                      progress=False, module=module, out=folder, prdp=prdp)  # fmt: skip
+            settings = {"schedule": schedule, "preset": preset, "seed": seed, "torch_seed": None}
+            log = None
+            if resume and folder is not None:
+                log = finished_run(folder, settings, prdp or {}, epochs)
+            if log is not None:
+                reused.append(f"seed {seed} {name}")
+            else:
+                log = run(scene_file, schedule, preset=preset, seed=seed, threads=threads,
+                          progress=False, module=module, out=folder, prdp=prdp)  # fmt: skip
             t = log["totals"]
             row[name] = {
                 "final_val_error": t.get("final_val_error"),
@@ -79,6 +90,8 @@ def defaults(
               "per_seed": per_seed, "schedules": dict(SCHEDULES)}  # fmt: skip
     if baselines:
         result["baselines"] = list(constant_caps(1))
+    if reused:
+        result["reused"] = reused
     for name in _compared(result):
         done = [r[name] for r in per_seed if "ratio" in r[name]]
         if not done:
@@ -215,6 +228,11 @@ def notes(result: dict) -> list[str]:
             "at K_full) cost more than its cheap early epochs saved: with a K_full of a few "
             "iterations there is little to save and the checks are not cheaper."
         )
+    if result.get("reused"):
+        notes.append(
+            f"Read from an earlier invocation's finished runs (`--resume`), each with its own "
+            f"provenance in its folder's results.json: {', '.join(result['reused'])}."
+        )
     tuned = [r for r in rows if "ratio" in r["tuned"]]
     if tuned and all(r["default"]["ratio"] <= r["tuned"]["ratio"] for r in tuned):
         notes.append("Its error ratio is at most the tuned settings' on every seed.")
@@ -235,11 +253,15 @@ def main(argv: list[str]) -> int:
         "--baselines", action="store_true",
         help="also train the constant caps K_full/8, /4, /2 and name the best at equal accuracy",
     )  # fmt: skip
+    parser.add_argument(
+        "--resume", action="store_true",
+        help="read the runs that finished in --out with the same settings, train the others",
+    )  # fmt: skip
     add_debug(parser)
     args = parser.parse_args(argv)
     with torch_threads(args.threads):
         result = defaults(args.scene_file, args.preset, args.seeds, threads=args.threads,
-                          out=args.out, baselines=args.baselines)  # fmt: skip
+                          out=args.out, baselines=args.baselines, resume=args.resume)  # fmt: skip
     write_result(args.out, "defaults.json", result)
     print(format_defaults(result))
     return 0

@@ -39,6 +39,7 @@ __all__ = [
     "SCENE_SOLVER",
     "TWIN_SEED_OFFSET",
     "compare",
+    "finished_run",
     "pilot_routes",
     "scene_routes",
 ]
@@ -233,7 +234,7 @@ def compare(
                         if schedule == "auto"
                         else {}  # rtol counts levels; fixed has no controller
                     )
-                    done = _finished_run(folder, settings, prdp, target) if resume else None
+                    done = finished_run(folder, settings, prdp, target) if resume else None
                     if done is not None:
                         logger.info("%s: finished in %s, not trained again", name, folder)
                         logs[name] = done
@@ -360,7 +361,7 @@ def _folder_name(name: str) -> str:
     return text
 
 
-def _finished_run(folder: Path, settings: dict, prdp: dict, epochs: int) -> dict | None:
+def finished_run(folder: Path, settings: dict, prdp: dict, epochs: int) -> dict | None:
     """The results of a run in `folder` that finished `epochs` epochs with `settings`
     (`run`'s; ``torch_seed`` None is ``seed``) and, for PRDP, `prdp`, else None."""
     if settings["torch_seed"] is None:
