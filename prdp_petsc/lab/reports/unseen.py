@@ -238,8 +238,13 @@ def main(argv=None) -> int:
 # -- the page of a recorded ``unseen`` ------------------------------------------------------------
 def _intro(ds: DataSet) -> str:
     baselines = all("baselines" in p for p in ds.main["problems"].values())
+    names = list(ds.main["problems"])
+    held = ""
+    if all(name in HELD_OUT for name in names):
+        held = " and held out of the choice of the controller's rules (`HELD_OUT`)"
     return (
-        "Six problems written for this page, none of them a shipped scene, each in a "
+        f"{len(names)} problems written for this page{held}, none of them a shipped scene, "
+        "each in a "
         "plain torch loop with `PRDP.for_problem(find_k_full(...))` and a check (the "
         "validation gradient through the solve at K against the next level 2K, against "
         "K_full from K_full/2 on and at the end); see "
