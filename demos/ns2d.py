@@ -491,9 +491,9 @@ def build(config: dict, seed: int) -> lab.Scene:
             samples=idx.tolist(),
         )
 
-    # the gradient check's batch: every third training window (an epoch may be one batch,
-    # and a check differentiates its batch twice)
-    check_windows = torch.arange(0, n_train, 3)
+    # the gradient check's batch: every fifth training window (an epoch may be one batch,
+    # and a check differentiates its batch twice: at K and at 2K, 3/5 of an epoch at K)
+    check_windows = torch.arange(0, n_train, 5)
 
     def rollout_states(steps: int, step) -> torch.Tensor:
         with torch.no_grad():
