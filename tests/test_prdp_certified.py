@@ -86,15 +86,16 @@ def test_a_non_finite_metric_raises_and_leaves_k(bad):
 
 
 def test_refines_until_the_check_certifies_then_stays():
-    # gap at k: 0.7^k / sqrt(2) -> within 5 % from k = 8; K_full 64: 8, 16, 32, 64
-    ctrl = pp.PRDP.for_problem(64, check=gap_check())
+    # gap at k against 2k: (0.65^k - 0.65^2k) / sqrt(2) -> 2.2 % at k = 8, inside half
+    # the band; K_full 64: 8, 16, 32, 64
+    ctrl = pp.PRDP.for_problem(64, check=gap_check(rho=0.65))
     for _ in range(40):
         ctrl.update(1.0)  # a flat metric: every window is a plateau
     assert ctrl.k == 8 and not ctrl.refining
     s = ctrl.savings()
-    assert s["certified"] is True and s["gap"] < 0.05 and s["ic"] == pytest.approx(1 - 8 / 64)
-    # K = 8 certified with a gap of 4 %: a recheck (8 + 16) and the end's certificate
-    # (8 + 64) would pass 10 % of these 40 epochs at K = 8, so none is made
+    assert s["certified"] is True and s["gap"] < 0.025 and s["ic"] == pytest.approx(1 - 8 / 64)
+    # a recheck (8 + 16) and the end's certificate (8 + 64) would pass 10 % of these 40
+    # epochs at K = 8, so none is made
     assert s["checks"] == 1
     # every check (one evaluation at K, one at the cap it is compared with) is counted,
     # as an epoch at its cap
@@ -104,6 +105,24 @@ def test_refines_until_the_check_certifies_then_stays():
     half = ctrl.savings(check_weight=0.5)  # a check half as large as an epoch
     assert half["total"] == pytest.approx(1 - (40 * 8 + (spent - 320) / 2) / (40 * 64))
     assert ctrl.savings(check_weight=0)["total"] == pytest.approx(1 - 8 / 64)
+
+
+@pytest.mark.parametrize("epochs", [None, 400])
+def test_a_gap_near_the_band_that_no_recheck_can_follow_refines(epochs):
+    # gap 3.8 % at K = 8 against 16: above half the band.  A 40-epoch run (not told its
+    # length) can pay for no recheck, so K = 8 is not certified on it and K doubles
+    # (0.2 % at 16); told 400 epochs, the controller certifies 8 and checks it again
+    ctrl = pp.PRDP.for_problem(64, check=gap_check(rho=0.7), epochs=epochs)
+    for _ in range(40 if epochs is None else epochs):
+        ctrl.update(1.0)
+    first = ctrl.checks[0]
+    assert (first.k, first.against) == (8, 16) and 0.025 < first.gap <= 0.05
+    assert first.certified  # within the band: what refines is the budget, not the gap
+    assert ctrl.certify().certified
+    if epochs is None:
+        assert ctrl.k == 16 and [c.k for c in ctrl.checks][:2] == [8, 16]
+    else:
+        assert ctrl.k == 8 and len(ctrl.checks) > 2  # rechecked while the run goes on
 
 
 def test_too_small_k_is_refined_even_while_the_metric_keeps_falling():
