@@ -166,6 +166,7 @@ def test_every_recorded_data_set_names_its_command_machine_and_versions():
         "bench_mpi_replicated_cube101": "bench-mpi",
         "elasticity_gamg": "bench-elasticity",
         "unseen": "unseen",
+        "unseen_held_out": "unseen",
         **{
             name: "defaults"
             for name in sorted(ds.name for ds in sets)
