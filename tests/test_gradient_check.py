@@ -65,6 +65,25 @@ def test_gradient_check_is_the_gradient_through_the_capped_solve(problem):
     assert g.shape == (A.n_params + 3,) and np.all(g[-3:] == 0)
 
 
+def test_a_random_loss_draws_the_same_numbers_at_every_cap_and_leaves_the_stream(problem):
+    # noisy inputs (or dropout): the two evaluations of a check must differ only by the
+    # cap, and the check must not move the random stream training draws from
+    A, b, solver = problem
+    theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)
+
+    def loss():
+        noisy = b * (1 + 0.1 * torch.randn(b.shape, dtype=b.dtype))
+        return pp.solve(A, noisy, solver, theta=torch.exp(theta)).square().sum()
+
+    check = pp.gradient_check(loss, [theta], solver)
+    torch.manual_seed(0)
+    state = torch.get_rng_state()
+    first, coarse = check(40), check(2)
+    np.testing.assert_array_equal(check(40), first)  # the same draws again
+    assert torch.equal(torch.get_rng_state(), state)  # and the stream untouched
+    assert np.linalg.norm(coarse - first) > 1e-3 * np.linalg.norm(first)  # the cap still matters
+
+
 def test_gradient_check_refuses_what_cannot_be_a_check(problem):
     A, b, solver = problem
     theta = torch.ones(A.n_params, dtype=torch.float64, requires_grad=True)

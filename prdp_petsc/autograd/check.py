@@ -44,7 +44,10 @@ def gradient_check(
         k for the call and restored after it (the adjoint follows ``max_it`` unless
         set apart).  It runs with gradients enabled (also when called under
         ``torch.no_grad()``), never accumulates into ``.grad`` and never steps an
-        optimiser; parameters `loss` does not reach contribute zeros.
+        optimiser; parameters `loss` does not reach contribute zeros.  `loss` runs
+        under ``torch.random.fork_rng``: a loss that draws random numbers draws the
+        same ones at every cap of a check, and training's random stream is left as
+        it was.
 
     Notes
     -----
@@ -115,7 +118,9 @@ class GradientCheck:
         try:
             for s in group:
                 s.max_it = k
-            with torch.enable_grad():
+            # every call draws the same random numbers (dropout, noisy inputs) and leaves
+            # the generators as training left them: calls differ only by the cap
+            with torch.enable_grad(), torch.random.fork_rng():
                 value = loss()
                 if not (isinstance(value, torch.Tensor) and value.numel() == 1):
                     raise InputError("loss() must return a scalar tensor")
