@@ -679,8 +679,9 @@ class PRDP:
         return self._level_start + ran * max(RECHECK_GROWTH, self.tol / gap)
 
     def _affordable(self, reference: int) -> bool:
-        """Whether a check of the certified K against `reference` keeps the checks
-        within `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
+        """Whether one more check of K against `reference` (a recheck of a certified K,
+        or the one a near-band certificate would need) keeps the checks within
+        `CHECK_BUDGET` of the run's cost, the certificate at the end reserved.
 
         Costs are what the check's ``spent()`` measures (every check so far, and every
         inner iteration of the solvers it runs through, training included), a check
