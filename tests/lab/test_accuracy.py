@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from prdp_petsc.lab.training.accuracy import equal_accuracy_k, equal_over_seeds
+from prdp_petsc.lab.training.accuracy import equal_accuracy_k, equal_over_seeds, worst_ratio
 
 
 def _model_errors(ks, e_full=1e-3, c=0.5, rho=0.85):
@@ -73,3 +73,10 @@ def test_equal_accuracy_k_clamps_and_validates():
 def test_equal_over_seeds_bounds_the_mean_and_the_worst_seed(ratios, equal):
     mean = math.prod(ratios) ** (1 / len(ratios))
     assert equal_over_seeds(mean, max(ratios)) is equal
+
+
+@pytest.mark.parametrize("ratios", [(1.0, math.nan), (math.nan, 1.0), (1.0, 1.2, math.nan)])
+def test_a_diverged_seed_is_the_worst_wherever_it_stands(ratios):
+    worst = worst_ratio(ratios)
+    assert math.isnan(worst) and not equal_over_seeds(1.0, worst)
+    assert worst_ratio((1.0, 1.2, 1.1)) == 1.2

@@ -18,7 +18,7 @@ from pathlib import Path
 from prdp_petsc import PRDP
 
 from ..provenance import write_result
-from ..training.accuracy import ACCURACY_RATIO, constant_caps, equal_over_seeds
+from ..training.accuracy import ACCURACY_RATIO, constant_caps, equal_over_seeds, worst_ratio
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
@@ -100,7 +100,7 @@ def defaults(
         equal = equal_accuracy_savings(done, keys=("saved",))
         result[name] = {
             "ratio": ratio_statistics(ratios),
-            "worst_ratio": max(ratios),
+            "worst_ratio": worst_ratio(ratios),
             "equal_accuracy": equal["seeds"] if equal else 0,
             "compared": len(done),
             "saved_at_equal_accuracy": equal["saved"]["mean"] if equal else None,
@@ -108,7 +108,7 @@ def defaults(
             "certified": sum(bool(r["certified"]) for r in done),
         }
         result[name]["equal_over_seeds"] = len(done) == len(per_seed) and equal_over_seeds(
-            result[name]["ratio"]["geometric_mean"], max(ratios)
+            result[name]["ratio"]["geometric_mean"], result[name]["worst_ratio"]
         )
     if baselines:
         fits = [b for b in result["baselines"] if result.get(b, {}).get("equal_over_seeds")]

@@ -8,7 +8,7 @@ from prdp_petsc.prdp import ACCURACY_BAND
 
 __all__ = ["ACCURACY_RATIO", "CONSTANT_FRACTIONS", "WORST_SEED_RATIO", "accuracy_target",
            "constant_caps", "equal_accuracy_k", "equal_over_seeds", "fraction_of",
-           "time_to_accuracy"]  # fmt: skip
+           "time_to_accuracy", "worst_ratio"]  # fmt: skip
 
 #: Largest ratio of final validation errors (run / full fidelity) that counts as equal accuracy.
 ACCURACY_RATIO = 1.0 + ACCURACY_BAND
@@ -28,6 +28,13 @@ def constant_caps(k_full: int) -> dict[str, int]:
     """The baselines' constant caps by label: ``{"K_full/8": ..., "K_full/4": ...,
     "K_full/2": ...}`` (`CONSTANT_FRACTIONS` of `k_full`, `fraction_of`)."""
     return {f"K_full/{round(1 / f)}": fraction_of(k_full, f) for f in CONSTANT_FRACTIONS}
+
+
+def worst_ratio(ratios) -> float:
+    """The largest of the seeds' error ratios; NaN where any is NaN (a diverged seed is
+    the worst, whatever its place: ``max`` alone depends on the order)."""
+    ratios = list(ratios)
+    return math.nan if any(math.isnan(r) for r in ratios) else max(ratios)
 
 
 def equal_over_seeds(geometric_mean: float, worst: float) -> bool:
