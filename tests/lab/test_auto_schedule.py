@@ -76,7 +76,16 @@ def test_defaults_report(tmp_path, capsys):
 
     start = PRDP.for_problem(probe(build_scene(load_scene(HEAT1D), "quick", 0))).k_init
     run = json.loads((tmp_path / "seed_0" / "default" / "results.json").read_text())
-    assert run["epochs"][0]["k"] == start
+    assert run["epochs"][0]["k"] == start == row["start"]
+    assert str(start) in row["probe_errors"]  # what chose the start is on record
+    # every check of the run is on record, the end's certificate last, and printed
+    checks = run["checks"]
+    assert checks and checks == row["default"]["checks"]
+    if run["certificate"]["k"] < row["k_full"]:  # at K_full the end compares nothing
+        assert checks[-1] == run["certificate"]
+    assert [c["k"] for c in checks] == sorted(c["k"] for c in checks)
+    line = next(x for x in format_defaults(result).splitlines() if x.startswith("seed 0 default"))
+    assert f"started at K={start}" in line and line.count("gap") == len(checks)
 
 
 def test_a_check_never_trains_a_scene_whose_loss_steps_its_optimiser():
@@ -125,6 +134,11 @@ def test_defaults_baselines_name_the_best_constant_cap_at_equal_accuracy(tmp_pat
     fits = [b for b in caps if result[b]["equal_over_seeds"]]
     assert result["best_constant"] == max(fits, key=lambda b: result[b]["saved"], default=None)
     assert "best constant cap at equal accuracy" in format_defaults(result) or not fits
+    # beside each cap, the probe's error of the solve capped there (the default's start)
+    printed = format_defaults(result)
+    for label, cap in caps.items():
+        line = next(x for x in printed.splitlines() if x.strip().startswith(label))
+        assert line.rstrip().endswith(f"{100 * row['probe_errors'][str(cap)]:.1f} %")
 
 
 def test_defaults_resume_reads_finished_runs_and_trains_the_missing_ones(tmp_path):

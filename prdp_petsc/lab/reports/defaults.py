@@ -52,7 +52,8 @@ def defaults(
         k_full, start = int(measured), PRDP.for_problem(measured).k_init
         epochs = scene.epochs
         release(scene)
-        row = {"seed": seed, "k_full": k_full}
+        row = {"seed": seed, "k_full": k_full, "start": start,
+               "probe_errors": {str(k): float(e) for k, e in sorted(measured.errors.items())}}  # fmt: skip
         runs = {"full": f"fixed:{k_full}", **SCHEDULES}
         if baselines:
             runs.update({label: f"fixed:{k}" for label, k in constant_caps(k_full).items()})
@@ -77,6 +78,8 @@ def defaults(
                 "stopped": log["stopped"],
                 "certified": (log.get("certificate") or {}).get("certified"),
             }
+            if log.get("checks") is not None:
+                row[name]["checks"] = log["checks"]
         full = row["full"]
         for name in list(runs)[1:]:
             r = row[name]
@@ -144,11 +147,39 @@ def format_defaults(result: dict, *, with_notes: bool = True) -> str:
     ]
     lines += [summary(result, name) for name in SCHEDULES]
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
+    lines += check_lines(result)
     if "baselines" in result:
         lines += ["", baselines_table(result)]
     if with_notes:
         lines += notes(result)
     return "\n".join(lines)
+
+
+def check_lines(result: dict) -> list[str]:
+    """Per seed, what the default construction decided from: its start and the probe's
+    error of the solve capped there, then every check (K against its reference, the gap
+    and the descent, ✓ certified or ✗ not).  Empty for a result without them (recorded
+    before they were kept)."""
+    lines = []
+    for row in result["per_seed"]:
+        errors = row.get("probe_errors")
+        checks = row["default"].get("checks")
+        if errors is None and checks is None:
+            continue
+        parts = []
+        if errors is not None:
+            error = errors.get(str(row["start"]))
+            within = "" if error is None else f" (the probe's solve there: {100 * error:.1f} % off)"
+            parts.append(f"started at K={row['start']}{within}")
+        for c in checks or []:
+            descent = "" if c.get("descent") is None else f", descent {100 * c['descent']:.1f} %"
+            mark = "✓" if c["certified"] else "✗"
+            parts.append(
+                f"epoch {c['epoch']}: K={c['k']} vs {c['reference'] or c['k_full']} "
+                f"gap {100 * c['gap']:.2f} %{descent} {mark}"
+            )
+        lines.append(f"seed {row['seed']} default: " + "; ".join(parts))
+    return lines
 
 
 def baselines_table(result: dict) -> str:
@@ -159,19 +190,35 @@ def baselines_table(result: dict) -> str:
     for name in _compared(result):
         s = result.get(name)
         if s is None:
-            rows.append([name, "no seed finished", "", "", ""])
+            rows.append([name, "no seed finished", "", "", "", ""])
             continue
         equal = "yes" if s["equal_over_seeds"] else "no"
         rows.append([name, f"{s['ratio']['geometric_mean']:.3f}", f"{s['worst_ratio']:.3f}",
-                     f"{100 * s['saved']:.1f}%", equal])  # fmt: skip
+                     f"{100 * s['saved']:.1f}%", equal, _probe_errors(result, name)])  # fmt: skip
     best = result.get("best_constant")
     verdict = (
         f"best constant cap at equal accuracy: {best}, {fewer(result[best]['saved'])}"
         if best
         else "no constant cap below K_full reaches equal accuracy over the seeds"
     )
-    header = ["schedule", "ratio (geo. mean)", "worst seed", "saved", "equal accuracy"]
+    header = ["schedule", "ratio (geo. mean)", "worst seed", "saved", "equal accuracy",
+              "probe's solve error per seed"]  # fmt: skip
     return "\n".join([text_table(header, rows), verdict])
+
+
+def _probe_errors(result: dict, name: str) -> str:
+    """For a constant cap, the error of the probe's solve capped there on each seed
+    (what `PRDP.for_problem` starts from), e.g. ``"2.9, 3.0, 7.5 %"``; else empty."""
+    if name not in result.get("baselines", []):
+        return ""
+    errors = []
+    for row in result["per_seed"]:
+        cap = constant_caps(row["k_full"])[name]
+        error = (row.get("probe_errors") or {}).get(str(cap))
+        if error is None:
+            return ""
+        errors.append(f"{100 * error:.1f}")
+    return ", ".join(errors) + " %"
 
 
 def summary(result: dict, name: str, *, detail: bool = True) -> str:

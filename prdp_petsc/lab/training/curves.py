@@ -3,7 +3,8 @@
 
 Per epoch (the step): ``loss/train``, ``metric/validation``, ``solver/K`` (and
 ``solver/rtol``), ``solver/inner_iterations`` and ``time/wall`` since the run began,
-and, for a controller's checks, ``prdp/check_gap`` and ``prdp/check_iterations``.  The
+and, for a controller's checks, ``prdp/check_gap``, ``prdp/check_descent`` and
+``prdp/check_iterations``.  The
 scene, preset, schedule, route and seeds are the run's hparams.  A resumed run purges
 the steps from its checkpoint on.
 """
@@ -62,6 +63,9 @@ class Curves:
             gap = controller.history[-1].gap
             if gap is not None:
                 scalars["prdp/check_gap"] = gap
+                descent = controller.checks[-1].descent
+                if descent is not None:
+                    scalars["prdp/check_descent"] = descent
             costs = [c.cost for c in controller.checks if c.cost is not None]
             if costs:
                 scalars["prdp/check_iterations"] = sum(costs)

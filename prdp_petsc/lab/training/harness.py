@@ -140,7 +140,9 @@ def run(
         ``val_metric``, ``wall_time``, ``fwd_iterations``, ``adj_iterations``, ...),
         ``totals``, ``config``, ``solvers``, ``provenance``, ``stopped`` (None, or the
         ``epoch``, ``reason`` and ``message`` of a solver outcome or Ctrl-C),
-        ``finished``, ``checkpoint`` and, for scenes that define them, ``rollout`` and
+        ``finished``, ``checkpoint``, for the ``auto`` schedule ``certificate`` (the
+        end's) and ``checks`` (every check of the run: `prdp_petsc.Certificate`'s
+        fields and ``certified``) and, for scenes that define them, ``rollout`` and
         ``uncorrected_rollout``.
 
     Raises
@@ -334,6 +336,9 @@ def _train(
                 if check is not None and epoch == epochs - 1:  # the certified end
                     cert = controller.certify()
                     result["certificate"] = {**asdict(cert), "certified": cert.certified}
+                    result["checks"] = [
+                        {**asdict(c), "certified": c.certified} for c in controller.checks
+                    ]
                     logger.info("%s %s: %s", result["scene"], result["schedule"], cert.describe())
             except (SolverError, InputError) as err:  # outcomes, not bugs (prdp_petsc.errors)
                 logger.error("epoch %d: %s", epoch, err)
