@@ -18,6 +18,7 @@ The check is given once, at construction; `PRDP.update` takes the metric only.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import operator
@@ -49,7 +50,7 @@ START_FRACTION = 1 / 8
 #: the converged one (K_full if none is): training through a solve that is further off
 #: can take the model where no later refinement brings it back
 START_ERROR = 0.2
-#: ... and every refinement multiplies K by this factor (capped at K_full)
+#: ... and every refinement takes K one level up, the levels K_full / GROWTH^j
 GROWTH = 2.0
 #: a certified K is checked again once it has run this many times the epochs it had run at
 #: its last check, or ``tol / gap`` times where that is more (a gap far inside the band)
@@ -305,7 +306,11 @@ class PRDP:
        r_c < tau_stop or r_c > tau_worse refine, otherwise the last refinement bought
        less than 1 - tau_stop and ``refining`` becomes False.
 
-    Refining sets K <- min(max(K + k_step, ceil(growth K)), k_max).
+    Refining sets K <- min(max(K + k_step, L), k_max), where L = ceil(growth K), or,
+    with `k_full` and ``growth > 1``, the next level ``ceil(k_full / growth^j)`` above K:
+    the levels are fractions of K_full (K_full/8, /4, /2 from the default start), so the
+    rounding up of a small start does not compound (K_full = 10 steps 2, 3, 5, 10, not
+    2, 4, 8, 10).
 
     Parameters
     ----------
@@ -478,8 +483,9 @@ class PRDP:
     ) -> PRDP:  # fmt: skip
         """The controller for a new problem, from its K_full alone.
 
-        K starts at ``ceil(k_full / 8)`` (`START_FRACTION`) and doubles at every
-        refinement (`GROWTH`) up to `k_full`: one decade of residual reduction at the
+        K starts at ``ceil(k_full / 8)`` (`START_FRACTION`) and every refinement moves
+        it up one level, ``ceil(k_full / 4)``, ``ceil(k_full / 2)``, `k_full` (`GROWTH`;
+        `next_k`): one decade of residual reduction at the
         start for a solve that needs eight to converge, and at most four levels
         (1/8, 1/4, 1/2, 1 of K_full) whatever the size of K_full, so that the
         refinement tests run often enough at every scale.  Where `k_full` comes from
@@ -559,9 +565,19 @@ class PRDP:
         return None
 
     def next_k(self, k: int | None = None) -> int:
-        """K after one refinement from `k` (default: the current K)."""
+        """K after one refinement from `k` (default: the current K): with `k_full` and
+        ``growth > 1`` the level ``ceil(k_full / growth^j)`` just above `k`, else
+        ``ceil(growth k)``; at least ``k + k_step``, at most `k_max`."""
         k = self._k if k is None else operator.index(k)
-        following = max(k + self.k_step, math.ceil(k * self.growth - 1e-9))
+        following = math.ceil(k * self.growth - 1e-9)
+        if self.k_full is not None and self.growth > 1 and k < self.k_full:
+            levels = (math.ceil(self.k_full / self.growth**j - 1e-9) for j in itertools.count())
+            following = self.k_full
+            for level in levels:  # falling from k_full to 1: stop at the first not above k
+                if level <= k:
+                    break
+                following = level
+        following = max(k + self.k_step, following)
         return following if self.k_max is None else min(following, self.k_max)
 
     def update(self, metric) -> int:

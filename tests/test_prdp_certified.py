@@ -375,7 +375,27 @@ def test_the_start_is_the_first_level_where_the_probe_solve_is_close():
     assert pp.PRDP.for_problem(KFull(90, {12: 0.9, 23: 0.7, 45: 0.3})).k_init == 90
     assert pp.PRDP.for_problem(KFull(90, {12: 0.42}), k_init=5).k_init == 5  # overrides win
     ctrl = pp.PRDP.for_problem(KFull(90, {12: 0.42, 23: 0.11, 45: 0.006}))
-    assert (ctrl.next_k(), ctrl.next_k(46), ctrl.k_full) == (46, 90, 90)
+    assert (ctrl.next_k(), ctrl.next_k(46), ctrl.k_full) == (45, 90, 90)
+
+
+@pytest.mark.parametrize("k_full", [8, 10, 20, 43, 90, 188, 467])
+def test_the_default_refines_through_the_probed_levels(k_full):
+    # K_full/8, /4, /2 rounded up, then K_full: the caps whose errors the probe measured
+    # and the constant caps the lab compares with, not doublings of a rounded-up start
+    from prdp_petsc.core.probe import PROBED_FRACTIONS
+
+    ctrl = pp.PRDP.for_problem(k_full)
+    levels = [ctrl.k]
+    while levels[-1] < k_full:
+        levels.append(ctrl.next_k(levels[-1]))
+    probed = sorted({max(1, math.ceil(f * k_full)) for f in PROBED_FRACTIONS} | {k_full})
+    assert levels == probed
+
+
+def test_without_k_full_or_growth_refinement_is_unchanged():
+    assert pp.PRDP(k_init=3, growth=2.0).next_k() == 6  # no K_full: doubles
+    assert pp.PRDP(k_init=3, k_step=2, k_full=10).next_k() == 5  # growth 1: additive steps
+    assert pp.PRDP(k_init=3, growth=2.0, k_full=10).next_k() == 5  # the level 10 / 2
 
 
 def test_a_gap_within_half_the_band_waits_for_the_budget():
