@@ -86,3 +86,9 @@ def test_baselines_put_the_default_beside_the_hand_schedule_and_constant_caps():
         assert b["best_constant"] in fits
         assert all(b[b["best_constant"]]["saved"][0] >= b[lab]["saved"][0] for lab in fits)
     assert "hand schedule" in unseen.table(result)
+    # beside each constant cap, the probe's error of the solve capped there
+    for label, k in constant_caps(run["k_full"]).items():
+        error = run["probe_errors"][str(k)]
+        assert f"{label}: " in unseen.table(result)
+        assert f"[{100 * error:.1f} %]" in unseen.table(result)
+    assert all("descent" in c for c in run["prdp"]["checks"])

@@ -67,7 +67,7 @@ def train(problem: Problem, schedule: str, k_full: int) -> dict:
         record["savings_k"] = controller.savings()
         record["checks"] = [
             {"epoch": c.epoch, "k": c.k, "against": c.against, "gap": c.gap,
-             "certified": c.certified}
+             "descent": c.descent, "certified": c.certified}
             for c in controller.checks
         ]  # fmt: skip
         record["check_iterations"] = controller.check.spent()[0]
@@ -96,6 +96,7 @@ def compare(names, seeds, *, quick: bool = False, baselines: bool = False) -> di
             full = train(problem, "full", k_full)
             prdp = train(build(name, seed, quick), "prdp", k_full)
             run = {"seed": seed, "k_full": k_full, "full": full, "prdp": prdp,
+                   "probe_errors": {str(k): e for k, e in sorted(k_full.errors.items())},
                    **_against(full, prdp)}  # fmt: skip
             if baselines:
                 schedules = ["hand", *(f"fixed:{k}" for k in constant_caps(k_full).values())]
@@ -191,12 +192,24 @@ def _baseline_table(result: dict) -> str:
         best = b["best_constant"]
         constants = [lab for lab in b if lab not in ("hand", "best_constant")]
         best_cell = "none" if best is None else f"{best}: {saved(b[best])}"
-        every = "; ".join(f"{lab}: {cell(b[lab])}" for lab in constants)
+        every = "; ".join(f"{lab}: {cell(b[lab])}{_probed(p, lab)}" for lab in constants)
         rows.append((f"`{name}`", cell(p), cell(b["hand"]), best_cell, every))
     header = ["problem", "default: ratio, saved", "hand schedule: ratio, saved",
               "best constant K at equal accuracy: saved",
-              "every constant K: ratio, saved"]  # fmt: skip
+              "every constant K: ratio, saved [the probe's solve error there per seed]"]  # fmt: skip
     return markdown_table(header, rows)
+
+
+def _probed(problem: dict, label: str) -> str:
+    """`` [e0, e1, e2 %]``: per seed, the probe's error of the solve capped at the
+    constant cap `label` (what the default's start reads); empty where not recorded."""
+    errors = []
+    for run in problem["runs"]:
+        error = (run.get("probe_errors") or {}).get(str(constant_caps(run["k_full"])[label]))
+        if error is None:
+            return ""
+        errors.append(f"{100 * error:.1f}")
+    return f" [{', '.join(errors)} %]"
 
 
 def _parser():
