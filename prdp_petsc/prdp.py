@@ -30,6 +30,7 @@ import numpy as np
 __all__ = [
     "ACCURACY_BAND",
     "Certificate",
+    "DESCENT",
     "PAPER",
     "PRDP",
     "PRDPStep",
@@ -43,6 +44,10 @@ logger = logging.getLogger(__name__)
 
 #: relative accuracy that counts as "as accurate as full fidelity" (0.05: within 5 %)
 ACCURACY_BAND = 0.05
+#: a check certifies K only where a step along the gradient at K makes at least this
+#: share of the reference gradient's first-order descent (`Certificate.descent`): below
+#: it training at K stalls where full fidelity still moves
+DESCENT = 0.5
 #: `PRDP.for_problem`: the first K is this fraction of K_full (rounded up) ...
 START_FRACTION = 1 / 8
 #: ... or, where the probe measured the capped solve's error (`find_k_full`'s
@@ -125,12 +130,15 @@ class Certificate:
     descent : float, optional
         ``⟨check(k), check(reference)⟩ / ‖check(reference)‖²`` for array checks: the share
         of the reference gradient's descent that a step along the gradient at K makes.
-        Certified needs it ≥ ``1 − tol`` as well: a solve error that only adds a small
-        bias beside the reference gradient passes, but a gradient at K that misses
-        the reference one (training at K has stalled where full fidelity still
+        Certified needs it ≥ `DESCENT` (1/2) as well: a solve error that only adds a
+        small bias beside the reference gradient passes, but a gradient at K that
+        misses the reference one (training at K has stalled where full fidelity still
         moves, the gradient at K near zero at the optimum of the capped problem)
-        does not, however small the reference gradient has become.  None for a
-        number.
+        does not, however small the reference gradient has become.  The descent is
+        relative to the current reference gradient, so late in training, as that
+        gradient shrinks, a bias far inside the band moves it: the test asks for a
+        stall, not for the band (poisson_inverse's K_full/2 at its optimum: 0.0 %;
+        heat1d's harmless K_full/2 late in training: 86–106 %).  None for a number.
     """
 
     k: int
@@ -152,8 +160,8 @@ class Certificate:
 
     @property
     def certified(self) -> bool:
-        """``gap ≤ tol`` and ``descent ≥ 1 − tol`` (never for a NaN gap)."""
-        descends = self.descent is None or self.descent >= 1.0 - self.tol
+        """``gap ≤ tol`` and ``descent ≥ DESCENT`` (never for a NaN gap)."""
+        descends = self.descent is None or self.descent >= DESCENT
         return bool(self.gap <= self.tol and descends)
 
     def describe(self) -> str:

@@ -453,6 +453,25 @@ def test_a_plateau_at_a_certified_k_is_checked_as_soon_as_the_run_can_afford_it(
     assert ctrl.k == 64 and metered.checks <= CHECK_BUDGET * metered.total
 
 
+@pytest.mark.parametrize(("descent", "certified"), [(0.86, True), (0.5, True), (0.3, False), (0.0, False)])
+def test_a_check_asks_for_a_stall_not_for_the_band_of_the_descent(descent, certified):
+    # late in training the reference gradient has shrunk to 2 % of the largest at K, so
+    # any gradient at K along it is inside the band; the descent <g_K, g_ref> / |g_ref|^2
+    # certifies down to DESCENT (a slower step), not below (training at K stalls)
+    from prdp_petsc.prdp import DESCENT
+
+    at = {8: np.array([1.0, 0.5]), 16: np.array([1.0, 0.5])}
+    ctrl = pp.PRDP(k_init=8, growth=2.0, k_full=16, check=lambda k: at[k])
+    for _ in range(4):
+        ctrl.update(1.0)
+    assert ctrl.checks[0].certified and ctrl.k == 8  # the largest gradient at K: the scale
+    at[16] = np.array([0.02, 0.0])
+    at[8] = descent * at[16]
+    cert = ctrl.certify()
+    assert cert.descent == pytest.approx(descent) and cert.gap <= 0.02
+    assert cert.certified is certified and (descent >= DESCENT) is certified
+
+
 def test_epochs_must_be_a_positive_count():
     with pytest.raises(ValueError, match="epochs must be >= 1"):
         pp.PRDP.for_problem(64, epochs=0)

@@ -158,7 +158,8 @@ def format_defaults(result: dict, *, with_notes: bool = True) -> str:
 def check_lines(result: dict) -> list[str]:
     """Per seed, what the default construction decided from: its start and the probe's
     error of the solve capped there, then every check (K against its reference, the gap
-    and the descent, ✓ certified or ✗ not).  Empty for a result without them (recorded
+    and the descent, ✓ certified or ✗ not, and whether a certified K was refined all
+    the same: a gap near the band that no recheck could follow).  Empty for a result without them (recorded
     before they were kept)."""
     lines = []
     for row in result["per_seed"]:
@@ -171,9 +172,13 @@ def check_lines(result: dict) -> list[str]:
             error = errors.get(str(row["start"]))
             within = "" if error is None else f" (the probe's solve there: {100 * error:.1f} % off)"
             parts.append(f"started at K={row['start']}{within}")
-        for c in checks or []:
+        checks = checks or []
+        for i, c in enumerate(checks):
             descent = "" if c.get("descent") is None else f", descent {100 * c['descent']:.1f} %"
+            after = checks[i + 1]["k"] if i + 1 < len(checks) else row["default"]["k_final"]
             mark = "✓" if c["certified"] else "✗"
+            if c["certified"] and after > c["k"]:  # PRDP's near-band rule
+                mark += " (near the band, no recheck affordable: refined)"
             parts.append(
                 f"epoch {c['epoch']}: K={c['k']} vs {c['reference'] or c['k_full']} "
                 f"gap {100 * c['gap']:.2f} %{descent} {mark}"
