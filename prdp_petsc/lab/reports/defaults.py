@@ -124,9 +124,10 @@ def _compared(result: dict) -> list[str]:
     return [*SCHEDULES, *result.get("baselines", [])]
 
 
-def format_defaults(result: dict, *, with_notes: bool = True) -> str:
-    """The table ``prdp-petsc defaults`` prints: one row per seed, the summary, and
-    (`with_notes`) what the rows mean (`notes`)."""
+def format_defaults(result: dict, *, with_notes: bool = True, with_checks: bool = True) -> str:
+    """The table ``prdp-petsc defaults`` prints: one row per seed, the summary,
+    (`with_checks`) what the default decided from (`check_lines`) and (`with_notes`)
+    what the rows mean (`notes`)."""
     header = ["seed", "K_full", "full error"]
     header += [f"{name} {column}" for name in SCHEDULES for column in ("ratio", "saved", "K")]
     rows = []
@@ -147,7 +148,8 @@ def format_defaults(result: dict, *, with_notes: bool = True) -> str:
     ]
     lines += [summary(result, name) for name in SCHEDULES]
     lines.append("(c: the default construction's last check certified its final K; !: it did not)")
-    lines += check_lines(result)
+    if with_checks:
+        lines += check_lines(result)
     if "baselines" in result:
         lines += ["", baselines_table(result)]
     if with_notes:
@@ -353,6 +355,15 @@ KIND = ReportKind(
     "with `--baselines`, the constant caps K_full/8, /4, /2. Ratios are final validation "
     "errors over full fidelity's; savings count forward and adjoint inner iterations, the "
     "checks included.",
-    output=lambda ds: format_defaults(ds.main, with_notes=False),
-    after=lambda ds: notes(ds.main),
+    output=lambda ds: format_defaults(ds.main, with_notes=False, with_checks=False),
+    after=lambda ds: [*notes(ds.main), *_decided(ds.main)],
 )
+
+
+def _decided(result: dict) -> list[str]:
+    """The page's `check_lines`: a heading and one list item per seed (none where the
+    result has none)."""
+    lines = check_lines(result)
+    if not lines:
+        return []
+    return ["## What the default decided from", "\n".join(f"- {line}" for line in lines)]
