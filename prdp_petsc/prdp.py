@@ -791,18 +791,20 @@ class PRDP:
         return cert
 
     def savings(
-        self, k_full=None, *, costs=None, cost_full=None, check_weight: float = 1.0
+        self, k_full=None, *, costs=None, cost_full=None, check_weight: float | None = None
     ) -> dict:
         """What the run saved against a constant-`k_full` run of the same length,
         every solve it caused counted, with the accuracy status.
 
-        Without `costs`, an epoch at K costs K, and the checks are counted too: a
-        check at cap k costs ``check_weight * k``, as an epoch at k does when the
-        check's gradient is as large a computation as one epoch's (exact in an
-        optimisation loop, one gradient per epoch; an over-count when the check's
-        batch is smaller than an epoch's data: then pass ``check_weight`` = its share,
-        or measured `costs`).  ``total = 1 − (Σ K_t + checks) / (T K_full)``,
-        ``ic = 1 − K_final / K_full``, ``pr = total − ic``.
+        Without `costs`, an epoch at K costs K, and the checks are counted too: where
+        the check measures itself (``check.spent()``, as `prdp_petsc.gradient_check`
+        does, and every `Certificate.cost`), a check costs what it measured, in units
+        of what an epoch cost per unit of K so far (``(total − checks) / Σ K_t`` of
+        ``spent()``), so `check_share` is the measured share; otherwise a check at cap
+        k costs ``check_weight * k`` (``check_weight`` 1 by default: as an epoch at k
+        does when the check's gradient is as large a computation as one epoch's, an
+        over-count when its batch is smaller).  ``total = 1 − (Σ K_t + checks) /
+        (T K_full)``, ``ic = 1 − K_final / K_full``, ``pr = total − ic``.
 
         Parameters
         ----------
@@ -812,8 +814,9 @@ class PRDP:
             Measured per-epoch costs (inner iterations or seconds) **with the checks'
             solves included**, and the baseline's (see :func:`savings`); replaces the
             count by K.
-        check_weight : float
-            A check's cost relative to one epoch at the same cap (>= 0).
+        check_weight : float, optional
+            A check's cost relative to one epoch at the same cap (>= 0), instead of
+            what the check measured (default: measured where it can be, else 1).
 
         Returns
         -------
@@ -825,7 +828,7 @@ class PRDP:
             nothing about accuracy), ``gap`` (that check's fidelity gap or None) and
             ``checks`` (how many checks ran).
         """
-        if not (math.isfinite(check_weight) and check_weight >= 0):
+        if check_weight is not None and not (math.isfinite(check_weight) and check_weight >= 0):
             raise ValueError(f"check_weight must be finite and >= 0, got {check_weight}")
         if not self._history:
             raise ValueError("no epochs recorded yet: call update(metric) after each epoch")
@@ -836,8 +839,8 @@ class PRDP:
             if base is None:
                 raise ValueError("give k_full (no k_full was set at construction)")
             spent = [float(k) for k in ks]
-            for c in self._checks:  # a check at the end counts in the last epoch
-                spent[min(c.epoch, len(spent) - 1)] += check_weight * (c.k + c.against)
+            for c, units in zip(self._checks, self._check_units(check_weight), strict=True):
+                spent[min(c.epoch, len(spent) - 1)] += units  # the end's: in the last epoch
             checked = sum(spent) - sum(ks)
             out = savings(costs=spent, cost_full=base)
             out["ic"] = 1.0 - ks[-1] / float(base)
@@ -857,6 +860,18 @@ class PRDP:
             **out, "check_share": share, "certified": certified, "gap": gap,
             "checks": len(self._checks),
         }  # fmt: skip
+
+    def _check_units(self, check_weight: float | None) -> list[float]:
+        """Each check's cost in units of K (`savings`): measured, or ``check_weight``
+        times ``k + against``."""
+        measured = _spent(self.check) if check_weight is None else None
+        if measured is not None and all(c.cost is not None for c in self._checks):
+            checks, total = measured
+            per_k = (total - checks) / sum(s.k for s in self._history)
+            if per_k > 0:
+                return [c.cost / per_k for c in self._checks]
+        weight = 1.0 if check_weight is None else check_weight
+        return [weight * (c.k + c.against) for c in self._checks]
 
     def state_dict(self) -> dict:
         """Mutable state as plain (JSON-serialisable) Python objects; settings excluded."""

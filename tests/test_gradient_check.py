@@ -101,7 +101,8 @@ def test_gradient_check_refuses_what_cannot_be_a_check(problem):
 
 def test_a_prdp_loop_with_the_shipped_check_counts_every_solve(problem):
     """An optimisation loop (one gradient per epoch): the savings `PRDP.savings` reports
-    equal the solver's own count of every forward and adjoint iteration."""
+    equal the solver's own count of every forward and adjoint iteration, the checks'
+    and the metric's included."""
     A, b, solver = problem
     theta = torch.zeros(A.n_params, dtype=torch.float64, requires_grad=True)
     with torch.no_grad():
@@ -126,11 +127,18 @@ def test_a_prdp_loop_with_the_shipped_check_counts_every_solve(problem):
             prdp.update(float(loss()))  # the metric's forward solve is not a training cost
     stats = solver.stats
     spent = stats.forward_iterations + stats.adjoint_iterations
-    metric_solves = sum(s.k for s in prdp.history)  # forward only, one per update
-    per_epoch_full = 2 * k_full  # one forward and one adjoint solve at K_full
-    measured = 1 - (spent - metric_solves) / (epochs * per_epoch_full)
+    # an epoch at K_full: one forward and one adjoint solve, and the metric's forward solve
+    per_epoch_full = 3 * k_full
+    measured = 1 - spent / (epochs * per_epoch_full)
     assert prdp.checks  # checks ran and are in `spent`
-    assert prdp.savings()["total"] == pytest.approx(measured, abs=1e-12)
+    s = prdp.savings()  # the checks as they measured themselves
+    assert s["total"] == pytest.approx(measured, abs=1e-12)
+    checks_spent = sum(c.cost for c in prdp.checks)
+    assert s["check_share"] == pytest.approx(checks_spent / spent, abs=1e-12)
+    # told a check costs as an epoch at its cap, and not counting the metric's solve
+    metric_solves = sum(st.k for st in prdp.history)  # forward only, one per update
+    counted = 1 - (spent - metric_solves) / (epochs * 2 * k_full)
+    assert prdp.savings(check_weight=1.0)["total"] == pytest.approx(counted, abs=1e-12)
     checks, total = prdp.check.spent()  # what the controller's budget reads
     assert total == spent and checks == sum(2 * (c.k + c.against) for c in prdp.checks)
     assert all(c.cost == 2 * (c.k + c.against) for c in prdp.checks)
