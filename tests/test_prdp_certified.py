@@ -453,7 +453,9 @@ def test_a_plateau_at_a_certified_k_is_checked_as_soon_as_the_run_can_afford_it(
     assert ctrl.k == 64 and metered.checks <= CHECK_BUDGET * metered.total
 
 
-@pytest.mark.parametrize(("descent", "certified"), [(0.86, True), (0.5, True), (0.3, False), (0.0, False)])
+@pytest.mark.parametrize(
+    ("descent", "certified"), [(0.86, True), (0.5, True), (0.3, False), (0.0, False)]
+)
 def test_a_check_asks_for_a_stall_not_for_the_band_of_the_descent(descent, certified):
     # late in training the reference gradient has shrunk to 2 % of the largest at K, so
     # any gradient at K along it is inside the band; the descent <g_K, g_ref> / |g_ref|^2

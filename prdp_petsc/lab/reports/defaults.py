@@ -52,8 +52,8 @@ def defaults(
         k_full, start = int(measured), PRDP.for_problem(measured).k_init
         epochs = scene.epochs
         release(scene)
-        row = {"seed": seed, "k_full": k_full, "start": start,
-               "probe_errors": {str(k): float(e) for k, e in sorted(measured.errors.items())}}  # fmt: skip
+        errors = {str(k): float(e) for k, e in sorted(measured.errors.items())}
+        row = {"seed": seed, "k_full": k_full, "start": start, "probe_errors": errors}
         runs = {"full": f"fixed:{k_full}", **SCHEDULES}
         if baselines:
             runs.update({label: f"fixed:{k}" for label, k in constant_caps(k_full).items()})
@@ -161,8 +161,8 @@ def check_lines(result: dict) -> list[str]:
     """Per seed, what the default construction decided from: its start and the probe's
     error of the solve capped there, then every check (K against its reference, the gap
     and the descent, ✓ certified or ✗ not, and whether a certified K was refined all
-    the same: a gap near the band that no recheck could follow).  Empty for a result without them (recorded
-    before they were kept)."""
+    the same: a gap near the band that no recheck could follow).  Empty for a result
+    without them (recorded before they were kept)."""
     lines = []
     for row in result["per_seed"]:
         errors = row.get("probe_errors")

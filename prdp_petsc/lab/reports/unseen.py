@@ -196,7 +196,8 @@ def _baseline_table(result: dict) -> str:
         rows.append((f"`{name}`", cell(p), cell(b["hand"]), best_cell, every))
     header = ["problem", "default: ratio, saved", "hand schedule: ratio, saved",
               "best constant K at equal accuracy: saved",
-              "every constant K: ratio, saved [the probe's solve error there per seed]"]  # fmt: skip
+              "every constant K: ratio, saved [the probe's solve error there, per seed]",
+              ]  # fmt: skip
     return markdown_table(header, rows)
 
 
@@ -260,8 +261,8 @@ def _intro(ds: DataSet) -> str:
         f"{len(names)} problems written for this page{held}, none of them a shipped scene, "
         "each in a "
         "plain torch loop with `PRDP.for_problem(find_k_full(...))` and a check (the "
-        "validation gradient through the solve at K against the next level 2K, against "
-        "K_full from K_full/2 on and at the end); see "
+        "validation gradient through the solve at K against the next level, K_full/4 from "
+        "K_full/8 and so on, against K_full from K_full/2 on and at the end); see "
         "`prdp_petsc.lab.reports.unseen_problems` for the problems. Error ratio: PRDP's final "
         "error over full fidelity's (constant K_full), same seed, same data and initial "
         "weights. Iterations saved: forward and adjoint inner iterations of every solve, the "
