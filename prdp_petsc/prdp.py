@@ -863,9 +863,16 @@ class PRDP:
 
     def _check_units(self, check_weight: float | None) -> list[float]:
         """Each check's cost in units of K (`savings`): measured, or ``check_weight``
-        times ``k + against``."""
+        times ``k + against``.  Measured only where the check's own count holds every
+        check the controller made (not, say, after `load_state_dict` with a new check,
+        whose ``spent()`` starts again: its epochs so far would be missing)."""
         measured = _spent(self.check) if check_weight is None else None
-        if measured is not None and all(c.cost is not None for c in self._checks):
+        costs = [c.cost for c in self._checks]
+        if (
+            measured is not None
+            and None not in costs
+            and math.isclose(measured[0], sum(costs), rel_tol=1e-9, abs_tol=1e-9)
+        ):
             checks, total = measured
             per_k = (total - checks) / sum(s.k for s in self._history)
             if per_k > 0:

@@ -474,6 +474,33 @@ def test_a_check_asks_for_a_stall_not_for_the_band_of_the_descent(descent, certi
     assert cert.certified is certified and (descent >= DESCENT) is certified
 
 
+def test_savings_count_the_checks_as_measured_unless_the_count_misses_some():
+    # epochs of 3 batches: a check at K (k + against units, as Metered counts it) costs a
+    # third of an epoch's units per unit of K, so measured it weighs 1/3 of the old count
+    check = Metered(gap_check(rho=0.6), batches=3)
+    ctrl = pp.PRDP.for_problem(64, check=check)
+    for _ in range(40):
+        check.epoch(ctrl.k)
+        ctrl.update(1.0)
+    ks = [s.k for s in ctrl.history]
+    units = sum(c.k + c.against for c in ctrl.checks)
+    assert ctrl.checks and check.checks == units
+    measured = ctrl.savings()
+    assert measured["total"] == pytest.approx(1 - (sum(ks) + units / 3) / (40 * 64))
+    assert measured["check_share"] == pytest.approx(check.checks / check.total)
+    counted = ctrl.savings(check_weight=1.0)
+    assert counted["total"] == pytest.approx(1 - (sum(ks) + units) / (40 * 64))
+    # resumed with a new check, whose count starts again: the old count, not a wrong ratio
+    fresh = Metered(gap_check(rho=0.6), batches=3)
+    clone = pp.PRDP.for_problem(64, check=fresh)
+    clone.load_state_dict(ctrl.state_dict())
+    for _ in range(5):
+        fresh.epoch(clone.k)
+        clone.update(1.0)
+    assert fresh.total > 0 and fresh.checks < sum(c.cost for c in clone.checks)
+    assert clone.savings()["total"] == pytest.approx(clone.savings(check_weight=1.0)["total"])
+
+
 def test_epochs_must_be_a_positive_count():
     with pytest.raises(ValueError, match="epochs must be >= 1"):
         pp.PRDP.for_problem(64, epochs=0)
