@@ -18,7 +18,14 @@ from pathlib import Path
 from prdp_petsc import PRDP
 
 from ..provenance import write_result
-from ..training.accuracy import ACCURACY_RATIO, constant_caps, equal_over_seeds, worst_ratio
+from ..training.accuracy import (
+    ACCURACY_RATIO,
+    constant_caps,
+    equal_over_seeds,
+    probe_errors,
+    probed_at,
+    worst_ratio,
+)
 from .kinds import DataSet, ReportKind, text_table
 
 __all__ = ["KIND", "SCHEDULES", "defaults", "fewer", "format_defaults", "main", "notes", "summary"]
@@ -52,8 +59,8 @@ def defaults(
         k_full, start = int(measured), PRDP.for_problem(measured).k_init
         epochs = scene.epochs
         release(scene)
-        errors = {str(k): float(e) for k, e in sorted(measured.errors.items())}
-        row = {"seed": seed, "k_full": k_full, "start": start, "probe_errors": errors}
+        row = {"seed": seed, "k_full": k_full, "start": start,
+               "probe_errors": probe_errors(measured)}  # fmt: skip
         runs = {"full": f"fixed:{k_full}", **SCHEDULES}
         if baselines:
             runs.update({label: f"fixed:{k}" for label, k in constant_caps(k_full).items()})
@@ -216,16 +223,8 @@ def baselines_table(result: dict) -> str:
 def _probe_errors(result: dict, name: str) -> str:
     """For a constant cap, the error of the probe's solve capped there on each seed
     (what `PRDP.for_problem` starts from), e.g. ``"2.9, 3.0, 7.5 %"``; else empty."""
-    if name not in result.get("baselines", []):
-        return ""
-    errors = []
-    for row in result["per_seed"]:
-        cap = constant_caps(row["k_full"])[name]
-        error = (row.get("probe_errors") or {}).get(str(cap))
-        if error is None:
-            return ""
-        errors.append(f"{100 * error:.1f}")
-    return ", ".join(errors) + " %"
+    errors = probed_at(result["per_seed"], name) if name in result.get("baselines", []) else None
+    return "" if errors is None else ", ".join(f"{100 * e:.1f}" for e in errors) + " %"
 
 
 def summary(result: dict, name: str, *, detail: bool = True) -> str:

@@ -21,6 +21,8 @@ from ..training.accuracy import (
     constant_caps,
     equal_over_seeds,
     fraction_of,
+    probe_errors,
+    probed_at,
     worst_ratio,
 )
 from .kinds import DataSet, ReportKind, markdown_table, percent
@@ -96,7 +98,7 @@ def compare(names, seeds, *, quick: bool = False, baselines: bool = False) -> di
             full = train(problem, "full", k_full)
             prdp = train(build(name, seed, quick), "prdp", k_full)
             run = {"seed": seed, "k_full": k_full, "full": full, "prdp": prdp,
-                   "probe_errors": {str(k): e for k, e in sorted(k_full.errors.items())},
+                   "probe_errors": probe_errors(k_full),
                    **_against(full, prdp)}  # fmt: skip
             if baselines:
                 schedules = ["hand", *(f"fixed:{k}" for k in constant_caps(k_full).values())]
@@ -204,13 +206,8 @@ def _baseline_table(result: dict) -> str:
 def _probed(problem: dict, label: str) -> str:
     """`` [e0, e1, e2 %]``: per seed, the probe's error of the solve capped at the
     constant cap `label` (what the default's start reads); empty where not recorded."""
-    errors = []
-    for run in problem["runs"]:
-        error = (run.get("probe_errors") or {}).get(str(constant_caps(run["k_full"])[label]))
-        if error is None:
-            return ""
-        errors.append(f"{100 * error:.1f}")
-    return f" [{', '.join(errors)} %]"
+    errors = probed_at(problem["runs"], label)
+    return "" if errors is None else f" [{', '.join(f'{100 * e:.1f}' for e in errors)} %]"
 
 
 def _parser():

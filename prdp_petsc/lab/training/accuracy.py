@@ -8,7 +8,7 @@ from prdp_petsc.prdp import ACCURACY_BAND
 
 __all__ = ["ACCURACY_RATIO", "CONSTANT_FRACTIONS", "WORST_SEED_RATIO", "accuracy_target",
            "constant_caps", "equal_accuracy_k", "equal_over_seeds", "fraction_of",
-           "time_to_accuracy", "worst_ratio"]  # fmt: skip
+           "probe_errors", "probed_at", "time_to_accuracy", "worst_ratio"]  # fmt: skip
 
 #: Largest ratio of final validation errors (run / full fidelity) that counts as equal accuracy.
 ACCURACY_RATIO = 1.0 + ACCURACY_BAND
@@ -28,6 +28,25 @@ def constant_caps(k_full: int) -> dict[str, int]:
     """The baselines' constant caps by label: ``{"K_full/8": ..., "K_full/4": ...,
     "K_full/2": ...}`` (`CONSTANT_FRACTIONS` of `k_full`, `fraction_of`)."""
     return {f"K_full/{round(1 / f)}": fraction_of(k_full, f) for f in CONSTANT_FRACTIONS}
+
+
+def probe_errors(k_full) -> dict[str, float]:
+    """A `prdp_petsc.find_k_full` result's errors of the capped solves as a record:
+    ``{"k": error}`` (JSON keys), by cap."""
+    return {str(k): float(e) for k, e in sorted(getattr(k_full, "errors", {}).items())}
+
+
+def probed_at(rows, label: str) -> list[float] | None:
+    """Per row (a seed's record with ``k_full`` and `probe_errors`' ``probe_errors``),
+    the probe's error of the solve capped at the constant cap `label` of
+    `constant_caps`; None where any row lacks it (recorded before it was kept)."""
+    errors = []
+    for row in rows:
+        error = (row.get("probe_errors") or {}).get(str(constant_caps(row["k_full"])[label]))
+        if error is None:
+            return None
+        errors.append(error)
+    return errors
 
 
 def worst_ratio(ratios) -> float:
