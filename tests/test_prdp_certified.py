@@ -253,6 +253,12 @@ class Metered:
     def epoch(self, k):
         self.total += self.batches * k
 
+    def run(self, ctrl, epochs):
+        """`epochs` epochs of `ctrl` at its K, metered, on a flat metric."""
+        for _ in range(epochs):
+            self.epoch(ctrl.k)
+            ctrl.update(1.0)
+
     def spent(self):
         return self.checks, self.total
 
@@ -404,9 +410,7 @@ def test_a_gap_within_half_the_band_waits_for_the_budget():
     # schedule alone, tol / gap = 4.3 times the 3 epochs run, would recheck at epoch 13)
     check = Metered(gap_check(rho=0.6), batches=3)
     ctrl = pp.PRDP.for_problem(64, check=check)
-    for _ in range(60):
-        check.epoch(ctrl.k)
-        ctrl.update(1.0)
+    check.run(ctrl, 60)
     epochs = [c.epoch for c in ctrl.checks]
     assert ctrl.k == 8 and epochs[0] == 2 and len(epochs) >= 2 and min(epochs[1:]) >= 13
     # the metric is flat from the start: its first plateau at the certified K is checked
@@ -479,9 +483,7 @@ def test_savings_count_the_checks_as_measured_unless_the_count_misses_some():
     # third of an epoch's units per unit of K, so measured it weighs 1/3 of the old count
     check = Metered(gap_check(rho=0.6), batches=3)
     ctrl = pp.PRDP.for_problem(64, check=check)
-    for _ in range(40):
-        check.epoch(ctrl.k)
-        ctrl.update(1.0)
+    check.run(ctrl, 40)
     ks = [s.k for s in ctrl.history]
     units = sum(c.k + c.against for c in ctrl.checks)
     assert ctrl.checks and check.checks == units
@@ -494,9 +496,7 @@ def test_savings_count_the_checks_as_measured_unless_the_count_misses_some():
     fresh = Metered(gap_check(rho=0.6), batches=3)
     clone = pp.PRDP.for_problem(64, check=fresh)
     clone.load_state_dict(ctrl.state_dict())
-    for _ in range(5):
-        fresh.epoch(clone.k)
-        clone.update(1.0)
+    fresh.run(clone, 5)
     assert fresh.total > 0 and fresh.checks < sum(c.cost for c in clone.checks)
     assert clone.savings()["total"] == pytest.approx(clone.savings(check_weight=1.0)["total"])
 
