@@ -142,6 +142,25 @@ def test_defaults_baselines_name_the_best_constant_cap_at_equal_accuracy(tmp_pat
         assert line.rstrip().endswith(f"{100 * row['probe_errors'][str(cap)]:.1f} %")
 
 
+def test_check_lines_mark_a_certified_k_that_was_refined_all_the_same():
+    from prdp_petsc.lab.reports.defaults import check_lines
+
+    def check(epoch, k, reference, gap, certified):
+        return {"epoch": epoch, "k": k, "reference": reference, "k_full": 40, "gap": gap,
+                "descent": 1.0, "certified": certified}  # fmt: skip
+
+    near = [check(2, 5, 10, 0.3, False), check(5, 10, 20, 0.04, True), check(8, 20, 40, 0.01, True)]
+    row = {"seed": 0, "k_full": 40, "start": 5, "probe_errors": {"5": 0.12},
+           "default": {"k_final": 20, "checks": near}}  # fmt: skip
+    (line,) = check_lines({"per_seed": [row]})
+    assert line.startswith("seed 0 default: started at K=5 (the probe's solve there: 12.0 % off)")
+    parts = line.split("; ")[1:]
+    assert "✗" in parts[0] and "refined" in parts[1] and "refined" not in parts[2]
+    row["default"]["k_final"] = 40  # the last certified K refined too
+    assert check_lines({"per_seed": [row]})[0].endswith("refined)")
+    assert check_lines({"per_seed": [{"seed": 1, "default": {}}]}) == []  # nothing on record
+
+
 def test_defaults_resume_reads_finished_runs_and_trains_the_missing_ones(tmp_path):
     import shutil
 
